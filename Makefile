@@ -1,0 +1,61 @@
+# One entry point for set-up, the main job, the tests and the benchmarks.
+#   make sim    set up, then run the headless simulated calibration and write its report
+#   make test   set up, then run the tests
+#   make bench  set up, then run the benchmarks
+# Set-up is idempotent: each step leaves a stamp in .venv/ and runs again only when its inputs change.
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DEFAULT_GOAL := setup
+
+VENV := $(CURDIR)/.venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.stamp
+OUT ?= reports/sim-cell
+PYTEST_ARGS ?=
+SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
+# pip prints a warning for every package its extra local indexes do not hold; keep the log readable.
+QUIET_PIP := sed '/is ignored: it is neither a file nor a directory/d'
+
+.PHONY: setup sim test bench clean
+setup: $(STAMP)/package
+
+$(PY):
+	python3 -m venv $(VENV)
+
+$(STAMP)/apt: | $(PY)
+	mkdir -p $(STAMP)
+	dpkg -s libusb-1.0-0 >/dev/null 2>&1 || { $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libusb-1.0-0; }
+	touch $@
+
+$(STAMP)/requirements: requirements.txt $(STAMP)/apt
+	$(PY) -m pip install -q -r requirements.txt 2>&1 | $(QUIET_PIP)
+	$(PY) -m pip check >/dev/null
+	touch $@
+
+# The interface package is built with CMake from the ROS wheels and installed into the venv prefix,
+# where its Python module is importable without sourcing anything.
+$(STAMP)/msgs: $(STAMP)/requirements $(shell find msg_defs -type f)
+	rm -rf build/msg_defs
+	AMENT_PREFIX_PATH=$(VENV) CMAKE_PREFIX_PATH=$(VENV) cmake -S msg_defs -B build/msg_defs \
+	  -DCMAKE_INSTALL_PREFIX=$(VENV) -DPython3_EXECUTABLE=$(PY) -DBUILD_TESTING=OFF \
+	  -DCMAKE_BUILD_TYPE=Release > build/msg_defs.log 2>&1 || { tail -40 build/msg_defs.log; exit 1; }
+	cmake --build build/msg_defs -j2 >> build/msg_defs.log 2>&1 || { tail -40 build/msg_defs.log; exit 1; }
+	cmake --install build/msg_defs >> build/msg_defs.log 2>&1
+	cd /tmp && $(PY) -c "from gls_calibration_msgs.srv import Calibrate, CorrectSetpoints"
+	touch $@
+
+$(STAMP)/package: $(STAMP)/msgs setup.py setup.cfg package.xml
+	$(PY) -m pip install -q --no-deps --no-build-isolation -e . 2>&1 | $(QUIET_PIP)
+	touch $@
+
+sim: setup
+	$(VENV)/bin/gls-sim-cell --out $(OUT)
+
+test: setup
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+bench: setup
+	for script in benchmarks/bench_*.py; do echo "== $$script"; $(PY) $$script; done
+
+clean:
+	rm -rf build $(VENV)

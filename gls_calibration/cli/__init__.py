@@ -1,0 +1,1 @@
+"""Command-line tools: the simulated cell, the operator clients and the discrepancy workflow."""

@@ -1,0 +1,1 @@
+"""Thin rclpy nodes over the core: parameters, topics and services only."""

@@ -1,0 +1,43 @@
+"""Input validation shared by the core modules: one place for the exact error messages."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def as_finite_array(values, name: str, ndim: int | None = None, min_length: int = 1) -> np.ndarray:
+    """Return ``values`` as a float array, or raise ValueError naming ``name`` and the problem."""
+    try:
+        array = np.asarray(values, dtype=float)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{name} must be numeric: {error}") from None
+    if ndim is not None and array.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimension(s), got shape {array.shape}")
+    if array.ndim > 0 and array.shape[0] < min_length:
+        raise ValueError(f"{name} must hold at least {min_length} point(s), got {array.shape[0]}")
+    if not np.all(np.isfinite(array)):
+        bad = int(np.count_nonzero(~np.isfinite(array)))
+        raise ValueError(f"{name} contains {bad} NaN or infinite value(s)")
+    return array
+
+
+def as_points(values, name: str, dims: int, min_length: int = 1) -> np.ndarray:
+    """Return ``values`` as a finite (N, dims) float array or raise ValueError."""
+    array = as_finite_array(values, name, ndim=2, min_length=min_length)
+    if array.shape[1] != dims:
+        raise ValueError(f"{name} must have shape (N, {dims}), got {array.shape}")
+    return array
+
+
+def as_coordinate_arrays(x, y, z=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validate matching 1-D coordinate arrays (mm); an absent or empty ``z`` means the work plane."""
+    x = as_finite_array(np.atleast_1d(x), "x", ndim=1)
+    y = as_finite_array(np.atleast_1d(y), "y", ndim=1)
+    if x.shape != y.shape:
+        raise ValueError(f"x and y must have the same length, got {x.size} and {y.size}")
+    if z is None or np.size(z) == 0:
+        z = np.zeros_like(x)
+    else:
+        z = as_finite_array(np.atleast_1d(z), "z", ndim=1)
+        if z.shape != x.shape:
+            raise ValueError(f"z must be empty or have the length of x ({x.size}), got {z.size}")
+    return x, y, z
