@@ -41,3 +41,46 @@ def as_coordinate_arrays(x, y, z=None) -> tuple[np.ndarray, np.ndarray, np.ndarr
         if z.shape != x.shape:
             raise ValueError(f"z must be empty or have the length of x ({x.size}), got {z.size}")
     return x, y, z
+
+
+def as_positive_number(value, name: str) -> float:
+    """Return ``value`` as a positive finite float or raise ValueError naming ``name``."""
+    number = _as_scalar(value, name)
+    if not np.isfinite(number) or number <= 0.0:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    return number
+
+
+def as_non_negative_number(value, name: str) -> float:
+    """Return ``value`` as a non-negative finite float or raise ValueError naming ``name``."""
+    number = _as_scalar(value, name)
+    if not np.isfinite(number) or number < 0.0:
+        raise ValueError(f"{name} must be a non-negative finite number, got {value!r}")
+    return number
+
+
+def as_integer_at_least(value, name: str, minimum: int) -> int:
+    """Return ``value`` as an int >= ``minimum`` (bools and non-integral numbers refused)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def as_matching_points(first, second, first_name: str, second_name: str, dims: int,
+                       min_length: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Validate two finite (N, dims) point arrays of the same length (paired samples)."""
+    first = as_points(first, first_name, dims, min_length)
+    second = as_points(second, second_name, dims, min_length)
+    if first.shape[0] != second.shape[0]:
+        raise ValueError(f"{first_name} and {second_name} must have the same number of points, "
+                         f"got {first.shape[0]} and {second.shape[0]}")
+    return first, second
+
+
+def _as_scalar(value, name: str) -> float:
+    if isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None

@@ -1,0 +1,59 @@
+"""Median times of PointCloud2 <-> numpy conversions for a 4,000,000-point x, y, z, intensity cloud.
+
+Goal: message -> structured array (zero copy) well under 50 ms. Run:
+    .venv/bin/python benchmarks/bench_conversions.py [--points N] [--repeats R]
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from gls_calibration.conversions import (
+    array_to_pointcloud2, pointcloud2_to_array, xyz_intensity_arrays, xyzi_array)
+
+
+def median_ms(action: Callable[[], object], repeats: int) -> float:
+    """Median wall time of ``action`` in milliseconds."""
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        action()
+        times.append(time.perf_counter() - start)
+    return 1e3 * statistics.median(times)
+
+
+def main() -> None:
+    """Build a seeded cloud and print the median time of each conversion."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--points", type=int, default=4_000_000)
+    parser.add_argument("--repeats", type=int, default=7)
+    args = parser.parse_args()
+    rng = np.random.default_rng(12345)
+    points = xyzi_array(rng.normal(size=(args.points, 3)), rng.random(args.points))
+    points["z"][::97] = np.nan          # a few invalid points, as a scanner delivers them
+    message = array_to_pointcloud2(points, "scanner")
+
+    figures = {
+        "array -> PointCloud2 (message build, little-endian)":
+            lambda: array_to_pointcloud2(points, "scanner"),
+        "array -> PointCloud2 (big-endian, byte swap)":
+            lambda: array_to_pointcloud2(points, "scanner", big_endian=True),
+        "PointCloud2 -> array (zero-copy view)":
+            lambda: pointcloud2_to_array(message),
+        "PointCloud2 -> array (skip_nans, copy)":
+            lambda: pointcloud2_to_array(message, skip_nans=True),
+        "structured -> float64 xyz, intensity":
+            lambda: xyz_intensity_arrays(pointcloud2_to_array(message)),
+    }
+    print(f"{args.points:,} points x, y, z, intensity (float32, {points.nbytes / 1e6:.0f} MB), "
+          f"median of {args.repeats}:")
+    for label, action in figures.items():
+        print(f"  {label:<55s} {median_ms(action, args.repeats):9.3f} ms")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,67 @@
+"""A calibration run <-> the calibration record the store keeps (plain numbers, YAML).
+
+The record carries everything the correction needs (models in order of application and the
+calibrated region), what a person or the discrepancy workflow needs later (metrics, hyper-
+parameters, the measured fiducials of the first plate) and where it came from (head, plate pose).
+"""
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from gls_calibration.correction import CalibratedRegion, Correction
+from gls_calibration.kinematics import HeadGeometry
+from gls_calibration.persistence import new_record
+from gls_calibration.procedure import PlateRun, ProcedureSettings, TrainedModel
+from gls_calibration.rbf import model_from_dict
+
+
+def calibrated_region(settings: ProcedureSettings) -> CalibratedRegion:
+    """The training grid's box, padded by the outer ring radius so whole rings stay inside."""
+    half = settings.grid_size_mm / 2.0 + max(settings.ring_radii_mm)
+    return CalibratedRegion(-half, half, -half, half)
+
+
+def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequence[PlateRun],
+                 models: Sequence[TrainedModel], existing_models: Sequence[Mapping]) -> dict:
+    """The record of a run whose ``models`` were trained on ``runs`` (after ``existing_models``)."""
+    first = runs[0]
+    fiducials = {
+        "target_x": first.paired_targets_xy[:, 0], "target_y": first.paired_targets_xy[:, 1],
+        "measured_x": first.measured_gls[:, 0], "measured_y": first.measured_gls[:, 1],
+        "measured_z": first.measured_gls[:, 2],
+        "dx": first.deviations[:, 0], "dy": first.deviations[:, 1],
+        # Whether the first plate was marked through the nominal model (what the discrepancy
+        # workflow assumes) or through an earlier calibration.
+        "commanded_through_nominal_model": not existing_models,
+    }
+    return new_record(
+        head=geometry, plate_pose=runs[-1].plate_pose_gls,
+        models=list(existing_models) + [model.model for model in models],
+        calibrated_region=calibrated_region(settings).to_dict(),
+        hyper_parameters={"trained_models": [
+            {"method": model.method, "neurons": model.neurons, "spread_mm": model.spread_mm,
+             "cv_rms_mm": model.cv_rms_mm} for model in models]},
+        metrics={"iterations": [run.metrics for run in runs]},
+        fiducials=fiducials)
+
+
+def record_models(record: Mapping) -> list[dict]:
+    """The model dicts of a record, in order of application."""
+    return [dict(model) for model in record["models"]]
+
+
+def correction_from_record(record: Mapping, geometry: HeadGeometry) -> Correction:
+    """The correction a record describes (ValueError when its models or region are unusable)."""
+    models = [model_from_dict(model) for model in record["models"]]
+    region = CalibratedRegion.from_dict(record["calibrated_region"]) if models else None
+    return Correction(geometry, models, region)
+
+
+def record_fiducials(record: Mapping) -> tuple[np.ndarray, np.ndarray]:
+    """Commanded targets (N, 2) and measured positions (N, 2) of a record's first plate."""
+    fiducials = record["fiducials"]
+    commanded = np.column_stack([fiducials["target_x"], fiducials["target_y"]]).astype(float)
+    measured = np.column_stack([fiducials["measured_x"], fiducials["measured_y"]]).astype(float)
+    return commanded, measured

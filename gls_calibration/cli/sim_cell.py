@@ -1,0 +1,154 @@
+"""gls-sim-cell: the headless simulated cell, every node in one process; calls ``calibrate``.
+
+With ``--serve`` it only starts the nodes and serves until interrupted, so that external clients
+(``gls-calibrate``, ``gls-correct``, other machines on the same ROS_DOMAIN_ID) drive the cell.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+import shutil
+import sys
+import tempfile
+import threading
+import time
+
+import rclpy
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+
+from gls_calibration.config_files import config_path
+from gls_calibration.persistence import atomic_write_text
+from gls_calibration.nodes.calibration_manager import CalibrationManager
+from gls_calibration.nodes.correction import CorrectionNode
+from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
+from gls_calibration.nodes.plate_pose import PlatePoseNode
+from gls_calibration.nodes.rbf_trainer import RbfTrainerNode
+from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
+from gls_calibration.nodes.sim_galvo import SimGalvoNode
+from gls_calibration.nodes.sim_scanner import SimScannerNode
+from gls_calibration.cli.client import ProgressBar, call_and_wait, summary_table
+from gls_calibration_msgs.msg import CalibrationProgress
+from gls_calibration_msgs.srv import Calibrate
+
+NODE_TYPES = (SimGalvoNode, SimScannerNode, ScanAcquisitionNode, PlatePoseNode, FiducialMeasurementNode,
+              RbfTrainerNode, CorrectionNode, CalibrationManager)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    """Command line of gls-sim-cell."""
+    parser = argparse.ArgumentParser(prog="gls-sim-cell", description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("reports/sim-cell"),
+                        help="folder for the report, summary.json and the calibration file")
+    parser.add_argument("--seed", type=int, default=1, help="seed of the simulated cell's random draws")
+    parser.add_argument("--grid", type=int, default=19, help="fiducials per side of the grid")
+    parser.add_argument("--iterations", type=int, default=1, help="calibration iterations (1 or 2)")
+    parser.add_argument("--sim-config", type=Path, default=None,
+                        help="YAML parameter file of the simulated head's defects and noise "
+                             "(default: the package's config/sim.yaml)")
+    parser.add_argument("--no-validate", action="store_true", help="skip the validation grid")
+    parser.add_argument("--force", action="store_true", help="train even when within tolerance")
+    parser.add_argument("--serve", action="store_true",
+                        help="start every node and serve until interrupted, without calibrating")
+    parser.add_argument("--timeout", type=float, default=600.0, help="give up on calibrate after this (s)")
+    args = parser.parse_args(argv)
+    if args.grid < 3:
+        parser.error("--grid must be at least 3")
+    if not 1 <= args.iterations <= 5:
+        parser.error("--iterations must be between 1 and 5")
+    if args.sim_config is not None and not args.sim_config.is_file():
+        parser.error(f"--sim-config {args.sim_config}: no such file")
+    return args
+
+
+def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: Path) -> list[str]:
+    """Parameter files and overrides shared by every node of the cell."""
+    sim_config = args.sim_config or config_path("sim.yaml")
+    overrides = {
+        "seed": args.seed,
+        "grid.per_side": args.grid,
+        "calibration_dir": str(calibration_dir),
+        "report_dir": str(report_dir),
+        "report_per_run": False,
+        "plate_exchange_service": "sim/exchange_plate",
+        "ground_truth_service": "sim/marked_paths",
+    }
+    ros_args = ["--ros-args"]
+    for path in (config_path("head.yaml"), config_path("gls.yaml"), sim_config):
+        ros_args += ["--params-file", str(path)]
+    for name, value in overrides.items():
+        ros_args += ["-p", f"{name}:={json.dumps(value) if isinstance(value, str) else value}"]
+    return ros_args
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the simulated cell; exit 0 when the calibration succeeded."""
+    args = parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    # Every run is a new simulated cell, so it starts with an empty calibration store; --serve keeps
+    # its store in the output folder so that successive external calibrations compose.
+    store = args.out / "calibrations" if args.serve else Path(tempfile.mkdtemp(prefix="gls-sim-store-"))
+    context = rclpy.Context()
+    rclpy.init(args=ros_arguments(args, store, args.out), context=context)
+    nodes = [node_type(context=context) for node_type in NODE_TYPES]
+    executor = MultiThreadedExecutor(num_threads=6, context=context)
+    for node in nodes:
+        executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        if args.serve:
+            names = ", ".join(node.get_fully_qualified_name() for node in nodes)
+            print(f"serving the simulated cell ({names}); Ctrl-C to stop", flush=True)
+            while True:
+                time.sleep(1.0)
+        return run_calibration(args, nodes[-1], store)
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        executor.shutdown()
+        for node in nodes:
+            node.destroy_node()
+        rclpy.shutdown(context=context)
+        if not args.serve:
+            shutil.rmtree(store, ignore_errors=True)
+
+
+def run_calibration(args: argparse.Namespace, manager: CalibrationManager, store: Path) -> int:
+    """Call ``calibrate`` from a client node of the cell, with a progress bar; print the summary."""
+    client_node = rclpy.create_node("sim_cell_client", namespace="gls", context=manager.context)
+    bar = ProgressBar(sys.stderr)
+    client_node.create_subscription(CalibrationProgress, "calibration/progress", bar.update, 10)
+    client = client_node.create_client(Calibrate, "calibrate")
+    executor = SingleThreadedExecutor(context=manager.context)
+    executor.add_node(client_node)
+    request = Calibrate.Request(iterations=args.iterations, validate=not args.no_validate, force=args.force)
+    try:
+        response = call_and_wait(executor, client, request, args.timeout)
+    finally:
+        executor.shutdown()
+        client_node.destroy_node()
+    bar.finish()
+    if response is None:
+        print(f"calibrate did not answer within {args.timeout:g} s", file=sys.stderr)
+        return 1
+    if response.calibration_file:
+        # The store of a one-shot cell is temporary: keep its calibration beside the report.
+        kept = args.out / "calibration.yaml"
+        shutil.copyfile(response.calibration_file, kept)
+        response.calibration_file = str(kept)
+        summary_path = Path(response.report_dir) / "summary.json"
+        summary = json.loads(summary_path.read_text())
+        summary["calibration_file"] = str(kept)
+        atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
+    print(summary_table(response))
+    if not response.success:
+        print(f"calibration failed: {response.message}", file=sys.stderr)
+        return 1
+    print(f"report: {Path(response.report_dir) / 'report.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

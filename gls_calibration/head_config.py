@@ -1,0 +1,132 @@
+"""Head configuration file: nominal geometry and effects already known, in one YAML file.
+
+The file is a ROS 2 parameter file (``config/head.yaml``)::
+
+    /**:
+      ros__parameters:
+        head:
+          working_distance_mm: 490.0
+          mirror_distance_mm: 15.0
+          mirror_limit_deg: 10.5
+          focus_range_mm: 25.0
+          effects:                 # optional, name -> parameters (optics.EFFECTS order and units)
+            galvo_gain_x: [0.0012]
+
+Nodes see the same values as the parameters ``head.working_distance_mm`` and so on (ROS flattens the
+nested dict into dotted names). This loader also takes the dotted spelling, and a plain YAML mapping
+without the ``/**: ros__parameters:`` wrapper. Missing geometry keys take the published defaults.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+from gls_calibration.config_files import config_path
+from gls_calibration.kinematics import HeadGeometry
+from gls_calibration.optics import HeadEffects
+
+#: Geometry keys of the ``head`` block and their defaults (published set-up).
+HEAD_DEFAULTS: dict[str, float] = {
+    "working_distance_mm": 490.0,
+    "mirror_distance_mm": 15.0,
+    "mirror_limit_deg": 10.5,
+    "focus_range_mm": 25.0,
+}
+
+
+def default_head_config_path() -> Path:
+    """The package's ``config/head.yaml``."""
+    return config_path("head.yaml")
+
+
+def _undot(mapping: Mapping[str, Any]) -> dict[str, Any]:
+    """Turn dotted keys (``head.working_distance_mm``) into nested dicts, as ROS does."""
+    nested: dict[str, Any] = {}
+    for key, value in mapping.items():
+        parts = str(key).split(".")
+        target = nested
+        for part in parts[:-1]:
+            target = target.setdefault(part, {})
+            if not isinstance(target, dict):
+                raise ValueError(f"head configuration key {key!r} clashes with a value")
+        if isinstance(value, Mapping):
+            value = _undot(value)
+            if isinstance(target.get(parts[-1]), dict):
+                target[parts[-1]].update(value)
+                continue
+        target[parts[-1]] = value
+    return nested
+
+
+def parameters_block(document: Any) -> dict[str, Any]:
+    """The parameter mapping of a ROS parameter file or of a plain mapping."""
+    if document is None:
+        return {}
+    if not isinstance(document, Mapping):
+        raise ValueError(f"head configuration must be a mapping, got {type(document).__name__}")
+    wrapped = {key: value for key, value in document.items()
+               if isinstance(value, Mapping) and "ros__parameters" in value}
+    if wrapped:
+        # prefer the wildcard entry that every node reads
+        entry = wrapped.get("/**", next(iter(wrapped.values())))
+        document = entry["ros__parameters"] or {}
+        if not isinstance(document, Mapping):
+            raise ValueError("ros__parameters must be a mapping")
+    return _undot(document)
+
+
+def _number(value: Any, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"head parameter {key!r} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def head_config_from_dict(document: Any) -> tuple[HeadGeometry, HeadEffects]:
+    """Geometry and known effects from a parsed head configuration (see the module docstring)."""
+    parameters = parameters_block(document)
+    head = parameters.get("head", parameters)
+    if not isinstance(head, Mapping):
+        raise ValueError(f"'head' must be a mapping, got {type(head).__name__}")
+    known = set(HEAD_DEFAULTS) | {"effects"}
+    unknown = sorted(set(head) - known)
+    if unknown:
+        raise ValueError(f"unknown head parameter(s) {', '.join(map(repr, unknown))}; "
+                         f"known: {', '.join(sorted(known))}")
+    values = {key: _number(head.get(key, default), key) for key, default in HEAD_DEFAULTS.items()}
+    geometry = HeadGeometry(
+        working_distance_mm=values["working_distance_mm"],
+        mirror_distance_mm=values["mirror_distance_mm"],
+        mirror_limit_rad=math.radians(values["mirror_limit_deg"]),
+        focus_range_mm=values["focus_range_mm"],
+    )
+    effects = head.get("effects") or {}
+    if not isinstance(effects, Mapping):
+        raise ValueError(f"head effects must be a mapping of effect name to parameters, got {effects!r}")
+    cleaned = {}
+    for name, parameters_of_effect in effects.items():
+        listed = parameters_of_effect if isinstance(parameters_of_effect, (list, tuple)) else [parameters_of_effect]
+        cleaned[str(name)] = tuple(_number(value, f"effects.{name}") for value in listed)
+    return geometry, HeadEffects(cleaned)
+
+
+def load_head_config(path: str | Path) -> tuple[HeadGeometry, HeadEffects]:
+    """Read a head configuration YAML file -> (nominal HeadGeometry, HeadEffects already known).
+
+    Raises ValueError with the file name for unreadable YAML, unknown keys or unknown effect names.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise ValueError(f"cannot read head configuration {path}: {error.strerror or error}") from None
+    try:
+        document = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ValueError(f"cannot parse head configuration {path}: {error}") from None
+    try:
+        return head_config_from_dict(document)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None

@@ -1,0 +1,243 @@
+"""calibration_manager: serves ``calibrate`` and ``explain_deviations``, publishes progress.
+
+It implements the procedure's ``Cell`` with service calls to the scanner, the galvo and the
+processing nodes; the flow itself is ``gls_calibration.procedure``.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict
+import math
+from pathlib import Path
+import time
+from typing import Optional
+
+import numpy as np
+from std_srvs.srv import Trigger
+
+from gls_calibration import conversions, procedure
+from gls_calibration.calibration_record import build_record, correction_from_record, record_models
+from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
+from gls_calibration.nodes.head_parameters import declare_head_geometry, declare_scanner_to_gls
+from gls_calibration.persistence import CalibrationFileError, CalibrationStore
+from gls_calibration.run_report import write_outcome_report
+from gls_calibration_msgs.msg import CalibrationProgress
+from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints, EstimatePlatePose,
+                                      ExplainDeviations, GetMarkedPaths, LoadCalibration,
+                                      MarkPolylines, MeasureFiducials, TrainCorrection)
+
+
+class ServiceCell:
+    """The procedure's Cell, reached through the services of the other nodes."""
+
+    def __init__(self, node: "CalibrationManager") -> None:
+        self.node = node
+        self.timeout_s = node.service_timeout_s
+        self.sweep_timeout_s = node.sweep_timeout_s
+        self.acquire = node.client(AcquireSweep, "scan/acquire")
+        self.pose = node.client(EstimatePlatePose, "plate_pose/estimate")
+        self.fiducials = node.client(MeasureFiducials, "fiducials/measure")
+        self.corrector = node.client(CorrectSetpoints, "correct_setpoints")
+        self.loader = node.client(LoadCalibration, "correction/load")
+        self.galvo = node.client(MarkPolylines, "galvo/mark")
+        self.trainer = node.client(TrainCorrection, "rbf/train")
+        self.exchange = node.client(Trigger, node.plate_exchange_service) if node.plate_exchange_service else None
+        self.truth = node.client(GetMarkedPaths, node.ground_truth_service) if node.ground_truth_service else None
+        self.sweep_step_mm = 0.0
+
+    async def _checked(self, client, request, timeout_s: Optional[float] = None):
+        response = await self.node.call(client, request, timeout_s or self.timeout_s)
+        if not response.success:
+            raise procedure.CalibrationError(f"{client.srv_name}: {response.message}")
+        return response
+
+    async def acquire_sweep(self, step_mm: float):
+        request = AcquireSweep.Request(timeout_s=self.sweep_timeout_s, step_mm=step_mm)
+        response = await self._checked(self.acquire, request, self.sweep_timeout_s + self.timeout_s)
+        return conversions.cloud_arrays_from_msg(response.cloud)
+
+    async def estimate_plate_pose(self, xyz, intensity):
+        request = EstimatePlatePose.Request(cloud=conversions.cloud_msg_from_arrays(xyz, intensity, "scanner"))
+        response = await self._checked(self.pose, request)
+        return conversions.plate_pose_from_msg(response.pose)
+
+    async def measure_fiducials(self, xyz, intensity, pose, expected_count):
+        request = MeasureFiducials.Request(cloud=conversions.cloud_msg_from_arrays(xyz, intensity, "scanner"),
+                                           pose=conversions.plate_pose_to_msg(pose),
+                                           expected_count=int(expected_count))
+        response = await self._checked(self.fiducials, request)
+        return conversions.fiducials_from_response(response, pose)
+
+    async def correct(self, x, y, z):
+        request = CorrectSetpoints.Request(x=np.asarray(x, float), y=np.asarray(y, float), z=np.asarray(z, float))
+        return conversions.setpoints_from_response(await self._checked(self.corrector, request))
+
+    async def mark(self, alpha_x, alpha_y, focus_shift, polyline_starts):
+        request = MarkPolylines.Request(alpha_x=alpha_x, alpha_y=alpha_y, focus_shift=focus_shift,
+                                        polyline_starts=np.asarray(polyline_starts, dtype=np.uint32))
+        response = await self._checked(self.galvo, request, self.node.marking_timeout_s)
+        return response.duration_s
+
+    async def train(self, targets_xy, deviations):
+        request = TrainCorrection.Request(x=targets_xy[:, 0], y=targets_xy[:, 1],
+                                          dx=deviations[:, 0], dy=deviations[:, 1])
+        response = await self._checked(self.trainer, request)
+        return conversions.trained_model_from_response(response)
+
+    async def load_calibration(self, path: str) -> None:
+        await self._checked(self.loader, LoadCalibration.Request(file=path))
+
+    async def exchange_plate(self) -> None:
+        if self.exchange is None:
+            raise procedure.CalibrationError(
+                "a fresh plate is needed (second iteration or validation) but no plate_exchange_service "
+                "is configured")
+        await self._checked(self.exchange, Trigger.Request())
+
+    async def true_marks(self):
+        if self.truth is None:
+            return None
+        paths = (await self._checked(self.truth, GetMarkedPaths.Request())).paths
+        points = np.column_stack([conversions.float64_array(paths.x), conversions.float64_array(paths.y),
+                                  conversions.float64_array(paths.z)])
+        return np.split(points, np.asarray(paths.polyline_starts[1:], dtype=int))
+
+
+class CalibrationManager(GlsNode):
+    """Runs calibrations on request; refuses a second request while one runs."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("calibration_manager", **kwargs)
+        self.geometry = declare_head_geometry(self)
+        scanner_to_gls = declare_scanner_to_gls(self)
+        self.settings = procedure.ProcedureSettings(
+            grid_per_side=self.declare("grid.per_side", 19, "fiducials per side of the square grid",
+                                       minimum=3, maximum=101),
+            grid_size_mm=self.declare("grid.size_mm", 190.0, "side of the fiducial grid (mm)",
+                                      minimum=1.0, maximum=1000.0),
+            ring_radii_mm=tuple(self.declare("grid.ring_radii_mm", [2.5, 2.7],
+                                             "radii of the two concentric rings of a fiducial (mm)")),
+            plain_sweep_step_mm=self.declare("sweep.plain_step_mm", 1.0,
+                                             "profile spacing of the sweep of the plain plate (mm)",
+                                             minimum=0.01, maximum=10.0),
+            marked_sweep_step_mm=self.declare("sweep.marked_step_mm", 0.1,
+                                              "profile spacing of the sweep of the marked plate (mm)",
+                                              minimum=0.01, maximum=1.0),
+            scanner_to_gls=scanner_to_gls,
+            tolerance_rms_mm=self.declare("tolerance_rms_mm", 0.05,
+                                          "no training when the measured RMS deviation is within this (mm)",
+                                          minimum=0.0),
+            min_found_fraction=self.declare("min_found_fraction", 0.9,
+                                            "fail when fewer fiducials than this fraction are found",
+                                            minimum=0.0, maximum=1.0),
+            default_iterations=self.declare("default_iterations", 1, "iterations when a request says 0",
+                                            minimum=1, maximum=5),
+        )
+        self.service_timeout_s = self.declare("service_timeout_s", 60.0, "timeout of one service call (s)",
+                                              minimum=0.1)
+        self.sweep_timeout_s = self.declare("sweep_timeout_s", 120.0,
+                                            "give up on a sweep after this long (s)", minimum=0.1)
+        self.marking_timeout_s = self.declare("marking_timeout_s", 600.0,
+                                              "give up on a marking job after this long (s)", minimum=0.1)
+        self.plate_exchange_service = self.declare(
+            "plate_exchange_service", "", "Trigger service that loads a fresh plate (empty: none)")
+        self.ground_truth_service = self.declare(
+            "ground_truth_service", "", "GetMarkedPaths service of a simulation, for the true error (empty: none)")
+        self.store = CalibrationStore(Path(self.declare("calibration_dir", "calibrations",
+                                                        "folder of the calibration store")))
+        self.report_root = Path(self.declare("report_dir", "reports", "folder for calibration reports"))
+        self.report_per_run = self.declare("report_per_run", True,
+                                           "a subfolder of report_dir per calibration (false: report_dir itself)")
+        self.cell = ServiceCell(self)
+        self.progress = self.create_publisher(CalibrationProgress, "calibration/progress", 10)
+        self._running = False
+        self.last_outcome: Optional[procedure.CalibrationOutcome] = None
+        self.create_service(Calibrate, "calibrate", self.on_calibrate, callback_group=self.reentrant_group)
+        self.create_service(ExplainDeviations, "explain_deviations", self.on_explain,
+                            callback_group=self.reentrant_group)
+
+    def publish_progress(self, stage: str, fraction: float, text: str) -> None:
+        """Publish one progress message and log it."""
+        message = CalibrationProgress(stage=stage, fraction=float(min(max(fraction, 0.0), 1.0)), text=text)
+        message.stamp = self.get_clock().now().to_msg()
+        self.progress.publish(message)
+        self.get_logger().info(f"[{fraction:4.0%}] {stage}: {text}")
+
+    async def on_calibrate(self, request: Calibrate.Request, response: Calibrate.Response):
+        """Serve ``calibrate``: run the procedure, keep the active calibration unless it succeeds."""
+        if self._running:
+            response.success = False
+            response.message = "a calibration is already running; request refused"
+            return response
+        self._running = True
+        began = time.monotonic()
+        try:
+            await self._calibrate(request, response)
+        except (procedure.CalibrationError, ServiceCallError, ValueError, CalibrationFileError) as error:
+            response.success = False
+            response.message = f"calibration failed: {error}"
+            self.get_logger().error(response.message)
+            await self._restore_active()
+        except Exception as error:  # a bug must not kill the node nor leave the candidate loaded
+            response.success = False
+            response.message = f"calibration failed on an internal error: {type(error).__name__}: {error}"
+            self.get_logger().error(response.message)
+            await self._restore_active()
+        finally:
+            self._running = False
+            response.duration_s = time.monotonic() - began
+        return response
+
+    async def _calibrate(self, request, response) -> None:
+        for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "cv_rms_mm"):
+            setattr(response, name, math.nan)
+        active = self.store.active_path()
+        existing_models = record_models(self.store.load(active)) if active else []
+        report_dir = self.report_root
+        if self.report_per_run:
+            report_dir = report_dir / time.strftime("calibration_%Y%m%dT%H%M%SZ", time.gmtime())
+
+        def save_candidate(runs, models) -> str:
+            record = build_record(self.geometry, self.settings, runs, models, existing_models)
+            return str(self.store.save(record, activate=False))
+
+        outcome = await procedure.calibrate(
+            self.cell, self.settings, iterations=request.iterations, validate=request.validate,
+            force=request.force, want_truth=bool(self.ground_truth_service),
+            progress=self.publish_progress, save_candidate=save_candidate)
+        self.last_outcome = outcome
+        first = outcome.runs[0]
+        response.pre_rms_mm = first.metrics["full"]["rms_abs_mm"]
+        response.pre_max_mm = first.metrics["full"]["max_abs_mm"]
+        response.fiducials_expected = len(first.targets)
+        response.fiducials_found = first.fiducials_found
+        correction = None
+        if outcome.models:
+            response.neurons = int(outcome.models[-1].neurons)
+            response.cv_rms_mm = float(outcome.models[-1].cv_rms_mm)
+            candidate = Path(outcome.calibration_file)
+            correction = correction_from_record(self.store.load(candidate), self.geometry)
+            self.store.activate(candidate)
+            response.calibration_file = str(candidate)
+        if outcome.validation is not None:
+            response.post_rms_mm = outcome.validation.metrics["full"]["rms_abs_mm"]
+            response.post_max_mm = outcome.validation.metrics["full"]["max_abs_mm"]
+        response.report_dir = str(write_outcome_report(report_dir, outcome, correction))
+        response.success = outcome.success
+        response.message = outcome.message
+
+    async def _restore_active(self) -> None:
+        try:
+            await self.cell.load_calibration("")
+        except (procedure.CalibrationError, ServiceCallError) as error:
+            self.get_logger().error(f"could not restore the active calibration in the correction node: {error}")
+
+    async def on_explain(self, request, response):
+        """Serve ``explain_deviations``: the discrepancy workflow on a calibration's fiducials."""
+        response.success = False
+        response.message = "not implemented yet"
+        return response
+
+
+def main(args=None) -> None:
+    """Console script ``gls-calibration-manager``."""
+    run_node(CalibrationManager, args)

@@ -1,0 +1,42 @@
+"""fiducial_measurement: serves ``fiducials/measure``, ring fiducial centres in a marked-plate scan."""
+from __future__ import annotations
+
+from gls_calibration import conversions
+from gls_calibration.fiducials import measure_fiducials
+from gls_calibration.nodes.base import GlsNode, run_node
+from gls_calibration_msgs.srv import MeasureFiducials
+
+
+class FiducialMeasurementNode(GlsNode):
+    """Thin wrapper over ``fiducials.measure_fiducials``."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("fiducial_measurement", **kwargs)
+        self.ring_radii_mm = tuple(self.declare("ring_radii_mm", [2.5, 2.7],
+                                                "radii of the two rings of a fiducial (mm)"))
+        self.pixel_size_mm = self.declare("pixel_size_mm", 0.1,
+                                          "raster pixel for unorganized clouds (mm)", minimum=0.005, maximum=5.0)
+        self.marks_darker = self.declare("marks_darker", True, "marks are darker than the plain plate")
+        self.create_service(MeasureFiducials, "fiducials/measure", self.on_measure)
+
+    def on_measure(self, request, response):
+        """Measure; ``success=false`` with the reason when nothing usable is found."""
+        try:
+            xyz, intensity = conversions.cloud_arrays_from_msg(request.cloud)
+            pose = conversions.plate_pose_from_msg(request.pose)
+            measurement = measure_fiducials(
+                xyz, intensity, pose, ring_radii_mm=self.ring_radii_mm, pixel_size_mm=self.pixel_size_mm,
+                expected_count=request.expected_count or None, marks_darker=self.marks_darker)
+        except ValueError as error:
+            response.success = False
+            response.message = str(error)
+            return response
+        conversions.fiducials_to_response(measurement, response)
+        response.success = True
+        response.message = f"{len(measurement.centres)} fiducials found"
+        return response
+
+
+def main(args=None) -> None:
+    """Console script ``gls-fiducial-measurement``."""
+    run_node(FiducialMeasurementNode, args)

@@ -1,0 +1,37 @@
+"""Parameters that several nodes declare alike: the head's nominal geometry, the scanner mounting."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from gls_calibration.kinematics import HeadGeometry
+from gls_calibration.nodes.base import GlsNode
+from gls_calibration.registration import RigidTransform
+
+
+def declare_head_geometry(node: GlsNode) -> HeadGeometry:
+    """Declare ``head.*`` parameters and return the nominal geometry they describe."""
+    return HeadGeometry(
+        working_distance_mm=node.declare("head.working_distance_mm", 490.0,
+                                         "X mirror axis to the work plane, d (mm)", minimum=1.0),
+        mirror_distance_mm=node.declare("head.mirror_distance_mm", 15.0,
+                                        "Y mirror axis to X mirror axis, e (mm)", minimum=0.0),
+        mirror_limit_rad=math.radians(node.declare("head.mirror_limit_deg", 10.5,
+                                                   "mechanical mirror limit (deg)", minimum=0.1,
+                                                   maximum=45.0)),
+        focus_range_mm=node.declare("head.focus_range_mm", 25.0, "focus shift range, +- (mm)", minimum=0.1),
+    )
+
+
+def declare_scanner_to_gls(node: GlsNode) -> RigidTransform:
+    """Declare the CAD mounting of the scanner (sweep start frame -> gls frame) and return it."""
+    translation = node.declare("scanner_to_gls.translation_mm", [0.0, 0.0, 325.0],
+                               "scanner frame origin in the gls frame at the start of a sweep (mm)")
+    rpy = node.declare("scanner_to_gls.rpy_rad", [math.pi, 0.0, 0.0],
+                       "scanner frame orientation in the gls frame: roll, pitch, yaw (rad, extrinsic xyz)")
+    if len(translation) != 3 or len(rpy) != 3:
+        raise ValueError("scanner_to_gls.translation_mm and scanner_to_gls.rpy_rad need 3 numbers each")
+    rotation = Rotation.from_euler("xyz", rpy).as_matrix()
+    return RigidTransform(rotation, np.asarray(translation, dtype=float))

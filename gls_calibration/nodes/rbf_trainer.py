@@ -1,0 +1,51 @@
+"""rbf_trainer: serves ``rbf/train``, a deviation model chosen by cross-validation."""
+from __future__ import annotations
+
+import numpy as np
+import yaml
+
+from gls_calibration import rbf
+from gls_calibration.nodes.base import GlsNode, run_node
+from gls_calibration_msgs.srv import TrainCorrection
+
+
+class RbfTrainerNode(GlsNode):
+    """Thin wrapper over ``rbf.select_model``."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("rbf_trainer", **kwargs)
+        self.spreads_mm = self.declare("spreads_mm", [25.0, 35.0, 45.0, 60.0],
+                                       "Gaussian spreads tried by the grid search (mm)")
+        self.mse_goals_mm2 = self.declare("mse_goals_mm2", [0.0002, 0.0005],
+                                          "training MSE goals tried by the grid search (mm^2)")
+        self.tps_smoothings = self.declare("tps_smoothings", [0.0, 10.0, 100.0, 300.0, 1000.0, 3000.0],
+                                           "thin-plate-spline smoothings tried ([] disables the TPS)")
+        self.folds = self.declare("folds", 5, "folds of the cross-validation", minimum=2, maximum=50)
+        self.seed = self.declare("seed", 0, "seed of the fold assignment", minimum=0)
+        self.create_service(TrainCorrection, "rbf/train", self.on_train)
+
+    def on_train(self, request, response):
+        """Train; ``success=false`` with the reason on bad data."""
+        try:
+            targets = np.column_stack([request.x, request.y])
+            deviations = np.column_stack([request.dx, request.dy])
+            model, selection = rbf.select_model(
+                targets, deviations, spreads_mm=tuple(self.spreads_mm), mse_goals_mm2=tuple(self.mse_goals_mm2),
+                tps_smoothings=tuple(self.tps_smoothings), folds=self.folds, seed=self.seed)
+        except ValueError as error:
+            response.success = False
+            response.message = str(error)
+            return response
+        response.success = True
+        response.model_yaml = yaml.safe_dump(model.to_dict(), sort_keys=False)
+        response.method = selection.method
+        response.neurons = int(getattr(model, "neuron_count", len(targets)))
+        response.sigma_mm = float(getattr(model, "spread_mm", 0.0))  # a thin-plate spline has none
+        response.cv_rms_mm = float(selection.chosen.cv_rms_mm)
+        response.message = f"{selection.method}: CV RMS {selection.chosen.cv_rms_mm:.4f} mm"
+        return response
+
+
+def main(args=None) -> None:
+    """Console script ``gls-rbf-trainer``."""
+    run_node(RbfTrainerNode, args)

@@ -1,0 +1,114 @@
+"""sim_scanner: the simulated laser-line scanner, a drop-in for a real scanner driver.
+
+Serves ``scanner/start_sweep``; each sweep's profiles go out on ``scan/points`` (PointCloud2 with
+x, y, z, intensity in the moving sensor frame, y = 0 on the line, stamped with the time each
+profile was taken), then ``scan/sweep_done``. The plate's marks come from the simulated galvo
+(``sim/marked_paths``) at the start of each sweep, as a real scanner sees the real plate.
+"""
+from __future__ import annotations
+
+from typing import Iterator, Optional
+
+import numpy as np
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.duration import Duration
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from gls_calibration import conversions
+from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
+from gls_calibration.nodes.sim_parameters import declare_sim_config
+from gls_calibration.simulation.plate import Plate
+from gls_calibration.simulation.scanner import LaserLineScanner, Profile
+from gls_calibration_msgs.msg import SweepDone
+from gls_calibration_msgs.srv import GetMarkedPaths, StartSweep
+from sensor_msgs.msg import PointCloud2
+
+
+class SimScannerNode(GlsNode):
+    """Publishes a sweep's profiles in batches from a timer, so that subscribers keep up."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("sim_scanner", **kwargs)
+        self.config = declare_sim_config(self)
+        self.batch = self.declare("profiles_per_tick", 50, "profiles published per timer tick", minimum=1)
+        depth = self.declare("queue_depth", 4000, "profiles the reliable publisher keeps for slow subscribers",
+                             minimum=1)
+        self.scanner = LaserLineScanner(self.config.scanner, self.config.scanner_to_gls, self.config.mounting_error)
+        self.plate = Plate(self.config.plate_settings, seed=self.config.seed)
+        self.sweep_id = 0
+        self.job: Optional[Iterator[Profile]] = None
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+        self.points = self.create_publisher(PointCloud2, "scan/points", qos)
+        self.done = self.create_publisher(SweepDone, "scan/sweep_done",
+                                          QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        self.marks_client = self.client(GetMarkedPaths, "sim/marked_paths")
+        self.create_service(StartSweep, "scanner/start_sweep", self.on_start_sweep,
+                            callback_group=self.reentrant_group)
+        # One tick at a time: the sweep is a generator and profiles must go out in order.
+        self.timer = self.create_timer(0.001, self.publish_batch, callback_group=MutuallyExclusiveCallbackGroup())
+        self.timer.cancel()
+
+    async def on_start_sweep(self, request, response):
+        """Load the plate's marks, then start publishing the sweep."""
+        if self.job is not None:
+            response.success, response.message = False, "a sweep is running; request refused"
+            return response
+        length = request.length_mm or self.config.sweep_length_mm
+        speed = request.speed_mm_s or self.config.scanner.speed_mm_s
+        step = request.step_mm or self.config.scanner.step_mm
+        if length <= 0 or speed <= 0 or step <= 0:
+            response.success = False
+            response.message = f"sweep length, speed and step must be positive, got {length}, {speed}, {step}"
+            return response
+        try:
+            await self._load_marks()
+        except ServiceCallError as error:
+            response.success, response.message = False, f"cannot see the plate's marks: {error}"
+            return response
+        self.sweep_id += 1
+        self.sweep = (self.sweep_id, speed, step, self.get_clock().now())
+        self.published = 0
+        self.job = self.scanner.sweep(self.plate, length, speed, step, seed=self.config.seed * 100003 + self.sweep_id)
+        response.sweep_id = self.sweep_id
+        response.expected_profiles = int(np.floor(length / step + 1e-9)) + 1
+        response.success, response.message = True, f"sweep {self.sweep_id} started"
+        self.timer.reset()
+        return response
+
+    async def _load_marks(self) -> None:
+        answer = await self.call(self.marks_client, GetMarkedPaths.Request(), 10.0)
+        paths = answer.paths
+        self.plate.load_clean([self.config.seed, paths.plate_id])
+        points = np.column_stack([conversions.float64_array(paths.x), conversions.float64_array(paths.y),
+                                  conversions.float64_array(paths.z)])
+        if len(points):
+            for polyline in np.split(points, np.asarray(paths.polyline_starts[1:], dtype=int)):
+                self.plate.add_mark(polyline)
+
+    def publish_batch(self) -> None:
+        """Publish the next profiles of the running sweep; at its end, the end-of-sweep message."""
+        if self.job is None:
+            self.timer.cancel()
+            return
+        sweep_id, speed, step, began = self.sweep
+        for _ in range(self.batch):
+            profile = next(self.job, None)
+            if profile is None:
+                self.job = None
+                self.timer.cancel()
+                done = SweepDone(sweep_id=sweep_id, profiles=self.published, step_mm=step, speed_mm_s=speed,
+                                 direction=[0.0, 1.0, 0.0], complete=True)
+                done.stamp = self.get_clock().now().to_msg()
+                self.done.publish(done)
+                return
+            points = profile.points
+            # A real sensor measures each profile in its own moving frame: take the travel out again.
+            points["y"] -= np.float32(profile.stamp_s * speed)
+            stamp = (began + Duration(nanoseconds=int(round(profile.stamp_s * 1e9)))).to_msg()
+            self.points.publish(conversions.array_to_pointcloud2(points, frame_id="scanner", stamp=stamp))
+            self.published += 1
+
+
+def main(args=None) -> None:
+    """Console script ``gls-sim-scanner``."""
+    run_node(SimScannerNode, args)

@@ -1,0 +1,410 @@
+"""Saving and loading calibrations: atomic YAML files, a history and an ``active`` pointer.
+
+Store layout (one directory per cell)::
+
+    <directory>/history/calibration_<YYYYmmddTHHMMSSZ>_<nnnn>.yaml   every saved calibration, never rewritten
+    <directory>/active.yaml                                          pointer: ``active: <history file name>``
+
+The pointer scheme was chosen over copying the record: switching the active calibration is one
+small atomic write, the history file stays the single copy of the data, and rolling back is a
+matter of rewriting the pointer. ``save`` writes the history file first and the pointer last, both
+through :func:`atomic_write_text`, so a failed save (invalid record, full disk, crash) leaves the
+previous active calibration in force; at worst an unreferenced history file remains. The store
+assumes a single writer (the calibration node); ``<nnnn>`` is one more than the highest number
+already in the history.
+
+A calibration record is a plain dict that round-trips through YAML (see :func:`validate_record`
+for the keys). Floats are written with ``repr`` precision, so every float64 is read back bit for
+bit. NaN and infinity are refused anywhere in a record; a metric that could not be computed (for
+example an empty sub-field) is stored as ``null``.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+import contextlib
+import dataclasses
+from datetime import datetime, timezone
+import math
+import os
+from pathlib import Path
+import re
+import tempfile
+from typing import Any
+
+import numpy as np
+import yaml
+
+import gls_calibration
+from gls_calibration.kinematics import HeadGeometry
+
+FORMAT_VERSION = 1
+REQUIRED_KEYS = (
+    "format_version", "software_version", "created_utc", "head", "plate_pose", "models",
+    "calibrated_region", "hyper_parameters", "metrics", "fiducials",
+)
+FIDUCIAL_KEYS = ("target_x", "target_y", "measured_x", "measured_y", "measured_z", "dx", "dy")
+HEAD_KEYS = tuple(field.name for field in dataclasses.fields(HeadGeometry))
+ACTIVE_FILE_NAME = "active.yaml"
+HISTORY_DIR_NAME = "history"
+_HISTORY_NAME = re.compile(r"^calibration_(\d{8}T\d{6}Z)_(\d+)\.yaml$")
+
+
+class CalibrationFileError(ValueError):
+    """A calibration file (or record) that cannot be used; the message names the file and the problem."""
+
+    def __init__(self, source: str | os.PathLike | None, problem: str) -> None:
+        self.source = None if source is None else str(source)
+        self.problem = problem
+        prefix = "calibration record" if source is None else f"calibration file {source}"
+        super().__init__(f"{prefix}: {problem}")
+
+
+def atomic_write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8") -> None:
+    """Replace ``path`` by ``text`` so that readers see either the old or the whole new content.
+
+    The text goes to a temporary file in the same directory (same file system, so the rename is
+    atomic), is flushed to disk, renamed onto the target and the directory entry is flushed too.
+    On any error the temporary file is removed and the error re-raised; the target is untouched.
+    A new file gets mode 0644; an existing target keeps its mode.
+    """
+    path = Path(path)
+    directory = path.parent
+    mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
+    handle = tempfile.NamedTemporaryFile(
+        "w", encoding=encoding, newline="\n", dir=directory, prefix=f".{path.name}.", suffix=".tmp",
+        delete=False)
+    try:
+        with handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+            os.fchmod(handle.fileno(), mode)
+        os.replace(handle.name, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(handle.name)
+        raise
+    _fsync_directory(directory)
+
+
+def _fsync_directory(directory: Path) -> None:
+    """Flush a directory entry (the rename) to disk; POSIX only, a no-op where unsupported."""
+    if os.name != "posix":
+        return
+    descriptor = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
+def to_plain(value: Any) -> Any:
+    """Convert numpy arrays/scalars, tuples and paths inside ``value`` to YAML-safe Python types."""
+    if isinstance(value, Mapping):
+        return {str(key): to_plain(item) for key, item in value.items()}
+    if isinstance(value, np.ndarray):
+        return to_plain(value.tolist())
+    if isinstance(value, (list, tuple)):
+        return [to_plain(item) for item in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    return value
+
+
+def _nan_to_none(value: Any) -> Any:
+    """Replace non-finite floats by None (used for metrics only, where 'not computable' is legitimate)."""
+    if isinstance(value, dict):
+        return {key: _nan_to_none(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_nan_to_none(item) for item in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def new_record(*, head: HeadGeometry | Mapping, plate_pose: Any, models: list, calibrated_region: Mapping,
+               hyper_parameters: Mapping, metrics: Mapping, fiducials: Mapping,
+               created_utc: str | None = None) -> dict:
+    """Build a calibration record from the run's objects and fill the version and time stamp.
+
+    ``head`` is a HeadGeometry or its dict; ``plate_pose`` a PlatePose (or any object/mapping with
+    normal, centre, rotation, flatness_rms_mm); ``models`` the list of model ``to_dict()`` results in
+    order of application; ``fiducials`` a mapping with the lists in FIDUCIAL_KEYS (arrays welcome).
+    Non-finite metric values become None. The result is validated.
+    """
+    head_dict = dataclasses.asdict(head) if dataclasses.is_dataclass(head) else dict(head)
+    pose_keys = ("normal", "centre", "rotation", "flatness_rms_mm")
+    if isinstance(plate_pose, Mapping):
+        pose_dict = {key: plate_pose[key] for key in pose_keys if key in plate_pose}
+    else:
+        pose_dict = {key: getattr(plate_pose, key) for key in pose_keys if hasattr(plate_pose, key)}
+    record = {
+        "format_version": FORMAT_VERSION,
+        "software_version": gls_calibration.__version__,
+        "created_utc": created_utc or datetime.now(timezone.utc).isoformat(timespec="microseconds"),
+        "head": head_dict,
+        "plate_pose": pose_dict,
+        "models": list(models),
+        "calibrated_region": calibrated_region,
+        "hyper_parameters": hyper_parameters,
+        "metrics": _nan_to_none(to_plain(metrics)),
+        "fiducials": dict(fiducials),
+    }
+    record = to_plain(record)
+    validate_record(record)
+    return record
+
+
+def _type_name(value: Any) -> str:
+    return "null" if value is None else type(value).__name__
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def validate_record(record: Any, source: str | os.PathLike | None = None) -> None:
+    """Raise CalibrationFileError naming ``source`` and the first problem found in ``record``.
+
+    Checks: a mapping with every key of REQUIRED_KEYS; format_version == 1; software_version and
+    created_utc (ISO 8601) strings; head with the HeadGeometry fields as valid numbers; plate_pose
+    with normal/centre (3 numbers), rotation (3x3) and flatness_rms_mm; models a list of mappings
+    with a non-empty string 'type'; calibrated_region a mapping with a string 'type';
+    hyper_parameters and metrics mappings; fiducials with equal-length number lists FIDUCIAL_KEYS;
+    no NaN or infinite number anywhere.
+    """
+    def fail(problem: str) -> None:
+        raise CalibrationFileError(source, problem)
+
+    def require_mapping(value: Any, key: str) -> None:
+        if not isinstance(value, Mapping):
+            fail(f"key '{key}' must be a mapping, got {_type_name(value)}")
+
+    def require_number(value: Any, key: str) -> None:
+        if not _is_number(value):
+            fail(f"key '{key}' must be a number, got {_type_name(value)}")
+
+    def require_numbers(value: Any, key: str, length: int | None = None) -> None:
+        if not isinstance(value, list) or not all(_is_number(item) for item in value):
+            fail(f"key '{key}' must be a list of numbers, got {_type_name(value)}")
+        if length is not None and len(value) != length:
+            fail(f"key '{key}' must hold {length} numbers, got {len(value)}")
+
+    if not isinstance(record, Mapping):
+        fail(f"top level must be a mapping, got {_type_name(record)}")
+    for key in REQUIRED_KEYS:
+        if key not in record:
+            fail(f"missing key '{key}'")
+
+    version = record["format_version"]
+    if not isinstance(version, int) or isinstance(version, bool):
+        fail(f"key 'format_version' must be an integer, got {_type_name(version)}")
+    if version != FORMAT_VERSION:
+        fail(f"unsupported format_version {version} (this software reads version {FORMAT_VERSION})")
+    for key in ("software_version", "created_utc"):
+        if not isinstance(record[key], str):
+            fail(f"key '{key}' must be a string, got {_type_name(record[key])}")
+    try:
+        datetime.fromisoformat(record["created_utc"])
+    except ValueError:
+        fail(f"key 'created_utc' is not an ISO 8601 time: {record['created_utc']!r}")
+
+    head = record["head"]
+    require_mapping(head, "head")
+    for key in HEAD_KEYS:
+        if key not in head:
+            fail(f"missing key 'head.{key}'")
+        require_number(head[key], f"head.{key}")
+
+    pose = record["plate_pose"]
+    require_mapping(pose, "plate_pose")
+    for key in ("normal", "centre", "rotation", "flatness_rms_mm"):
+        if key not in pose:
+            fail(f"missing key 'plate_pose.{key}'")
+    require_numbers(pose["normal"], "plate_pose.normal", 3)
+    require_numbers(pose["centre"], "plate_pose.centre", 3)
+    rotation = pose["rotation"]
+    if not isinstance(rotation, list) or len(rotation) != 3:
+        fail(f"key 'plate_pose.rotation' must be a 3x3 list of numbers, got {_type_name(rotation)}")
+    for row_index, row in enumerate(rotation):
+        require_numbers(row, f"plate_pose.rotation[{row_index}]", 3)
+    require_number(pose["flatness_rms_mm"], "plate_pose.flatness_rms_mm")
+
+    models = record["models"]
+    if not isinstance(models, list):
+        fail(f"key 'models' must be a list, got {_type_name(models)}")
+    for index, model in enumerate(models):
+        require_mapping(model, f"models[{index}]")
+        if "type" not in model:
+            fail(f"missing key 'models[{index}].type'")
+        if not isinstance(model["type"], str) or not model["type"]:
+            fail(f"key 'models[{index}].type' must be a non-empty string, got {_type_name(model['type'])}")
+
+    region = record["calibrated_region"]
+    require_mapping(region, "calibrated_region")
+    if "type" not in region:
+        fail("missing key 'calibrated_region.type'")
+    if not isinstance(region["type"], str) or not region["type"]:
+        fail(f"key 'calibrated_region.type' must be a non-empty string, got {_type_name(region['type'])}")
+
+    require_mapping(record["hyper_parameters"], "hyper_parameters")
+    require_mapping(record["metrics"], "metrics")
+
+    fiducials = record["fiducials"]
+    require_mapping(fiducials, "fiducials")
+    for key in FIDUCIAL_KEYS:
+        if key not in fiducials:
+            fail(f"missing key 'fiducials.{key}'")
+        require_numbers(fiducials[key], f"fiducials.{key}")
+    lengths = {key: len(fiducials[key]) for key in FIDUCIAL_KEYS}
+    if len(set(lengths.values())) > 1:
+        listed = ", ".join(f"{key}: {length}" for key, length in lengths.items())
+        fail(f"fiducial lists must have equal lengths, got {listed}")
+
+    bad_path = _first_non_finite(record, "")
+    if bad_path is not None:
+        fail(f"NaN or infinite number at '{bad_path}'")
+
+    # HeadGeometry knows which values are physically valid (positive distances, ...).
+    try:
+        HeadGeometry(**{key: head[key] for key in HEAD_KEYS})
+    except ValueError as error:
+        fail(f"key 'head': {error}")
+
+
+def _first_non_finite(value: Any, path: str) -> str | None:
+    """Dotted/indexed path of the first NaN or infinite float inside ``value``, or None."""
+    if isinstance(value, Mapping):
+        for key, item in value.items():
+            found = _first_non_finite(item, f"{path}.{key}" if path else str(key))
+            if found is not None:
+                return found
+    elif isinstance(value, (list, tuple)):
+        for index, item in enumerate(value):
+            found = _first_non_finite(item, f"{path}[{index}]")
+            if found is not None:
+                return found
+    elif isinstance(value, float) and not math.isfinite(value):
+        return path
+    return None
+
+
+def head_geometry(record: Mapping) -> HeadGeometry:
+    """The HeadGeometry stored in a (validated) record."""
+    return HeadGeometry(**{key: record["head"][key] for key in HEAD_KEYS})
+
+
+def dump_record(record: Mapping) -> str:
+    """YAML text of a record: keys in insertion order, short lists inline, floats at full precision."""
+    return yaml.safe_dump(to_plain(record), sort_keys=False, default_flow_style=None, allow_unicode=True)
+
+
+def _read_yaml(path: Path) -> Any:
+    """Parse a YAML file, turning read and syntax errors into CalibrationFileError."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        reason = error.strerror if isinstance(error, OSError) and error.strerror else str(error)
+        raise CalibrationFileError(path, f"cannot read file: {reason}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        where = getattr(error, "problem_mark", None)
+        location = f" at line {where.line + 1}, column {where.column + 1}" if where is not None else ""
+        problem = getattr(error, "problem", None) or type(error).__name__
+        raise CalibrationFileError(path, f"invalid YAML{location}: {problem}") from None
+
+
+def load_record(path: str | os.PathLike) -> dict:
+    """Read and validate one calibration file; CalibrationFileError names the file and the problem."""
+    path = Path(path)
+    record = _read_yaml(path)
+    if record is None:
+        raise CalibrationFileError(path, "file is empty")
+    validate_record(record, path)
+    return record
+
+
+class CalibrationStore:
+    """A directory of calibrations: an append-only history and a pointer to the active one."""
+
+    def __init__(self, directory: str | os.PathLike) -> None:
+        self.directory = Path(directory)
+        self.history_directory = self.directory / HISTORY_DIR_NAME
+        self.pointer_path = self.directory / ACTIVE_FILE_NAME
+
+    def save(self, record: Mapping, *, activate: bool = True) -> Path:
+        """Validate and store ``record`` as a new history file, then (by default) make it the active one.
+
+        With ``activate=False`` the file is only a candidate: a calibration run saves it, validates
+        it, and activates it only when the run succeeds.
+
+        Non-finite metric values are stored as null (as in new_record); NaN elsewhere is refused.
+        Returns the history file's path. Raises CalibrationFileError for an invalid record and
+        OSError for write errors; in both cases the previous active calibration stays active.
+        """
+        plain = to_plain(record)  # a copy: the caller's record is not modified
+        if isinstance(plain, dict) and "metrics" in plain:
+            plain["metrics"] = _nan_to_none(plain["metrics"])  # registration marks empty sub-fields NaN
+        validate_record(plain)
+        text = dump_record(plain)
+        self.history_directory.mkdir(parents=True, exist_ok=True)
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+        target = self.history_directory / f"calibration_{stamp}_{self._next_number():04d}.yaml"
+        atomic_write_text(target, text)
+        if activate:
+            self.activate(target)
+        return target
+
+    def activate(self, path: str | os.PathLike) -> None:
+        """Make the history file ``path`` the active calibration (one atomic pointer write)."""
+        path = Path(path)
+        if path.parent.resolve() != self.history_directory.resolve() or not _HISTORY_NAME.match(path.name):
+            raise CalibrationFileError(path, "only a file of this store's history can be activated")
+        load_record(path)  # never point at a file that does not load
+        pointer = {"active": path.name, "switched_utc": datetime.now(timezone.utc).isoformat()}
+        atomic_write_text(self.pointer_path, yaml.safe_dump(pointer, sort_keys=False))
+
+    def _next_number(self) -> int:
+        numbers = [int(_HISTORY_NAME.match(path.name).group(2)) for path in self.history()]
+        return max(numbers, default=0) + 1
+
+    def active_path(self) -> Path | None:
+        """Path of the active history file, or None when nothing has been saved yet.
+
+        A pointer file that is unreadable or does not name a history file raises CalibrationFileError.
+        """
+        if not self.pointer_path.exists():
+            return None
+        pointer = _read_yaml(self.pointer_path)
+        if not isinstance(pointer, Mapping) or "active" not in pointer:
+            raise CalibrationFileError(self.pointer_path, "missing key 'active'")
+        name = pointer["active"]
+        # Only a bare history file name is accepted: the pointer must not lead outside the store.
+        if not isinstance(name, str) or not _HISTORY_NAME.match(name):
+            raise CalibrationFileError(
+                self.pointer_path, f"key 'active' must name a history file calibration_<time>_<n>.yaml, got {name!r}")
+        return self.history_directory / name
+
+    def load_active(self) -> dict:
+        """The active calibration record, validated; CalibrationFileError if absent or unusable."""
+        path = self.active_path()
+        if path is None:
+            raise CalibrationFileError(self.pointer_path, "no active calibration (nothing saved yet)")
+        return load_record(path)
+
+    def history(self) -> list[Path]:
+        """Every history file, oldest first (by sequence number)."""
+        if not self.history_directory.is_dir():
+            return []
+        entries = [path for path in self.history_directory.iterdir() if _HISTORY_NAME.match(path.name)]
+        return sorted(entries, key=lambda path: (int(_HISTORY_NAME.match(path.name).group(2)), path.name))
+
+    def load(self, path: str | os.PathLike) -> dict:
+        """Read and validate one calibration file (relative paths are taken inside the history)."""
+        path = Path(path)
+        if not path.is_absolute() and not path.exists():
+            path = self.history_directory / path
+        return load_record(path)

@@ -1,0 +1,265 @@
+"""The calibrate flow: plate run(s), deviations, training, validation; pure and awaitable.
+
+The procedure does not know ROS. It awaits a ``Cell``: an object whose coroutine methods reach the
+scanner, the galvo and the processing nodes (the calibration manager implements them with service
+calls; tests may implement them directly). Everything it decides -- where to mark, how to pair,
+what to train, when to stop -- lives here, so the node stays thin.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+import time
+from typing import Any, Callable, Optional, Protocol
+
+import numpy as np
+
+from gls_calibration import targets as grid
+from gls_calibration.fiducials import FiducialMeasurement
+from gls_calibration.plate_pose import PlatePose
+from gls_calibration.registration import RigidTransform, deviation_metrics, fit_rigid, pair_with_targets
+
+
+class CalibrationError(RuntimeError):
+    """The calibration cannot go on; the message says why. Nothing has been replaced."""
+
+
+@dataclass(frozen=True)
+class Setpoints:
+    """Joint-space setpoints for Cartesian points, as the correction service answers."""
+
+    x: np.ndarray
+    y: np.ndarray
+    alpha_x: np.ndarray
+    alpha_y: np.ndarray
+    focus_shift: np.ndarray
+    inside_calibrated_field: np.ndarray
+    within_limits: np.ndarray
+
+
+@dataclass(frozen=True)
+class TrainedModel:
+    """A trained deviation model as plain numbers, with what training reported."""
+
+    model: dict
+    method: str
+    neurons: int
+    spread_mm: float
+    cv_rms_mm: float
+
+
+class Cell(Protocol):
+    """What the procedure needs from the cell. Clouds are (xyz (H, W, 3), intensity (H, W))."""
+
+    async def acquire_sweep(self, step_mm: float) -> tuple[np.ndarray, np.ndarray]: ...
+    async def estimate_plate_pose(self, xyz: np.ndarray, intensity: np.ndarray) -> PlatePose: ...
+    async def measure_fiducials(self, xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
+                                expected_count: int) -> FiducialMeasurement: ...
+    async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> Setpoints: ...
+    async def mark(self, alpha_x: np.ndarray, alpha_y: np.ndarray, focus_shift: np.ndarray,
+                   polyline_starts: np.ndarray) -> float: ...
+    async def train(self, targets_xy: np.ndarray, deviations: np.ndarray) -> TrainedModel: ...
+    async def load_calibration(self, path: str) -> None: ...
+    async def exchange_plate(self) -> None: ...
+    async def true_marks(self) -> Optional[list[np.ndarray]]:
+        """Simulation only: the polylines really marked on the current plate (gls, mm), in order."""
+
+
+@dataclass(frozen=True)
+class ProcedureSettings:
+    """Settings of one calibration (mm unless named otherwise)."""
+
+    grid_per_side: int = 19
+    grid_size_mm: float = 190.0
+    ring_radii_mm: tuple[float, float] = (2.5, 2.7)
+    plain_sweep_step_mm: float = 1.0
+    marked_sweep_step_mm: float = 0.1
+    scanner_to_gls: RigidTransform = field(default_factory=lambda: RigidTransform(np.eye(3), np.zeros(3)))
+    tolerance_rms_mm: float = 0.05
+    min_found_fraction: float = 0.9
+    default_iterations: int = 1
+    validation_offset_half_pitch: bool = True
+
+
+@dataclass(frozen=True)
+class PlateRun:
+    """One plate marked with a grid and measured: paired targets and deviations (gls frame, mm)."""
+
+    targets: np.ndarray             # (N, 3) all commanded fiducial centres
+    paired_targets_xy: np.ndarray   # (M, 2)
+    deviations: np.ndarray          # (M, 2) delta = Q - P after rigid alignment
+    measured_gls: np.ndarray        # (M, 3) measured centres, aligned into the gls frame
+    true_deviations: Optional[np.ndarray]  # (M, 2) from the ground truth (simulation only)
+    plate_pose_gls: PlatePose
+    fiducials_found: int
+    alignment: RigidTransform
+    metrics: dict
+    true_metrics: Optional[dict]           # over every target, from the ground truth
+
+
+def plane_height(pose: PlatePose, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """z of the plate plane above (x, y) in the frame of ``pose``."""
+    nx, ny, nz = pose.normal
+    if abs(nz) < 1e-6:
+        raise CalibrationError("the plate plane is parallel to the beam axis; check the scanner mounting")
+    cx, cy, cz = pose.centre
+    return cz - (nx * (x - cx) + ny * (y - cy)) / nz
+
+
+def pose_in_frame(pose: PlatePose, transform: RigidTransform) -> PlatePose:
+    """The plate pose expressed in the frame ``transform`` maps into."""
+    rotation = transform.rotation @ pose.rotation
+    return PlatePose(normal=rotation[:, 2].copy(), centre=transform.apply(pose.centre[None, :])[0],
+                     rotation=rotation, flatness_rms_mm=pose.flatness_rms_mm,
+                     inlier_count=pose.inlier_count, inlier_fraction=pose.inlier_fraction)
+
+
+def align_in_plane(points_xy: np.ndarray, targets_xy: np.ndarray) -> np.ndarray:
+    """``points_xy`` after the best 2-D rotation + translation onto ``targets_xy``."""
+    lift = np.zeros((len(points_xy), 1))
+    transform = fit_rigid(np.hstack([points_xy, lift]), np.hstack([targets_xy, lift]))
+    return transform.apply(np.hstack([points_xy, lift]))[:, :2]
+
+
+def true_fiducial_centres(ring_marks: list[np.ndarray], rings_per_fiducial: int) -> np.ndarray:
+    """Centres (N, 3) of marked fiducials from their landed closed ring polylines, in marking order.
+
+    A ring is commanded as points evenly spread in angle; the head's distortion is smooth on the
+    scale of a ring, so the mean of the landed points (the repeated closing point left out) is
+    where the ring's centre really is.
+    """
+    if len(ring_marks) % rings_per_fiducial:
+        raise ValueError(f"{len(ring_marks)} ring marks do not make whole fiducials of {rings_per_fiducial} rings")
+    means = np.array([np.asarray(ring, dtype=float)[:-1].mean(axis=0) for ring in ring_marks])
+    return means.reshape(-1, rings_per_fiducial, means.shape[1]).mean(axis=1)
+
+
+Progress = Callable[[str, float, str], None]
+
+
+async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray, progress: Progress,
+                    span: tuple[float, float], want_truth: bool) -> PlateRun:
+    """Scan the plain plate, mark ``grid_xy`` through the active correction, scan, measure, pair."""
+    start, width = span
+
+    def report(stage: str, part: float, text: str) -> None:
+        progress(stage, start + width * part, text)
+
+    report("sweep_plain", 0.0, "scanning the plain plate")
+    xyz, intensity = await cell.acquire_sweep(settings.plain_sweep_step_mm)
+    pose_scanner = await cell.estimate_plate_pose(xyz, intensity)
+    pose_gls = pose_in_frame(pose_scanner, settings.scanner_to_gls)
+    report("plate_pose", 0.15, f"plate flatness {pose_scanner.flatness_rms_mm:.4f} mm RMS")
+
+    targets = np.column_stack([grid_xy, plane_height(pose_gls, grid_xy[:, 0], grid_xy[:, 1])])
+    rings = grid.rings_polylines(grid_xy, settings.ring_radii_mm)
+    starts = np.cumsum([0] + [len(ring) for ring in rings[:-1]]).astype(np.uint32)
+    ring_xy = np.vstack(rings)
+    ring_z = plane_height(pose_gls, ring_xy[:, 0], ring_xy[:, 1])
+    setpoints = await cell.correct(ring_xy[:, 0], ring_xy[:, 1], ring_z)
+    if not np.all(setpoints.within_limits):
+        count = int(np.count_nonzero(~setpoints.within_limits))
+        raise CalibrationError(f"{count} ring point(s) lie beyond the mirror limits or the focus range; "
+                               "reduce the grid size or check the plate pose")
+    report("marking", 0.2, f"marking {len(grid_xy)} fiducials")
+    await cell.mark(setpoints.alpha_x, setpoints.alpha_y, setpoints.focus_shift, starts)
+
+    report("sweep_marked", 0.45, "scanning the marked plate")
+    xyz, intensity = await cell.acquire_sweep(settings.marked_sweep_step_mm)
+    report("measurement", 0.7, "measuring fiducials")
+    found = await cell.measure_fiducials(xyz, intensity, pose_scanner, len(grid_xy))
+    needed = math.ceil(settings.min_found_fraction * len(grid_xy))
+    if len(found.centres) < needed:
+        raise CalibrationError(f"found {len(found.centres)} of {len(grid_xy)} fiducials; at least {needed} "
+                               f"({settings.min_found_fraction:.0%}) are needed")
+
+    centres_gls = settings.scanner_to_gls.apply(found.centres)
+    pairing = pair_with_targets(centres_gls, targets)
+    if len(pairing.target_index) < needed:
+        raise CalibrationError(f"paired {len(pairing.target_index)} of {len(grid_xy)} fiducials with their "
+                               f"targets; at least {needed} are needed")
+    measured = pairing.transform.apply(centres_gls[pairing.measured_index])
+    paired_xy = grid_xy[pairing.target_index]
+    deviations = paired_xy - measured[:, :2]
+
+    true_deviations = true_metrics = None
+    if want_truth:
+        marks = await cell.true_marks()
+        if marks is not None:
+            true_centres = true_fiducial_centres(marks[-len(rings):], len(settings.ring_radii_mm))
+            # The calibration cannot see a rigid motion of the whole field, so the truth is
+            # compared after the same kind of alignment as the measurement.
+            every_true_deviation = grid_xy - align_in_plane(true_centres[:, :2], grid_xy)
+            true_metrics = deviation_metrics(grid_xy, every_true_deviation)
+            true_deviations = every_true_deviation[pairing.target_index]
+    report("deviations", 1.0, f"{len(deviations)} fiducials paired")
+    return PlateRun(targets=targets, paired_targets_xy=paired_xy, deviations=deviations,
+                    measured_gls=measured, true_deviations=true_deviations, plate_pose_gls=pose_gls,
+                    fiducials_found=len(found.centres), alignment=pairing.transform,
+                    metrics=deviation_metrics(paired_xy, deviations), true_metrics=true_metrics)
+
+
+def validation_grid(settings: ProcedureSettings) -> np.ndarray:
+    """Fiducials between the training ones (half a pitch off), so validation is not on training points."""
+    training = grid.grid_targets(settings.grid_per_side, settings.grid_size_mm)
+    if not settings.validation_offset_half_pitch:
+        return training
+    pitch = settings.grid_size_mm / (settings.grid_per_side - 1)
+    return grid.grid_targets(settings.grid_per_side - 1, settings.grid_size_mm - pitch)
+
+
+@dataclass
+class CalibrationOutcome:
+    """What one calibrate request produced (the node turns it into the service response)."""
+
+    success: bool
+    message: str
+    runs: list[PlateRun]
+    validation: Optional[PlateRun]
+    models: list[TrainedModel]
+    trained: bool
+    duration_s: float = float("nan")
+    calibration_file: str = ""
+
+
+async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int, validate: bool, force: bool,
+                    want_truth: bool, progress: Progress,
+                    save_candidate: Callable[[list[PlateRun], list[TrainedModel]], str]) -> CalibrationOutcome:
+    """Run the calibrate flow. ``save_candidate`` stores a calibration without activating it.
+
+    The correction node is switched to the candidate for later iterations and validation; the
+    caller activates it only when this returns successfully, so a failure keeps the active one.
+    """
+    began = time.monotonic()
+    iterations = iterations or settings.default_iterations
+    training_grid = grid.grid_targets(settings.grid_per_side, settings.grid_size_mm)
+    passes = iterations + (1 if validate else 0)
+    span = 1.0 / passes
+    runs: list[PlateRun] = []
+    models: list[TrainedModel] = []
+    candidate = ""
+    for iteration in range(iterations):
+        if iteration > 0:
+            await cell.exchange_plate()
+        run = await run_plate(cell, settings, training_grid, progress, (iteration * span, span * 0.9),
+                              want_truth)
+        runs.append(run)
+        rms = run.metrics["full"]["rms_abs_mm"]
+        if iteration == 0 and rms <= settings.tolerance_rms_mm and not force:
+            return CalibrationOutcome(True, f"deviation RMS {rms:.4f} mm is within the tolerance of "
+                                      f"{settings.tolerance_rms_mm} mm: nothing trained (use force to train)",
+                                      runs, None, models, trained=False,
+                                      duration_s=time.monotonic() - began)
+        progress("training", (iteration + 0.9) * span, f"training on {len(run.deviations)} deviations")
+        models.append(await cell.train(run.paired_targets_xy, run.deviations))
+        candidate = save_candidate(runs, models)
+        await cell.load_calibration(candidate)
+
+    validation = None
+    if validate:
+        await cell.exchange_plate()
+        validation = await run_plate(cell, settings, validation_grid(settings), progress,
+                                     (iterations * span, span), want_truth)
+    progress("done", 1.0, "calibration finished")
+    return CalibrationOutcome(True, "calibrated", runs, validation, models, trained=True,
+                              duration_s=time.monotonic() - began, calibration_file=candidate)

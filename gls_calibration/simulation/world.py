@@ -1,0 +1,204 @@
+"""The simulated cell in one object, and its configuration file (``config/sim.yaml``).
+
+The file is a ROS 2 parameter file; nested blocks are the dotted parameter names nodes see::
+
+    /**:
+      ros__parameters:
+        seed: 1
+        head: {working_distance_mm: 490.0, ...}     # nominal geometry, as in config/head.yaml
+        effects: {galvo_gain_x: [0.0107], ...}      # TRUE effects of the simulated head (optics.EFFECTS)
+        marking: {mark_speed_mm_s: 500.0, jump_time_s: 0.005}
+        plate: {size_mm: 250.0, ...}                # pose comes from effects.plate_tilt / working_distance
+        scanner: {standoff_mm: 325.0, ..., mounting_xyz_mm: [...], mounting_rpy_rad: [...],
+                  mounting_error_xyz_mm: [...], mounting_error_rpy_rad: [...]}
+        sweep: {length_mm: 200.0}
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+import math
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import yaml
+
+from gls_calibration.config_files import config_path
+from gls_calibration.head_config import parameters_block, head_config_from_dict
+from gls_calibration.kinematics import HeadGeometry, inverse
+from gls_calibration.optics import HeadEffects
+from gls_calibration.simulation.head import TruthHead
+from gls_calibration.simulation.plate import Plate, PlateSettings
+from gls_calibration.simulation.scanner import LaserLineScanner, ScannerSettings, pose_matrix
+
+_PLATE_KEYS = tuple(f.name for f in fields(PlateSettings) if f.name not in ("tilt_x_rad", "tilt_y_rad", "delta_d_mm"))
+_SCANNER_KEYS = tuple(f.name for f in fields(ScannerSettings))
+_MOUNTING_KEYS = ("mounting_xyz_mm", "mounting_rpy_rad", "mounting_error_xyz_mm", "mounting_error_rpy_rad")
+_MARKING_KEYS = ("mark_speed_mm_s", "jump_time_s")
+_SWEEP_KEYS = ("length_mm",)
+
+
+@dataclass(frozen=True, eq=False)
+class SimConfig:
+    """Everything that defines a simulated cell (mm, rad, s)."""
+
+    seed: int = 1
+    geometry: HeadGeometry = HeadGeometry()
+    effects: HeadEffects = HeadEffects()
+    mark_speed_mm_s: float = 500.0
+    jump_time_s: float = 0.005
+    plate: PlateSettings = PlateSettings()
+    scanner: ScannerSettings = ScannerSettings()
+    scanner_to_gls: np.ndarray = None          # 4x4 CAD mounting, scanner -> gls
+    mounting_error: np.ndarray = None          # 4x4 unknown error in the scanner frame
+    sweep_length_mm: float = 200.0
+
+    def __post_init__(self) -> None:
+        if self.scanner_to_gls is None:
+            object.__setattr__(self, "scanner_to_gls", pose_matrix(
+                [0.0, 0.5 * self.sweep_length_mm, self.scanner.standoff_mm], [math.pi, 0.0, 0.0]))
+        if self.mounting_error is None:
+            object.__setattr__(self, "mounting_error", np.eye(4))
+        for name in ("mark_speed_mm_s", "sweep_length_mm"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} must be positive, got {value!r}")
+        if not (math.isfinite(self.jump_time_s) and self.jump_time_s >= 0.0):
+            raise ValueError(f"jump_time_s must be non-negative, got {self.jump_time_s!r}")
+
+    @property
+    def plate_settings(self) -> PlateSettings:
+        """Plate settings with the pose of the effects plate_tilt and working_distance."""
+        tilt_x, tilt_y = self.effects.get("plate_tilt")
+        return PlateSettings(**{**{key: getattr(self.plate, key) for key in _PLATE_KEYS},
+                                "tilt_x_rad": tilt_x, "tilt_y_rad": tilt_y,
+                                "delta_d_mm": self.effects.get("working_distance")[0]})
+
+
+def default_sim_config_path() -> Path:
+    """The package's ``config/sim.yaml``."""
+    return config_path("sim.yaml")
+
+
+def _block(parameters: Mapping[str, Any], name: str, known: Sequence[str]) -> dict[str, Any]:
+    block = parameters.get(name) or {}
+    if not isinstance(block, Mapping):
+        raise ValueError(f"'{name}' must be a mapping, got {type(block).__name__}")
+    unknown = sorted(set(block) - set(known))
+    if unknown:
+        raise ValueError(f"unknown {name} parameter(s) {', '.join(repr(f'{name}.{key}') for key in unknown)}; "
+                         f"known: {', '.join(known)}")
+    return dict(block)
+
+
+def _number(value: Any, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"sim parameter {key!r} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _triple(value: Any, key: str) -> np.ndarray:
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise ValueError(f"sim parameter {key!r} must be a list of 3 numbers, got {value!r}")
+    return np.array([_number(item, key) for item in value])
+
+
+def sim_config_from_dict(document: Any) -> SimConfig:
+    """SimConfig from a parsed sim configuration (see the module docstring); missing keys take defaults."""
+    parameters = parameters_block(document)
+    known_blocks = ("seed", "head", "effects", "marking", "plate", "scanner", "sweep")
+    unknown = sorted(set(parameters) - set(known_blocks))
+    if unknown:
+        raise ValueError(f"unknown sim parameter(s) {', '.join(map(repr, unknown))}; known: {', '.join(known_blocks)}")
+    head = parameters.get("head") or {}
+    if isinstance(head, Mapping) and "effects" in head:
+        raise ValueError("put the true effects of the simulated head under 'effects', not 'head.effects'")
+    geometry, _ = head_config_from_dict({"head": head})
+
+    effects = parameters.get("effects") or {}
+    if not isinstance(effects, Mapping):
+        raise ValueError(f"'effects' must be a mapping of effect name to parameters, got {effects!r}")
+    cleaned = {}
+    for name, values in effects.items():
+        listed = values if isinstance(values, (list, tuple)) else [values]
+        cleaned[str(name)] = tuple(_number(value, f"effects.{name}") for value in listed)
+    effects = HeadEffects(cleaned)       # unknown effect names raise here, named
+
+    seed = parameters.get("seed", 1)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"sim parameter 'seed' must be a non-negative integer, got {seed!r}")
+    marking = {key: _number(value, f"marking.{key}")
+               for key, value in _block(parameters, "marking", _MARKING_KEYS).items()}
+    plate = _block(parameters, "plate", _PLATE_KEYS)
+    plate = PlateSettings(**{key: _number(value, f"plate.{key}") for key, value in plate.items()})
+    scanner = _block(parameters, "scanner", _SCANNER_KEYS + _MOUNTING_KEYS)
+    mounting = {key: _triple(scanner.pop(key), f"scanner.{key}") for key in _MOUNTING_KEYS if key in scanner}
+    scanner_values = {key: (int(value) if key == "intensity_bits" and isinstance(value, int) and not isinstance(value, bool)
+                            else _number(value, f"scanner.{key}")) for key, value in scanner.items()}
+    scanner = ScannerSettings(**scanner_values)
+    sweep = {key: _number(value, f"sweep.{key}") for key, value in _block(parameters, "sweep", _SWEEP_KEYS).items()}
+    length = sweep.get("length_mm", 200.0)
+
+    cad = None
+    if "mounting_xyz_mm" in mounting or "mounting_rpy_rad" in mounting:
+        cad = pose_matrix(mounting.get("mounting_xyz_mm", [0.0, 0.5 * length, scanner.standoff_mm]),
+                          mounting.get("mounting_rpy_rad", [math.pi, 0.0, 0.0]))
+    error = pose_matrix(mounting.get("mounting_error_xyz_mm", np.zeros(3)),
+                        mounting.get("mounting_error_rpy_rad", np.zeros(3)))
+    return SimConfig(seed=seed, geometry=geometry, effects=effects,
+                     mark_speed_mm_s=marking.get("mark_speed_mm_s", 500.0),
+                     jump_time_s=marking.get("jump_time_s", 0.005), plate=plate, scanner=scanner,
+                     scanner_to_gls=cad, mounting_error=error, sweep_length_mm=length)
+
+
+def load_sim_config(path: str | Path | None = None) -> SimConfig:
+    """Read a sim configuration file (default: the package's ``config/sim.yaml``).
+
+    Raises ValueError with the file name for unreadable YAML, unknown keys or effect names, and
+    non-positive speeds or step sizes.
+    """
+    path = Path(path) if path is not None else default_sim_config_path()
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise ValueError(f"cannot read sim configuration {path}: {error.strerror or error}") from None
+    try:
+        document = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ValueError(f"cannot parse sim configuration {path}: {error}") from None
+    try:
+        return sim_config_from_dict(document)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
+
+
+class SimulatedCell:
+    """Truth head, plate and scanner of one configuration, wired so that marks land on the plate."""
+
+    def __init__(self, config: SimConfig | None = None) -> None:
+        self.config = config if config is not None else SimConfig()
+        self.plate = Plate(self.config.plate_settings, seed=self.config.seed)
+        self.head = TruthHead(self.config.geometry, self.config.effects, plate=self.plate,
+                              mark_speed_mm_s=self.config.mark_speed_mm_s, jump_time_s=self.config.jump_time_s)
+        self.scanner = LaserLineScanner(self.config.scanner, self.config.scanner_to_gls, self.config.mounting_error)
+        self._plates_loaded = 0
+
+    def exchange_plate(self) -> int:
+        """Load a clean plate (new id, new texture, no marks); the marking clock keeps running."""
+        self._plates_loaded += 1
+        return self.plate.load_clean([self.config.seed, self._plates_loaded])
+
+    def mark_cartesian(self, polylines_xy: Iterable, z: float = 0.0) -> list[np.ndarray]:
+        """Mark polylines given in gls xy (M, 2) through the nominal inverse kinematics; landed (M, 3) each."""
+        landed = []
+        for polyline in polylines_xy:
+            polyline = np.asarray(polyline, dtype=float)
+            setpoints = inverse(self.config.geometry, polyline[:, 0], polyline[:, 1],
+                                np.full(polyline.shape[0], float(z)))
+            landed.append(self.head.mark(setpoints.alpha_x, setpoints.alpha_y))
+        return landed
+
+    def sweep_cloud(self, step_mm: float | None = None, seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """One sweep over the configured length: organized xyz (H, W, 3) and intensity (H, W), scanner frame."""
+        seed = self.config.seed if seed is None else seed
+        return self.scanner.sweep_cloud(self.plate, self.config.sweep_length_mm, step_mm=step_mm, seed=seed)
