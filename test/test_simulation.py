@@ -258,9 +258,13 @@ def test_default_configuration_loads_and_builds_a_cell():
 
 
 def test_paper_like_default_deviations():
+    """Commanded on the plate's plane through the nominal model, as a calibration does."""
     cell = SimulatedCell(load_sim_config())
     targets = grid()
-    landed = np.array([mark[0, :2] for mark in cell.mark_cartesian(targets[:, None, :])])
+    normal, origin = cell.plate.normal, cell.plate.origin
+    z = origin[2] - (normal[0] * (targets[:, 0] - origin[0]) + normal[1] * (targets[:, 1] - origin[1])) / normal[2]
+    setpoints = inverse(cell.config.geometry, targets[:, 0], targets[:, 1], z)
+    landed = cell.head.mark(setpoints.alpha_x, setpoints.alpha_y)[:, :2]
     deviation = rigid_2d(landed, targets) - targets
     size = np.linalg.norm(deviation, axis=1)
     assert np.sqrt(np.mean(size ** 2)) == pytest.approx(0.85, abs=0.1)

@@ -28,6 +28,7 @@ import numpy as np
 
 from gls_calibration.discrepancy import MIN_POINTS, DiscrepancyResult, explain
 from gls_calibration.head_config import default_head_config_path, load_head_config
+from gls_calibration.report import json_safe
 
 PROGRAM = "gls-discrepancy"
 REQUIRED_COLUMNS = ("x_cmd", "y_cmd", "x_meas", "y_meas")
@@ -217,16 +218,6 @@ def _report_markdown(result: DiscrepancyResult, measured: Path, model: Path | No
     return "\n".join(lines)
 
 
-def _json_safe(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {key: _json_safe(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(item) for item in value]
-    return value
-
-
 def _write_outputs(result: DiscrepancyResult, out: Path, measured: Path, model: Path | None,
                    data: Measurements) -> None:
     """Render everything in a temporary directory beside ``out``, then move it in atomically."""
@@ -237,7 +228,7 @@ def _write_outputs(result: DiscrepancyResult, out: Path, measured: Path, model: 
         document = result.to_dict()
         document["input"] = {"measured": str(measured), "model": None if model is None else str(model),
                              "dropped_lines": list(data.dropped_lines)}
-        (staging / "discrepancy.json").write_text(json.dumps(_json_safe(document), indent=2) + "\n", encoding="utf-8")
+        (staging / "discrepancy.json").write_text(json.dumps(json_safe(document), indent=2) + "\n", encoding="utf-8")
         _plot_residual_fields(result, staging / "residual_field.png")
         _plot_gap(result, staging / "gap_per_step.png")
         (staging / "report.md").write_text(_report_markdown(result, measured, model, data), encoding="utf-8")

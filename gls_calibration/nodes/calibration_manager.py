@@ -5,7 +5,7 @@ processing nodes; the flow itself is ``gls_calibration.procedure``.
 """
 from __future__ import annotations
 
-from dataclasses import asdict
+import json
 import math
 from pathlib import Path
 import time
@@ -14,11 +14,12 @@ from typing import Optional
 import numpy as np
 from std_srvs.srv import Trigger
 
-from gls_calibration import conversions, procedure
-from gls_calibration.calibration_record import build_record, correction_from_record, record_models
+from gls_calibration import conversions, discrepancy, procedure
+from gls_calibration.calibration_record import build_record, correction_from_record, record_fiducials, record_models
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
 from gls_calibration.nodes.head_parameters import declare_head_geometry, declare_scanner_to_gls
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
+from gls_calibration.report import json_safe
 from gls_calibration.run_report import write_outcome_report
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints, EstimatePlatePose,
@@ -231,10 +232,30 @@ class CalibrationManager(GlsNode):
         except (procedure.CalibrationError, ServiceCallError) as error:
             self.get_logger().error(f"could not restore the active calibration in the correction node: {error}")
 
-    async def on_explain(self, request, response):
-        """Serve ``explain_deviations``: the discrepancy workflow on a calibration's fiducials."""
-        response.success = False
-        response.message = "not implemented yet"
+    def on_explain(self, request, response):
+        """Serve ``explain_deviations``: the discrepancy workflow on a calibration's measured fiducials."""
+        try:
+            path = Path(request.calibration_file) if request.calibration_file else self.store.active_path()
+            if path is None:
+                raise CalibrationFileError(self.store.pointer_path, "no active calibration (nothing saved yet)")
+            record = self.store.load(path)
+            if not record["fiducials"].get("commanded_through_nominal_model", True):
+                self.get_logger().warning(f"{path}: the first plate was marked through an earlier calibration; "
+                                          "the named effects describe what that calibration left")
+            commanded, measured = record_fiducials(record)
+            result = discrepancy.explain(commanded, measured, self.geometry)
+        except (CalibrationFileError, ValueError) as error:
+            response.success, response.message = False, str(error)
+            return response
+        response.success = True
+        response.named_effects = list(result.named_effects)
+        response.rms_before_mm = float(result.rms_before_mm)
+        response.rms_after_mm = float(result.rms_after_mm)
+        response.noise_floor_mm = float(result.noise_floor_mm)
+        response.report_json = json.dumps(json_safe(result.to_dict()))
+        named = ", ".join(result.named_effects) or "no effect"
+        response.message = (f"{path.name}: {named}; residual {result.rms_before_mm:.4f} -> "
+                            f"{result.rms_after_mm:.4f} mm RMS (noise floor {result.noise_floor_mm:.4f} mm)")
         return response
 
 
