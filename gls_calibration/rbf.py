@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+import importlib
 import math
 import os
 from typing import Any, Optional, Protocol
@@ -248,8 +249,8 @@ class OLSRBFNetwork:
     def from_dict(cls, data: Mapping[str, Any]) -> "OLSRBFNetwork":
         """Rebuild a network written by :meth:`to_dict`."""
         _require_type(data, "ols_rbf")
-        centres = as_points(_require(data, "centres"), "centres", 2, min_length=0)
-        weights = as_points(_require(data, "weights"), "weights", 2, min_length=0)
+        centres = _rows_of_two(_require(data, "centres"), "centres")
+        weights = _rows_of_two(_require(data, "weights"), "weights")
         if centres.shape != weights.shape:
             raise ValueError(f"centres and weights must have the same shape, got {centres.shape} and {weights.shape}")
         bias = as_points([_require(data, "bias")], "bias", 2)[0]
@@ -303,6 +304,16 @@ class ThinPlateSplineModel:
 
 
 _MODEL_TYPES = {"ols_rbf": OLSRBFNetwork, "thin_plate_spline": ThinPlateSplineModel}
+# Types defined in modules that import this one: (module, class), imported on first use (no cycle).
+_LAZY_MODEL_TYPES = {"physical": ("gls_calibration.physical_model", "PhysicalDeviationModel"),
+                     "sum": ("gls_calibration.physical_model", "SumModel")}
+
+
+def _rows_of_two(values: Any, name: str) -> np.ndarray:
+    """(K, 2) points; an empty list (a network of the bias alone, as YAML writes it) gives (0, 2)."""
+    if isinstance(values, (list, tuple)) and len(values) == 0:
+        return np.empty((0, 2))
+    return as_points(values, name, 2, min_length=0)
 
 
 def _require(data: Mapping[str, Any], key: str) -> Any:
@@ -323,8 +334,12 @@ def model_from_dict(data: Mapping[str, Any]) -> DeviationModel:
     if not isinstance(data, Mapping):
         raise ValueError(f"model description must be a mapping, got {type(data).__name__}")
     kind = data.get("type")
+    if kind in _LAZY_MODEL_TYPES:
+        module, name = _LAZY_MODEL_TYPES[kind]
+        return getattr(importlib.import_module(module), name).from_dict(data)
     if kind not in _MODEL_TYPES:
-        raise ValueError(f"unknown model type {kind!r}; known types: {', '.join(sorted(_MODEL_TYPES))}")
+        known = sorted([*_MODEL_TYPES, *_LAZY_MODEL_TYPES])
+        raise ValueError(f"unknown model type {kind!r}; known types: {', '.join(known)}")
     return _MODEL_TYPES[kind].from_dict(data)
 
 

@@ -10,6 +10,9 @@ Fixtures:
     ros_context  a fresh, initialised rclpy Context per test, shut down afterwards.
     executor     a MultiThreadedExecutor on that context, spun by a background thread.
     add_node     add_node(node) -> node: put a node into the executor; it is destroyed after the test.
+    start_cell   start_cell(**options) -> RunningCell: every node of the simulated cell in a context of
+                 its own, initialised with the cell's parameter files (see ros_helpers.running_cell);
+                 stopped after the test.
 Helpers for the test bodies (call_service, wait_for, stop_process) live in test/ros_helpers.py.
 """
 from __future__ import annotations
@@ -17,6 +20,7 @@ from __future__ import annotations
 import os
 import random
 from collections.abc import Callable, Iterator
+from contextlib import ExitStack
 
 import pytest
 
@@ -30,7 +34,7 @@ from rclpy.context import Context  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 
-from ros_helpers import spin_in_background  # noqa: E402
+from ros_helpers import RunningCell, running_cell, spin_in_background  # noqa: E402
 
 EXECUTOR_STOP_TIMEOUT_S = 5.0
 
@@ -75,3 +79,12 @@ def add_node(executor: MultiThreadedExecutor) -> Callable[[Node], Node]:
         executor.add_node(node)
         return node
     return add
+
+
+@pytest.fixture
+def start_cell(tmp_path) -> Iterator[Callable[..., RunningCell]]:
+    """start_cell(**options) -> RunningCell: the simulated cell in-process, in ``tmp_path`` (stopped afterwards)."""
+    with ExitStack() as stack:
+        def start(**options) -> RunningCell:
+            return stack.enter_context(running_cell(tmp_path, **options))
+        yield start

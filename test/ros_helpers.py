@@ -7,16 +7,26 @@ executor that has to deliver it.
 """
 from __future__ import annotations
 
+import argparse
+import json
 import signal
 import subprocess
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import rclpy
 from rclpy.client import Client
-from rclpy.executors import Executor, SingleThreadedExecutor
+from rclpy.context import Context
+from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from gls_calibration.cli import sim_cell
 
 
 def wait_for(condition: Callable[[], bool], timeout_s: float, *, what: str = "condition",
@@ -72,3 +82,106 @@ def stop_process(process: subprocess.Popen, timeout_s: float = 5.0) -> int:
             process.wait(timeout=timeout_s)
     return process.returncode
 
+
+
+# --- the simulated cell in-process -------------------------------------------------------------
+
+CELL_EXECUTOR_THREADS = 6           # as gls-sim-cell: blocking service callbacks must not starve the others
+CELL_STOP_TIMEOUT_S = 10.0
+
+
+def parameter_text(value: Any) -> str:
+    """A parameter value as ROS's ``-p name:=value`` reads it (YAML; JSON is YAML)."""
+    return json.dumps(value)
+
+
+def cell_ros_arguments(calibration_dir: Path, report_dir: Path, *, grid: int = 3, seed: int = 1,
+                       sim_config: Path | None = None, parameters: Mapping[str, Any] | None = None) -> list[str]:
+    """``--ros-args`` of the simulated cell as gls-sim-cell builds them, plus ``parameters`` for every node.
+
+    A name in ``parameters`` replaces gls-sim-cell's own ``-p`` override of that name (the config
+    files stay underneath).
+    """
+    cell_args = argparse.Namespace(sim_config=sim_config, seed=seed, grid=grid)
+    ros_args = sim_cell.ros_arguments(cell_args, calibration_dir, report_dir)
+    parameters = dict(parameters or {})
+    if sim_config is not None:
+        # The simulation nodes read their settings from the file named by this parameter.
+        parameters.setdefault("sim_config", str(sim_config))
+    kept: list[str] = []
+    index = 0
+    while index < len(ros_args):
+        if ros_args[index] == "-p" and ros_args[index + 1].split(":=", 1)[0] in parameters:
+            index += 2
+            continue
+        kept.append(ros_args[index])
+        index += 1
+    for name, value in parameters.items():
+        kept += ["-p", f"{name}:={parameter_text(value)}"]
+    return kept
+
+
+@dataclass
+class RunningCell:
+    """Every node of the simulated cell in one context, spun in the background, and a client node."""
+
+    context: Context
+    executor: MultiThreadedExecutor
+    nodes: dict[str, Node]
+    client_node: Node
+    calibration_dir: Path
+    report_dir: Path
+
+    def call(self, srv_type: type, name: str, request, timeout_s: float):
+        """Call the cell's service ``name`` (relative to the ``gls`` namespace) from the client node."""
+        client = self.client_node.create_client(srv_type, name)
+        try:
+            return call_service(self.client_node, client, request, timeout_s)
+        finally:
+            self.client_node.destroy_client(client)
+
+
+@contextmanager
+def running_cell(directory: Path, *, grid: int = 3, seed: int = 1, sim_config: Path | None = None,
+                 parameters: Mapping[str, Any] | None = None,
+                 node_parameters: Mapping[str, Mapping[str, Any]] | None = None,
+                 node_types: Sequence[type] = sim_cell.NODE_TYPES) -> Iterator[RunningCell]:
+    """Start ``node_types`` (default: every node of gls-sim-cell) in a fresh context; stop them afterwards.
+
+    The store and reports go to ``directory``/calibrations and ``directory``/reports.
+    ``parameters`` apply to every node (command-line ``-p``); ``node_parameters`` maps a node name
+    (e.g. ``"fiducial_measurement"``) to overrides of that node only.
+    """
+    calibration_dir, report_dir = directory / "calibrations", directory / "reports"
+    report_dir.mkdir(parents=True, exist_ok=True)
+    context = Context()
+    rclpy.init(args=cell_ros_arguments(calibration_dir, report_dir, grid=grid, seed=seed,
+                                       sim_config=sim_config, parameters=parameters), context=context)
+    nodes: dict[str, Node] = {}
+    executor = None
+    thread = None
+    try:
+        for node_type in node_types:
+            name = _node_name(node_type)
+            overrides = [Parameter(key, value=value) for key, value in (node_parameters or {}).get(name, {}).items()]
+            nodes[name] = node_type(context=context, parameter_overrides=overrides)
+        client_node = rclpy.create_node("cell_test_client", namespace="gls", context=context)
+        nodes["cell_test_client"] = client_node
+        executor = MultiThreadedExecutor(num_threads=CELL_EXECUTOR_THREADS, context=context)
+        for node in nodes.values():
+            executor.add_node(node)
+        thread = spin_in_background(executor)
+        yield RunningCell(context, executor, nodes, client_node, calibration_dir, report_dir)
+    finally:
+        if executor is not None:
+            executor.shutdown(timeout_sec=CELL_STOP_TIMEOUT_S)
+        if thread is not None:
+            thread.join(timeout=CELL_STOP_TIMEOUT_S)
+        for node in nodes.values():
+            node.destroy_node()
+        context.try_shutdown()
+
+
+def _node_name(node_type: type) -> str:
+    """The ROS name a node class of the package gives itself (its module's name, by convention)."""
+    return node_type.__module__.rsplit(".", 1)[-1]

@@ -121,6 +121,17 @@ def test_save_and_load_give_identical_predictions(tmp_path):
         assert model_from_dict(model.to_dict()).to_dict() == model.to_dict()
 
 
+def test_a_network_of_the_bias_alone_survives_a_yaml_round_trip(tmp_path):
+    X = GRID
+    Y = np.tile([0.01, -0.02], (X.shape[0], 1))     # constant: the bias meets the goal, no unit is added
+    network = OLSRBFNetwork(X, Y)
+    assert network.neuron_count == 0
+    save_model_yaml(tmp_path / "bias.yaml", network)
+    loaded = load_model_yaml(tmp_path / "bias.yaml")
+    assert loaded.neuron_count == 0
+    np.testing.assert_allclose(loaded(dense_points(5)), network(dense_points(5)), atol=1e-15)
+
+
 def test_thin_plate_spline_interpolates_without_smoothing_and_smooths_with_it():
     X, Y = noisy_samples(8)
     exact = ThinPlateSplineModel(X, Y)
@@ -214,7 +225,7 @@ def test_cross_validation_rejects_bad_folds(count, folds, message):
 
 
 def test_model_from_dict_rejects_unknown_types():
-    with pytest.raises(ValueError, match="unknown model type 'spline3'; known types: ols_rbf, thin_plate_spline"):
+    with pytest.raises(ValueError, match="unknown model type 'spline3'; known types: ols_rbf, physical, sum, thin_plate_spline"):
         model_from_dict({"type": "spline3"})
     with pytest.raises(ValueError, match="model description lacks key 'centres'"):
         model_from_dict({"type": "ols_rbf", "spread_mm": 35.0})

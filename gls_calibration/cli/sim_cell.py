@@ -12,13 +12,13 @@ from pathlib import Path
 import shutil
 import sys
 import tempfile
-import threading
 import time
 
 import rclpy
-from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 
 from gls_calibration.config_files import config_path
+from gls_calibration.nodes.base import NodeThreads
 from gls_calibration.persistence import atomic_write_text
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
@@ -92,11 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     context = rclpy.Context()
     rclpy.init(args=ros_arguments(args, store, args.out), context=context)
     nodes = [node_type(context=context) for node_type in NODE_TYPES]
-    executor = MultiThreadedExecutor(num_threads=6, context=context)
-    for node in nodes:
-        executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
+    threads = NodeThreads(nodes)
     try:
         if args.serve:
             names = ", ".join(node.get_fully_qualified_name() for node in nodes)
@@ -107,9 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     finally:
-        executor.shutdown()
-        for node in nodes:
-            node.destroy_node()
+        threads.stop()
         rclpy.shutdown(context=context)
         if not args.serve:
             shutil.rmtree(store, ignore_errors=True)

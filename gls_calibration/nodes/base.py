@@ -1,11 +1,12 @@
 """What every node of the package shares: parameter declaration, async service calls, main()."""
 from __future__ import annotations
 
+import threading
 from typing import Any, Callable
 
 import rclpy
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -97,26 +98,56 @@ class GlsNode(Node):
         return future.result()
 
 
-def spin_nodes(nodes: list[Node], threads: int = 4) -> None:
-    """Spin ``nodes`` on one multi-threaded executor until shutdown or Ctrl-C."""
-    executor = MultiThreadedExecutor(num_threads=threads)
-    for node in nodes:
-        executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        executor.shutdown()
-        for node in nodes:
+class NodeThreads:
+    """Spins each node on its own single-threaded executor in its own thread.
+
+    One executor for many nodes rebuilds the wait set of every entity of every node for each
+    callback; a full sweep (2001 profile messages) then took 15 s instead of 1.5 s. Coroutine
+    callbacks (services that await other services) interleave on a single thread, so no node
+    needs more than one.
+    """
+
+    def __init__(self, nodes: list[Node]) -> None:
+        self.nodes = nodes
+        self.executors = [SingleThreadedExecutor(context=node.context) for node in nodes]
+        self.threads = []
+        for node, executor in zip(nodes, self.executors):
+            executor.add_node(node)
+            thread = threading.Thread(target=self._spin, args=(executor,), name=node.get_name(), daemon=True)
+            self.threads.append(thread)
+            thread.start()
+
+    @staticmethod
+    def _spin(executor: SingleThreadedExecutor) -> None:
+        try:
+            executor.spin()
+        except ExternalShutdownException:
+            pass
+
+    def join(self) -> None:
+        """Block until the executors stop (shutdown of the context)."""
+        for thread in self.threads:
+            thread.join()
+
+    def stop(self) -> None:
+        """Stop the executors, wait for their threads and destroy the nodes."""
+        for executor in self.executors:
+            executor.shutdown()
+        for thread in self.threads:
+            thread.join(timeout=5.0)
+        for node in self.nodes:
             node.destroy_node()
 
 
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None:
     """Console-script entry: init rclpy (ROS arguments such as remaps apply), spin one node, shut down."""
     rclpy.init(args=args)
+    threads = NodeThreads([factory()])
     try:
-        spin_nodes([factory()])
+        threads.join()
+    except KeyboardInterrupt:
+        pass
     finally:
+        threads.stop()
         if rclpy.ok():
             rclpy.shutdown()

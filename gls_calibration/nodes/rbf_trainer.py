@@ -1,4 +1,8 @@
-"""rbf_trainer: serves ``rbf/train``, a deviation model chosen by cross-validation."""
+"""rbf_trainer: serves ``rbf/train``, a deviation model chosen by cross-validation.
+
+With ``physics_first`` the named effects are fitted first (discrepancy workflow) and the RBF/TPS
+takes what they leave; the answer is then one ``sum`` model (physics + RBF).
+"""
 from __future__ import annotations
 
 import numpy as np
@@ -6,11 +10,13 @@ import yaml
 
 from gls_calibration import rbf
 from gls_calibration.nodes.base import GlsNode, run_node
+from gls_calibration.nodes.head_parameters import declare_head_geometry
+from gls_calibration.physical_model import train_physics_then_rbf
 from gls_calibration_msgs.srv import TrainCorrection
 
 
 class RbfTrainerNode(GlsNode):
-    """Thin wrapper over ``rbf.select_model``."""
+    """Thin wrapper over ``rbf.select_model`` (or ``physical_model.train_physics_then_rbf``)."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__("rbf_trainer", **kwargs)
@@ -22,6 +28,11 @@ class RbfTrainerNode(GlsNode):
                                            "thin-plate-spline smoothings tried ([] disables the TPS)")
         self.folds = self.declare("folds", 5, "folds of the cross-validation", minimum=2, maximum=50)
         self.seed = self.declare("seed", 0, "seed of the fold assignment", minimum=0)
+        self.physics_first = self.declare(
+            "physics_first", False,
+            "fit the named physical effects first and the RBF on what they leave (needs deviations of a "
+            "plate marked through the nominal model)")
+        self.geometry = declare_head_geometry(self)
         self.create_service(TrainCorrection, "rbf/train", self.on_train)
 
     def on_train(self, request, response):
@@ -29,20 +40,28 @@ class RbfTrainerNode(GlsNode):
         try:
             targets = np.column_stack([request.x, request.y])
             deviations = np.column_stack([request.dx, request.dy])
-            model, selection = rbf.select_model(
-                targets, deviations, spreads_mm=tuple(self.spreads_mm), mse_goals_mm2=tuple(self.mse_goals_mm2),
-                tps_smoothings=tuple(self.tps_smoothings), folds=self.folds, seed=self.seed)
+            options = dict(spreads_mm=tuple(self.spreads_mm), mse_goals_mm2=tuple(self.mse_goals_mm2),
+                           tps_smoothings=tuple(self.tps_smoothings), folds=self.folds, seed=self.seed)
+            if self.physics_first:
+                model, report = train_physics_then_rbf(targets, deviations, self.geometry, **options)
+                residual_model, selection, method = report.residual_model, report.selection, report.method
+                named = ", ".join(report.named_effects) or "no effect named"
+                message = f"{method} ({named}): CV RMS {selection.chosen.cv_rms_mm:.4f} mm"
+            else:
+                model, selection = rbf.select_model(targets, deviations, **options)
+                residual_model, method = model, selection.method
+                message = f"{method}: CV RMS {selection.chosen.cv_rms_mm:.4f} mm"
         except ValueError as error:
             response.success = False
             response.message = str(error)
             return response
         response.success = True
         response.model_yaml = yaml.safe_dump(model.to_dict(), sort_keys=False)
-        response.method = selection.method
-        response.neurons = int(getattr(model, "neuron_count", len(targets)))
-        response.sigma_mm = float(getattr(model, "spread_mm", 0.0))  # a thin-plate spline has none
+        response.method = method
+        response.neurons = int(getattr(residual_model, "neuron_count", len(targets)))
+        response.sigma_mm = float(getattr(residual_model, "spread_mm", 0.0))  # a thin-plate spline has none
         response.cv_rms_mm = float(selection.chosen.cv_rms_mm)
-        response.message = f"{selection.method}: CV RMS {selection.chosen.cv_rms_mm:.4f} mm"
+        response.message = message
         return response
 
 
