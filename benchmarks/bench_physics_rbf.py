@@ -3,7 +3,8 @@
 Target (issue): physics + RBF with 7x7 fiducials at least as accurate as RBF-only with 19x19.
 
 Per grid over 190 mm: a clean plate is scanned (plane), the double rings are marked through the
-nominal model (z = 0), the plate is scanned at 0.1 mm and the fiducials measured, paired and turned
+nominal model on the measured plate plane (z from the plain sweep, as the calibration
+procedure commands), the plate is scanned at 0.1 mm and the fiducials measured, paired and turned
 into deviations ``Q - P`` -- once, and the SAME measurements train both (a) RBF-only
 (``rbf.select_model``) and (b) physics + RBF (``physical_model.train_physics_then_rbf``). Each
 correction then marks a dense validation grid (18x18 over 180 mm, half a pitch off the 19x19 one)
@@ -25,6 +26,7 @@ from gls_calibration import rbf
 from gls_calibration.calibration_record import calibrated_region
 from gls_calibration.correction import Correction
 from gls_calibration.fiducials import measure_fiducials
+from gls_calibration.kinematics import inverse
 from gls_calibration.physical_model import train_physics_then_rbf
 from gls_calibration.plate_pose import estimate_plate_pose
 from gls_calibration.procedure import ProcedureSettings, align_in_plane, true_fiducial_centres
@@ -38,35 +40,49 @@ RADII_MM = (2.5, 2.7)
 VALIDATION = grid_targets(18, 180.0)
 
 
-def measure_deviations(cell: SimulatedCell, grid_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mark ``grid_xy`` nominally on a clean plate, scan and measure: paired targets, deviations, true deviations."""
+class PlatePlane:
+    """Height z(x, y) (gls frame) of the plate plane measured on the plain sweep, CAD mounting."""
+
+    def __init__(self, cell: SimulatedCell) -> None:
+        xyz, _ = cell.sweep_cloud(step_mm=1.0)
+        self.pose = estimate_plate_pose(xyz.reshape(-1, 3), head_direction=(0.0, 0.0, -1.0))
+        self.centre = cell.scanner.to_gls(self.pose.centre)
+        self.normal = cell.scanner.to_gls(self.pose.centre + self.pose.normal) - self.centre
+
+    def z(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        n, c = self.normal, self.centre
+        return c[2] - (n[0] * (x - c[0]) + n[1] * (y - c[1])) / n[2]
+
+
+def measure_deviations(cell: SimulatedCell, grid_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, PlatePlane]:
+    """Mark ``grid_xy`` nominally on a clean plate, scan and measure: paired targets, deviations, true ones, plane.
+
+    As the calibration procedure does, every target is commanded on the measured plate plane.
+    """
     cell.exchange_plate()
-    xyz, _ = cell.sweep_cloud(step_mm=1.0)
-    pose = estimate_plate_pose(xyz.reshape(-1, 3), head_direction=(0.0, 0.0, -1.0))
-    # targets on the measured plane (gls frame), as the procedure does, so that the 3-D pairing
-    # keeps gls x, y rather than in-plane distances
-    normal, centre = cell.scanner.to_gls(pose.centre + pose.normal) - cell.scanner.to_gls(pose.centre), \
-        cell.scanner.to_gls(pose.centre)
-    z = centre[2] - (normal[0] * (grid_xy[:, 0] - centre[0]) + normal[1] * (grid_xy[:, 1] - centre[1])) / normal[2]
-    targets = np.column_stack([grid_xy, z])
-    landed = cell.mark_cartesian(rings_polylines(grid_xy, RADII_MM))
+    plane = PlatePlane(cell)
+    targets = np.column_stack([grid_xy, plane.z(grid_xy[:, 0], grid_xy[:, 1])])
+    landed = []
+    for ring in rings_polylines(grid_xy, RADII_MM):
+        joints = inverse(cell.config.geometry, ring[:, 0], ring[:, 1], plane.z(ring[:, 0], ring[:, 1]))
+        landed.append(cell.head.mark(joints.alpha_x, joints.alpha_y))
     xyz, intensity = cell.sweep_cloud()
-    found = measure_fiducials(xyz, intensity, pose, ring_radii_mm=RADII_MM, expected_count=len(grid_xy))
+    found = measure_fiducials(xyz, intensity, plane.pose, ring_radii_mm=RADII_MM, expected_count=len(grid_xy))
     centres_gls = cell.scanner.to_gls(found.centres)
     pairing = pair_with_targets(centres_gls, targets)
     measured = pairing.transform.apply(centres_gls[pairing.measured_index])
     paired = grid_xy[pairing.target_index]
     true_centres = true_fiducial_centres(landed, len(RADII_MM))[:, :2]
     true_deviations = grid_xy - align_in_plane(true_centres, grid_xy)
-    return paired, paired - measured[:, :2], true_deviations[pairing.target_index]
+    return paired, paired - measured[:, :2], true_deviations[pairing.target_index], plane
 
 
-def true_validation(cell: SimulatedCell, correction: Correction) -> dict:
+def true_validation(cell: SimulatedCell, correction: Correction, plane: PlatePlane) -> dict:
     """Mark the validation rings through ``correction`` on a fresh plate; metrics of the true deviations."""
     cell.exchange_plate()
     landed = []
     for ring in rings_polylines(VALIDATION, RADII_MM):
-        setpoints = correction.correct(ring[:, 0], ring[:, 1])
+        setpoints = correction.correct(ring[:, 0], ring[:, 1], plane.z(ring[:, 0], ring[:, 1]))
         landed.append(cell.head.mark(setpoints.alpha_x, setpoints.alpha_y))
     centres = true_fiducial_centres(landed, len(RADII_MM))[:, :2]
     return deviation_metrics(VALIDATION, VALIDATION - align_in_plane(centres, VALIDATION), (None, 150.0))
@@ -90,7 +106,7 @@ def main() -> None:
     for per_side in GRIDS:
         grid_xy = grid_targets(per_side, SIZE_MM)
         began = time.perf_counter()
-        targets, deviations, true_deviations = measure_deviations(cell, grid_xy)
+        targets, deviations, true_deviations, plane = measure_deviations(cell, grid_xy)
         measuring = time.perf_counter() - began
         noise = rms(deviations - true_deviations)
         region = calibrated_region(ProcedureSettings(grid_per_side=per_side, grid_size_mm=SIZE_MM,
@@ -111,7 +127,7 @@ def main() -> None:
                      time.perf_counter() - began))
         label = f"{per_side}x{per_side}"
         for method, named, correction, training in rows:
-            metrics = true_validation(cell, correction)
+            metrics = true_validation(cell, correction, plane)
             full, central = metrics["full"], metrics["150x150"]
             print(f"{label:6s} {method:26s} {named:58s} {full['rms_abs_mm']:8.4f} {full['max_abs_mm']:8.4f} "
                   f"{central['rms_abs_mm']:8.4f} {central['max_abs_mm']:8.4f} {training:8.2f}", flush=True)

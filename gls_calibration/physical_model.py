@@ -27,8 +27,7 @@ i.e. on minus the landing the physics does not explain, ``r = P - L``. Then
 The discrepancy workflow assumes the training plate was marked through the nominal model (at
 ``z = 0``). Commands at the measured plate height, as the calibration procedure gives them, are a
 smooth change of the same kind as a plate tilt, which the named effects and the RBF take up
-(checked on the paper-like truth head: 7x7 physics + RBF 0.002 mm RMS true error against 0.017 mm
-for 19x19 RBF-only). After an earlier calibration the plate was not marked nominally: train the
+(benchmarks/bench_physics_rbf.py commands that way). After an earlier calibration the plate was not marked nominally: train the
 RBF alone then.
 """
 from __future__ import annotations

@@ -58,7 +58,8 @@ class Cell(Protocol):
     async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> Setpoints: ...
     async def mark(self, alpha_x: np.ndarray, alpha_y: np.ndarray, focus_shift: np.ndarray,
                    polyline_starts: np.ndarray) -> float: ...
-    async def train(self, targets_xy: np.ndarray, deviations: np.ndarray) -> TrainedModel: ...
+    async def train(self, measured_xy: np.ndarray, corrections: np.ndarray) -> TrainedModel:
+        """A model of the correction to add at a target: trained on landed points P and K(Q) - K(P)."""
     async def load_calibration(self, path: str) -> None: ...
     async def exchange_plate(self) -> None: ...
     async def true_marks(self) -> Optional[list[np.ndarray]]:
@@ -88,7 +89,8 @@ class PlateRun:
     targets: np.ndarray             # (N, 3) all commanded fiducial centres
     paired_targets_xy: np.ndarray   # (M, 2)
     deviations: np.ndarray          # (M, 2) delta = Q - P after rigid alignment
-    measured_gls: np.ndarray        # (M, 3) measured centres, aligned into the gls frame
+    measured_gls: np.ndarray        # (M, 3) measured centres P, aligned into the gls frame
+    corrections: np.ndarray         # (M, 2) K(Q) - K(P): what to add at P to land on P (training data)
     true_deviations: Optional[np.ndarray]  # (M, 2) from the ground truth (simulation only)
     plate_pose_gls: PlatePose
     fiducials_found: int
@@ -181,6 +183,13 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
     measured = pairing.transform.apply(centres_gls[pairing.measured_index])
     paired_xy = grid_xy[pairing.target_index]
     deviations = paired_xy - measured[:, :2]
+    # Commanding K(Q) landed at P, so K(Q) is the command that lands on P: the correction model is
+    # trained at P with K(Q) - K(P) (Q - P with no calibration active). Trained at Q instead, it
+    # would leave a second-order error of about grad(delta) . delta (~0.02 mm on a 2 mm field).
+    commanded = await cell.correct(paired_xy[:, 0], paired_xy[:, 1], targets[pairing.target_index, 2])
+    at_measured = await cell.correct(measured[:, 0], measured[:, 1], measured[:, 2])
+    corrections = (np.column_stack([commanded.x, commanded.y])
+                   - np.column_stack([at_measured.x, at_measured.y]))
 
     true_deviations = true_metrics = None
     if want_truth:
@@ -194,7 +203,8 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
             true_deviations = every_true_deviation[pairing.target_index]
     report("deviations", 1.0, f"{len(deviations)} fiducials paired")
     return PlateRun(targets=targets, paired_targets_xy=paired_xy, deviations=deviations,
-                    measured_gls=measured, true_deviations=true_deviations, plate_pose_gls=pose_gls,
+                    measured_gls=measured, corrections=corrections, true_deviations=true_deviations,
+                    plate_pose_gls=pose_gls,
                     fiducials_found=len(found.centres), alignment=pairing.transform,
                     metrics=deviation_metrics(paired_xy, deviations), true_metrics=true_metrics)
 
@@ -251,7 +261,7 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
                                       runs, None, models, trained=False,
                                       duration_s=time.monotonic() - began)
         progress("training", (iteration + 0.9) * span, f"training on {len(run.deviations)} deviations")
-        models.append(await cell.train(run.paired_targets_xy, run.deviations))
+        models.append(await cell.train(run.measured_gls[:, :2], run.corrections))
         candidate = save_candidate(runs, models)
         await cell.load_calibration(candidate)
 

@@ -293,26 +293,37 @@ def _typical_spacing(points: np.ndarray) -> float:
     return spacing if spacing > 0.0 else 1.0
 
 
+def _arrow_scale(targets: np.ndarray, deviations_list: list[np.ndarray]) -> tuple[float, float]:
+    """A round magnification (the longest arrow spans 0.75-1.5 grid spacings) and key length (mm)."""
+    longest = max(float(np.max(np.hypot(dev[:, 0], dev[:, 1]))) for dev in deviations_list)
+    if longest <= 0.0:
+        return 1.0, 1.0
+    return _nice_step(1.5 * _typical_spacing(targets) / longest), _nice_step(longest / 2.0)
+
+
 def _plot_deviation_arrows(path: Path, data: ReportData) -> Path:
-    panels = [("before", data.targets_xy, data.deviations_before)]
+    # Before and after share one layout and one arrow scale, so the improvement is seen as it is;
+    # a third panel shows the after field at its own scale, so its pattern stays readable.
+    shared = [("before", data.targets_xy, data.deviations_before)]
     if data.targets_after is not None:
-        panels.append(("after", data.targets_after, data.deviations_after))
-    all_targets = np.vstack([targets for _, targets, _ in panels])
-    longest = max(float(np.max(np.hypot(dev[:, 0], dev[:, 1]))) for _, _, dev in panels)
-    # One magnification for both panels (a round number): the longest arrow spans 0.75-1.5 grid spacings.
-    magnification = _nice_step(1.5 * _typical_spacing(data.targets_xy) / longest) if longest > 0.0 else 1.0
-    key_length = _nice_step(longest / 2.0) if longest > 0.0 else 1.0
+        shared.append(("after", data.targets_after, data.deviations_after))
+    magnification, key_length = _arrow_scale(data.targets_xy, [dev for _, _, dev in shared])
+    panels = [(stage, targets, deviations, magnification, key_length) for stage, targets, deviations in shared]
+    if data.targets_after is not None:
+        own, own_key = _arrow_scale(data.targets_after, [data.deviations_after])
+        panels.append(("after, own scale", data.targets_after, data.deviations_after, own, own_key))
+    all_targets = np.vstack([panel[1] for panel in panels])
     lower, upper = all_targets.min(axis=0), all_targets.max(axis=0)
     margin = 0.08 * max(float(np.max(upper - lower)), 1.0)
-    figure = Figure(figsize=(5.0 * len(panels), 5.0))
+    figure = Figure(figsize=(5.0 * len(panels), 5.4))
     axes_list = figure.subplots(1, len(panels), sharex=True, sharey=True, squeeze=False)[0]
-    for axes, (stage, targets, deviations) in zip(axes_list, panels):
+    for axes, (stage, targets, deviations, scale, key) in zip(axes_list, panels):
         axes.plot(targets[:, 0], targets[:, 1], ".", color="0.6", markersize=2)
         arrows = axes.quiver(targets[:, 0], targets[:, 1], deviations[:, 0], deviations[:, 1],
-                             angles="xy", scale_units="xy", scale=1.0 / magnification, color="C3", width=0.004)
-        axes.quiverkey(arrows, 0.86, 1.03, key_length, f"{key_length:g} mm", labelpos="E", coordinates="axes")
+                             angles="xy", scale_units="xy", scale=1.0 / scale, color="C3", width=0.004)
+        axes.quiverkey(arrows, 0.80, -0.16, key, f"{key:g} mm", labelpos="E", coordinates="axes")
         rms = float(np.sqrt(np.mean(np.sum(deviations ** 2, axis=1))))
-        axes.set_title(f"{stage}: RMS |d| {rms:.3f} mm, arrows x{magnification:g}", loc="left", fontsize=10)
+        axes.set_title(f"{stage}: RMS |d| {rms:.3f} mm, arrows x{scale:g}", loc="left", fontsize=10)
         axes.set_xlim(lower[0] - margin, upper[0] + margin)
         axes.set_ylim(lower[1] - margin, upper[1] + margin)
         axes.set_aspect("equal")

@@ -1,10 +1,9 @@
-"""Test-only ROS peer for test_transport.py (not a product node).
+"""Test-only ROS peer for test_transport.py (not a product node): a latched PointCloud2.
 
-Offers a CorrectSetpoints service that answers with the nominal kinematics and nothing calibrated,
-and a latched (transient-local) PointCloud2 built from a seed, so the receiving test can rebuild
-the expected cloud. Imported by the tests for the same pieces, and run as a separate process:
+The cloud is built from a seed, so the receiving test can rebuild the expected one. Imported by the
+tests for the same pieces, and run as a separate process:
 
-    python test/_transport_server.py --seed 7 [--lifetime 60]
+    python test/_cloud_peer.py --seed 7 [--lifetime 60]
 
 It stops on SIGINT/SIGTERM or after ``--lifetime`` seconds, so it never outlives a broken test.
 """
@@ -21,13 +20,10 @@ from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from gls_calibration import kinematics
 from gls_calibration.conversions import array_to_pointcloud2, xyzi_array
-from gls_calibration_msgs.srv import CorrectSetpoints
 
 NAMESPACE = "gls"
 CLOUD_TOPIC = "scan/points"
-SERVICE_NAME = "correct_setpoints"
 CLOUD_SHAPE = (50, 100)                 # organized: height 50, width 100
 # Latched so a subscriber that joins after the one-shot publication still gets the cloud.
 CLOUD_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -42,32 +38,6 @@ def transport_cloud(seed: int) -> np.ndarray:
     return xyzi_array(xyz, rng.random(CLOUD_SHAPE))
 
 
-def nominal_correct_setpoints(request: CorrectSetpoints.Request,
-                              response: CorrectSetpoints.Response) -> CorrectSetpoints.Response:
-    """Service callback: nominal inverse kinematics, no target inside a calibrated field."""
-    try:
-        setpoints = kinematics.inverse(kinematics.HeadGeometry(), np.asarray(request.x),
-                                       np.asarray(request.y), np.asarray(request.z))
-    except ValueError as error:
-        response.success = False
-        response.message = str(error)
-        return response
-    response.success = True
-    response.message = "nominal kinematics (test server)"
-    response.x = list(request.x)
-    response.y = list(request.y)
-    response.alpha_x = setpoints.alpha_x.tolist()
-    response.alpha_y = setpoints.alpha_y.tolist()
-    response.focus_shift = setpoints.focus_shift.tolist()
-    response.inside_calibrated_field = [False] * len(request.x)
-    return response
-
-
-def serve_nominal_correction(node: Node):
-    """Create the test CorrectSetpoints service on ``node`` (relative name, so in its namespace)."""
-    return node.create_service(CorrectSetpoints, SERVICE_NAME, nominal_correct_setpoints)
-
-
 def publish_cloud(node: Node, seed: int, frame_id: str = "scanner") -> tuple[Publisher, PointCloud2]:
     """Publish the seeded cloud once on the latched cloud topic; return the publisher and message."""
     publisher = node.create_publisher(PointCloud2, CLOUD_TOPIC, CLOUD_QOS)
@@ -77,15 +47,14 @@ def publish_cloud(node: Node, seed: int, frame_id: str = "scanner") -> tuple[Pub
 
 
 def main() -> None:
-    """Run the peer: service plus latched cloud, until a signal or the lifetime ends."""
-    parser = argparse.ArgumentParser(description="test-only transport peer")
+    """Run the peer: the latched cloud, until a signal or the lifetime ends."""
+    parser = argparse.ArgumentParser(description="test-only cloud peer")
     parser.add_argument("--seed", type=int, required=True)
     parser.add_argument("--lifetime", type=float, default=60.0)
     args = parser.parse_args()
     rclpy.init()
-    node = Node("transport_peer", namespace=NAMESPACE)
+    node = Node("cloud_peer", namespace=NAMESPACE)
     try:
-        serve_nominal_correction(node)
         publish_cloud(node, args.seed)
         deadline = time.monotonic() + args.lifetime
         while rclpy.ok() and time.monotonic() < deadline:

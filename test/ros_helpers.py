@@ -4,6 +4,9 @@ Tests run their nodes in an executor spun by a background thread, so the test bo
 block: it waits on futures and conditions with a timeout instead of spinning. Never call these
 helpers from inside a ROS callback: a callback that waits for a service answer can starve the
 executor that has to deliver it.
+
+running_cell starts every node of the simulated cell in-process, as gls-sim-cell does, with its
+parameter files and overrides (the ``start_cell`` fixture wraps it).
 """
 from __future__ import annotations
 
@@ -22,11 +25,12 @@ from typing import Any
 import rclpy
 from rclpy.client import Client
 from rclpy.context import Context
-from rclpy.executors import Executor, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from gls_calibration.cli import sim_cell
+from gls_calibration.nodes.base import NodeThreads
 
 
 def wait_for(condition: Callable[[], bool], timeout_s: float, *, what: str = "condition",
@@ -64,6 +68,18 @@ def call_service(node: Node, client: Client, request, timeout_s: float = 5.0):
     return future.result()
 
 
+def wait_for_peer_service(node: Node, client: Client, process: subprocess.Popen, log_path: Path,
+                          timeout_s: float) -> None:
+    """Wait until another process serves ``client``'s service; AssertionError with the process's
+    exit code and log when it does not within ``timeout_s`` (or exits first)."""
+    deadline = time.monotonic() + timeout_s
+    while not client.wait_for_service(timeout_sec=0.25):
+        if process.poll() is not None or time.monotonic() >= deadline:
+            service = node.resolve_service_name(client.srv_name)
+            raise AssertionError(f"service {service} did not appear within {timeout_s} s; process exit code "
+                                 f"{process.poll()}, log:\n{log_path.read_text()}")
+
+
 def spin_in_background(executor: Executor) -> threading.Thread:
     """Start a daemon thread that spins ``executor`` until it is shut down."""
     thread = threading.Thread(target=executor.spin, name="ros-test-executor", daemon=True)
@@ -86,10 +102,6 @@ def stop_process(process: subprocess.Popen, timeout_s: float = 5.0) -> int:
 
 # --- the simulated cell in-process -------------------------------------------------------------
 
-CELL_EXECUTOR_THREADS = 6           # as gls-sim-cell: blocking service callbacks must not starve the others
-CELL_STOP_TIMEOUT_S = 10.0
-
-
 def parameter_text(value: Any) -> str:
     """A parameter value as ROS's ``-p name:=value`` reads it (YAML; JSON is YAML)."""
     return json.dumps(value)
@@ -100,13 +112,13 @@ def cell_ros_arguments(calibration_dir: Path, report_dir: Path, *, grid: int = 3
     """``--ros-args`` of the simulated cell as gls-sim-cell builds them, plus ``parameters`` for every node.
 
     A name in ``parameters`` replaces gls-sim-cell's own ``-p`` override of that name (the config
-    files stay underneath).
+    files stay underneath). ``sim_config`` is also passed as the ``sim_config`` parameter, which is
+    where the simulation nodes read their scanner, plate and marking settings from.
     """
     cell_args = argparse.Namespace(sim_config=sim_config, seed=seed, grid=grid)
     ros_args = sim_cell.ros_arguments(cell_args, calibration_dir, report_dir)
     parameters = dict(parameters or {})
     if sim_config is not None:
-        # The simulation nodes read their settings from the file named by this parameter.
         parameters.setdefault("sim_config", str(sim_config))
     kept: list[str] = []
     index = 0
@@ -123,10 +135,9 @@ def cell_ros_arguments(calibration_dir: Path, report_dir: Path, *, grid: int = 3
 
 @dataclass
 class RunningCell:
-    """Every node of the simulated cell in one context, spun in the background, and a client node."""
+    """Every node of the simulated cell in one context, each spun by its own thread, and a client node."""
 
     context: Context
-    executor: MultiThreadedExecutor
     nodes: dict[str, Node]
     client_node: Node
     calibration_dir: Path
@@ -146,11 +157,12 @@ def running_cell(directory: Path, *, grid: int = 3, seed: int = 1, sim_config: P
                  parameters: Mapping[str, Any] | None = None,
                  node_parameters: Mapping[str, Mapping[str, Any]] | None = None,
                  node_types: Sequence[type] = sim_cell.NODE_TYPES) -> Iterator[RunningCell]:
-    """Start ``node_types`` (default: every node of gls-sim-cell) in a fresh context; stop them afterwards.
+    """Start ``node_types`` (default: every node of gls-sim-cell) in a fresh context, spun as
+    gls-sim-cell spins them; stop them and shut the context down afterwards.
 
-    The store and reports go to ``directory``/calibrations and ``directory``/reports.
+    The store and the reports go to ``directory``/calibrations and ``directory``/reports.
     ``parameters`` apply to every node (command-line ``-p``); ``node_parameters`` maps a node name
-    (e.g. ``"fiducial_measurement"``) to overrides of that node only.
+    (e.g. ``"fiducial_measurement"``) to overrides for that node only.
     """
     calibration_dir, report_dir = directory / "calibrations", directory / "reports"
     report_dir.mkdir(parents=True, exist_ok=True)
@@ -158,27 +170,23 @@ def running_cell(directory: Path, *, grid: int = 3, seed: int = 1, sim_config: P
     rclpy.init(args=cell_ros_arguments(calibration_dir, report_dir, grid=grid, seed=seed,
                                        sim_config=sim_config, parameters=parameters), context=context)
     nodes: dict[str, Node] = {}
-    executor = None
-    thread = None
+    threads = None
     try:
         for node_type in node_types:
             name = _node_name(node_type)
-            overrides = [Parameter(key, value=value) for key, value in (node_parameters or {}).get(name, {}).items()]
+            overrides = [Parameter(key, value=value)
+                         for key, value in (node_parameters or {}).get(name, {}).items()]
             nodes[name] = node_type(context=context, parameter_overrides=overrides)
         client_node = rclpy.create_node("cell_test_client", namespace="gls", context=context)
         nodes["cell_test_client"] = client_node
-        executor = MultiThreadedExecutor(num_threads=CELL_EXECUTOR_THREADS, context=context)
-        for node in nodes.values():
-            executor.add_node(node)
-        thread = spin_in_background(executor)
-        yield RunningCell(context, executor, nodes, client_node, calibration_dir, report_dir)
+        threads = NodeThreads(list(nodes.values()))
+        yield RunningCell(context, nodes, client_node, calibration_dir, report_dir)
     finally:
-        if executor is not None:
-            executor.shutdown(timeout_sec=CELL_STOP_TIMEOUT_S)
-        if thread is not None:
-            thread.join(timeout=CELL_STOP_TIMEOUT_S)
-        for node in nodes.values():
-            node.destroy_node()
+        if threads is not None:
+            threads.stop()
+        else:
+            for node in nodes.values():
+                node.destroy_node()
         context.try_shutdown()
 
 

@@ -85,7 +85,8 @@ def test_arrow_panels_share_one_layout(tmp_path):
     wide = imread(with_after.parent / "deviations_arrows.png")
     single = imread(before_only.parent / "deviations_arrows.png")
     assert wide.shape[0] == single.shape[0]
-    assert wide.shape[1] == 2 * single.shape[1]  # before and after side by side, same panel size
+    # before, after (same scale) and after at its own scale, side by side, same panel size
+    assert wide.shape[1] == 3 * single.shape[1]
 
 
 def test_summary_json_is_strict_with_null_for_nan(tmp_path):

@@ -1,7 +1,7 @@
-"""Transport of point clouds and CorrectSetpoints calls between nodes, in one process and across two.
+"""Transport of point clouds and CorrectSetpoints calls between nodes, in one process and across processes.
 
-The CorrectSetpoints server here is the test-only nominal one from _transport_server.py; the real
-correction node replaces it later.
+The CorrectSetpoints server is the real correction node with an empty calibration store (so the
+nominal model); the cloud comes from the test-only peer in _cloud_peer.py.
 """
 from __future__ import annotations
 
@@ -15,15 +15,20 @@ import pytest
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
+from rclpy.parameter import Parameter
+
 from gls_calibration import kinematics
 from gls_calibration.conversions import pointcloud2_to_array
+from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration_msgs.srv import CorrectSetpoints
 
-from _transport_server import (CLOUD_QOS, CLOUD_SHAPE, CLOUD_TOPIC, NAMESPACE, SERVICE_NAME,
-                               publish_cloud, serve_nominal_correction, transport_cloud)
-from ros_helpers import call_service, stop_process, wait_for
+from _cloud_peer import CLOUD_QOS, CLOUD_SHAPE, CLOUD_TOPIC, NAMESPACE, publish_cloud, transport_cloud
+from ros_helpers import call_service, stop_process, wait_for, wait_for_peer_service
 
-PEER_SCRIPT = Path(__file__).with_name("_transport_server.py")
+PEER_SCRIPT = Path(__file__).with_name("_cloud_peer.py")
+SERVICE_NAME = "correct_setpoints"
+# The correction node's console-script entry, run by the interpreter (the module has no __main__ guard).
+CORRECTION_MAIN = "from gls_calibration.nodes.correction import main; main()"
 TIMEOUT_S = 10.0
 PROCESS_START_TIMEOUT_S = 30.0      # interpreter start, rclpy import and discovery on a busy machine
 
@@ -60,6 +65,12 @@ def assert_received_cloud_equals(message: PointCloud2, seed: int) -> None:
     assert not message.is_dense
 
 
+def correction_node(context, calibration_dir: Path) -> CorrectionNode:
+    """The real correction node on an empty store: it answers with the nominal model."""
+    return CorrectionNode(context=context, parameter_overrides=[
+        Parameter("calibration_dir", value=str(calibration_dir))])
+
+
 def request_for(seed: int) -> tuple[CorrectSetpoints.Request, np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     x = rng.uniform(-95.0, 95.0, size=25)
@@ -70,20 +81,22 @@ def request_for(seed: int) -> tuple[CorrectSetpoints.Request, np.ndarray, np.nda
 def assert_nominal_answer(response: CorrectSetpoints.Response, x: np.ndarray, y: np.ndarray) -> None:
     expected = kinematics.inverse(kinematics.HeadGeometry(), x, y)
     assert response.success, response.message
+    assert response.message == "no calibration loaded: nominal model"
     np.testing.assert_array_equal(np.asarray(response.x), x)
     np.testing.assert_array_equal(np.asarray(response.y), y)
     np.testing.assert_array_equal(np.asarray(response.alpha_x), expected.alpha_x)
     np.testing.assert_array_equal(np.asarray(response.alpha_y), expected.alpha_y)
     np.testing.assert_array_equal(np.asarray(response.focus_shift), expected.focus_shift)
     assert list(response.inside_calibrated_field) == [False] * x.size
+    assert list(response.within_limits) == [True] * x.size
 
 
-def test_cloud_and_service_between_nodes_in_one_process(ros_context, add_node):
+def test_cloud_and_service_between_nodes_in_one_process(ros_context, add_node, tmp_path):
     seed = 3
     publisher_node = add_node(Node("cloud_source", namespace=NAMESPACE, context=ros_context))
     receiver_node = add_node(Node("cloud_sink", namespace=NAMESPACE, context=ros_context))
     inbox = subscribe_clouds(receiver_node)
-    serve_nominal_correction(receiver_node)
+    add_node(correction_node(ros_context, tmp_path / "empty_store"))
     publisher, _ = publish_cloud(publisher_node, seed)
     assert publisher.topic_name == "/gls/scan/points"
 
@@ -98,27 +111,32 @@ def test_cloud_and_service_between_nodes_in_one_process(ros_context, add_node):
 
 def test_cloud_and_service_across_processes(ros_context, add_node, tmp_path):
     seed = 11
-    log_path = tmp_path / "peer.log"
-    with open(log_path, "w") as log:
-        # The child inherits the session's ROS_DOMAIN_ID through the environment.
-        peer = subprocess.Popen([sys.executable, str(PEER_SCRIPT), "--seed", str(seed), "--lifetime", "60"],
-                                stdout=log, stderr=subprocess.STDOUT)
+    correction_log, cloud_log = tmp_path / "correction.log", tmp_path / "cloud_peer.log"
+    # The children inherit the session's ROS_DOMAIN_ID through the environment.
+    with open(correction_log, "w") as log:
+        correction = subprocess.Popen(
+            [sys.executable, "-c", CORRECTION_MAIN, "--ros-args",
+             "-p", f"calibration_dir:={tmp_path / 'empty_store'}"], stdout=log, stderr=subprocess.STDOUT)
+    with open(cloud_log, "w") as log:
+        cloud_peer = subprocess.Popen([sys.executable, str(PEER_SCRIPT), "--seed", str(seed), "--lifetime", "60"],
+                                      stdout=log, stderr=subprocess.STDOUT)
     try:
         node = add_node(Node("transport_test", namespace=NAMESPACE, context=ros_context))
         inbox = subscribe_clouds(node)
         client = node.create_client(CorrectSetpoints, SERVICE_NAME)
-        if not client.wait_for_service(timeout_sec=PROCESS_START_TIMEOUT_S):
-            service = node.resolve_service_name(client.srv_name)
-            raise AssertionError(f"peer service {service} did not appear within {PROCESS_START_TIMEOUT_S} s; "
-                                 f"peer exit code {peer.poll()}, log:\n{log_path.read_text()}")
+        wait_for_peer_service(node, client, correction, correction_log, PROCESS_START_TIMEOUT_S)
         request, x, y = request_for(seed)
         assert_nominal_answer(call_service(node, client, request, TIMEOUT_S), x, y)
 
-        wait_for(lambda: inbox.count() > 0, TIMEOUT_S, what="the peer's latched PointCloud2")
+        wait_for(lambda: inbox.count() > 0 or cloud_peer.poll() is not None, PROCESS_START_TIMEOUT_S,
+                 what="the peer's latched PointCloud2")
+        assert inbox.count() > 0, f"cloud peer exited with {cloud_peer.poll()}; log:\n{cloud_log.read_text()}"
         assert_received_cloud_equals(inbox.messages[0], seed)
     finally:
-        exit_code = stop_process(peer)
-    assert exit_code == 0, f"peer exited with {exit_code}; log:\n{log_path.read_text()}"
+        correction_code = stop_process(correction)
+        cloud_code = stop_process(cloud_peer)
+    assert correction_code == 0, f"correction node exited with {correction_code}; log:\n{correction_log.read_text()}"
+    assert cloud_code == 0, f"cloud peer exited with {cloud_code}; log:\n{cloud_log.read_text()}"
 
 
 def test_call_service_without_server_times_out(ros_context, add_node):
@@ -129,9 +147,8 @@ def test_call_service_without_server_times_out(ros_context, add_node):
         call_service(node, client, request, timeout_s=0.5)
 
 
-def test_call_service_spins_a_node_outside_any_executor(ros_context, add_node):
-    server_node = add_node(Node("server", namespace=NAMESPACE, context=ros_context))
-    serve_nominal_correction(server_node)
+def test_call_service_spins_a_node_outside_any_executor(ros_context, add_node, tmp_path):
+    add_node(correction_node(ros_context, tmp_path / "empty_store"))
     client_node = Node("unspun_client", namespace=NAMESPACE, context=ros_context)
     try:
         client = client_node.create_client(CorrectSetpoints, SERVICE_NAME)

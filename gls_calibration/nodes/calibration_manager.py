@@ -78,9 +78,10 @@ class ServiceCell:
         response = await self._checked(self.galvo, request, self.node.marking_timeout_s)
         return response.duration_s
 
-    async def train(self, targets_xy, deviations):
-        request = TrainCorrection.Request(x=targets_xy[:, 0], y=targets_xy[:, 1],
-                                          dx=deviations[:, 0], dy=deviations[:, 1])
+    async def train(self, measured_xy, corrections):
+        request = TrainCorrection.Request(
+            x=conversions.float64_sequence(measured_xy[:, 0]), y=conversions.float64_sequence(measured_xy[:, 1]),
+            dx=conversions.float64_sequence(corrections[:, 0]), dy=conversions.float64_sequence(corrections[:, 1]))
         response = await self._checked(self.trainer, request)
         return conversions.trained_model_from_response(response)
 

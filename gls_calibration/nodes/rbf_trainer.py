@@ -12,6 +12,7 @@ from gls_calibration import rbf
 from gls_calibration.nodes.base import GlsNode, run_node
 from gls_calibration.nodes.head_parameters import declare_head_geometry
 from gls_calibration.physical_model import train_physics_then_rbf
+from gls_calibration.validation import as_matching_points
 from gls_calibration_msgs.srv import TrainCorrection
 
 
@@ -38,17 +39,22 @@ class RbfTrainerNode(GlsNode):
     def on_train(self, request, response):
         """Train; ``success=false`` with the reason on bad data."""
         try:
-            targets = np.column_stack([request.x, request.y])
-            deviations = np.column_stack([request.dx, request.dy])
+            if len(request.x) != len(request.y) or len(request.dx) != len(request.dy):
+                raise ValueError("x and y, and dx and dy, must have the same lengths")
+            landed, corrections = as_matching_points(
+                np.column_stack([request.x, request.y]), np.column_stack([request.dx, request.dy]),
+                "landed points (x, y)", "corrections (dx, dy)", 2)
             options = dict(spreads_mm=tuple(self.spreads_mm), mse_goals_mm2=tuple(self.mse_goals_mm2),
                            tps_smoothings=tuple(self.tps_smoothings), folds=self.folds, seed=self.seed)
             if self.physics_first:
-                model, report = train_physics_then_rbf(targets, deviations, self.geometry, **options)
+                # Through the nominal model, the plate was commanded at Q = P + correction.
+                model, report = train_physics_then_rbf(landed + corrections, corrections, self.geometry,
+                                                       **options)
                 residual_model, selection, method = report.residual_model, report.selection, report.method
                 named = ", ".join(report.named_effects) or "no effect named"
                 message = f"{method} ({named}): CV RMS {selection.chosen.cv_rms_mm:.4f} mm"
             else:
-                model, selection = rbf.select_model(targets, deviations, **options)
+                model, selection = rbf.select_model(landed, corrections, **options)
                 residual_model, method = model, selection.method
                 message = f"{method}: CV RMS {selection.chosen.cv_rms_mm:.4f} mm"
         except ValueError as error:
@@ -58,7 +64,7 @@ class RbfTrainerNode(GlsNode):
         response.success = True
         response.model_yaml = yaml.safe_dump(model.to_dict(), sort_keys=False)
         response.method = method
-        response.neurons = int(getattr(residual_model, "neuron_count", len(targets)))
+        response.neurons = int(getattr(residual_model, "neuron_count", len(landed)))
         response.sigma_mm = float(getattr(residual_model, "spread_mm", 0.0))  # a thin-plate spline has none
         response.cv_rms_mm = float(selection.chosen.cv_rms_mm)
         response.message = message
