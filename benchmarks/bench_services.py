@@ -16,16 +16,15 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 
 import numpy as np
 import rclpy
-from rclpy.executors import MultiThreadedExecutor
 
 from gls_calibration.calibration_record import calibrated_region
 from gls_calibration.conversions import float64_sequence
 from gls_calibration.kinematics import HeadGeometry
+from gls_calibration.nodes.base import NodeThreads
 from gls_calibration.persistence import CalibrationStore, new_record
 from gls_calibration.procedure import ProcedureSettings
 from gls_calibration.rbf import OLSRBFNetwork
@@ -50,7 +49,7 @@ def synthetic_calibration(directory: Path) -> None:
     CalibrationStore(directory).save(record)
 
 
-def timed_calls(node, client, request, count: int) -> list[float]:
+def timed_calls(client, request, count: int) -> list[float]:
     """Round-trip times (s) of ``count`` calls, each awaited before the next."""
     times = []
     for _ in range(count):
@@ -75,9 +74,7 @@ def bench_correct_setpoints(domain: str) -> None:
         try:
             rclpy.init()
             node = rclpy.create_node("bench_client", namespace="gls")
-            executor = MultiThreadedExecutor(num_threads=2)
-            executor.add_node(node)
-            threading.Thread(target=executor.spin, daemon=True).start()
+            threads = NodeThreads([node])
             client = node.create_client(CorrectSetpoints, "correct_setpoints")
             if not client.wait_for_service(timeout_sec=30.0):
                 raise RuntimeError("the correction node did not come up")
@@ -85,15 +82,14 @@ def bench_correct_setpoints(domain: str) -> None:
             one = CorrectSetpoints.Request(x=[10.0], y=[-20.0])
             many_xy = rng.uniform(-95.0, 95.0, (100_000, 2))
             many = CorrectSetpoints.Request(x=float64_sequence(many_xy[:, 0]), y=float64_sequence(many_xy[:, 1]))
-            timed_calls(node, client, one, 20)  # warm-up: discovery, first allocations
-            single = timed_calls(node, client, one, 300)
-            bulk = timed_calls(node, client, many, 15)
+            timed_calls(client, one, 20)  # warm-up: discovery, first allocations
+            single = timed_calls(client, one, 300)
+            bulk = timed_calls(client, many, 15)
             print(f"correct_setpoints, 1 target, across processes:        median {1e3 * statistics.median(single):7.3f} ms "
                   f"(p90 {1e3 * np.percentile(single, 90):.3f} ms; target <= 2 ms)")
             print(f"correct_setpoints, 100 000 targets, across processes: median {1e3 * statistics.median(bulk):7.1f} ms "
                   f"(target <= 100 ms)")
-            executor.shutdown()
-            node.destroy_node()
+            threads.stop()
             rclpy.shutdown()
         finally:
             child.send_signal(signal.SIGINT)
@@ -109,12 +105,8 @@ def bench_sweep_stream() -> None:
     from gls_calibration.nodes.sim_galvo import SimGalvoNode
     from gls_calibration.nodes.sim_scanner import SimScannerNode
     rclpy.init(args=["--ros-args", "--log-level", "warn"])
-    nodes = [SimGalvoNode(), SimScannerNode(), ScanAcquisitionNode()]
     client_node = rclpy.create_node("bench_sweep_client", namespace="gls")
-    executor = MultiThreadedExecutor(num_threads=4)
-    for node in nodes + [client_node]:
-        executor.add_node(node)
-    threading.Thread(target=executor.spin, daemon=True).start()
+    threads = NodeThreads([SimGalvoNode(), SimScannerNode(), ScanAcquisitionNode(), client_node])
     client = client_node.create_client(AcquireSweep, "scan/acquire")
     client.wait_for_service(timeout_sec=10.0)
     durations = []
@@ -130,7 +122,7 @@ def bench_sweep_stream() -> None:
     print(f"sweep 200 mm at 0.1 mm streamed as profiles: {cloud.height} profiles x {cloud.width} points "
           f"({cloud.height * cloud.width / 1e6:.1f} M points), none lost; median {statistics.median(durations):.2f} s "
           f"generate + publish + assemble")
-    executor.shutdown()
+    threads.stop()
     rclpy.shutdown()
 
 

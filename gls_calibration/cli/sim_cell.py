@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
+import os
 from pathlib import Path
 import shutil
 import sys
@@ -49,9 +49,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                              "(default: the package's config/sim.yaml)")
     parser.add_argument("--no-validate", action="store_true", help="skip the validation grid")
     parser.add_argument("--force", action="store_true", help="train even when within tolerance")
+    parser.add_argument("--physics-first", action="store_true",
+                        help="fit the named physical effects first and the RBF on what they leave")
     parser.add_argument("--serve", action="store_true",
                         help="start every node and serve until interrupted, without calibrating")
     parser.add_argument("--timeout", type=float, default=600.0, help="give up on calibrate after this (s)")
+    parser.add_argument("--namespace", default=None,
+                        help="namespace of the cell's nodes (default: 'gls' with --serve; otherwise a private "
+                             "one, so that concurrent one-shot cells on the same ROS domain never meet)")
     args = parser.parse_args(argv)
     if args.grid < 3:
         parser.error("--grid must be at least 3")
@@ -73,6 +78,8 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
         "report_per_run": False,
         "plate_exchange_service": "sim/exchange_plate",
         "ground_truth_service": "sim/marked_paths",
+        "physics_first": args.physics_first,
+        "sim_config": str(sim_config),
     }
     ros_args = ["--ros-args"]
     for path in (config_path("head.yaml"), config_path("gls.yaml"), sim_config):
@@ -91,7 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     store = args.out / "calibrations" if args.serve else Path(tempfile.mkdtemp(prefix="gls-sim-store-"))
     context = rclpy.Context()
     rclpy.init(args=ros_arguments(args, store, args.out), context=context)
-    nodes = [node_type(context=context) for node_type in NODE_TYPES]
+    namespace = args.namespace or ("gls" if args.serve else f"gls_sim_{os.getpid()}")
+    nodes = [node_type(context=context, namespace=namespace) for node_type in NODE_TYPES]
     threads = NodeThreads(nodes)
     try:
         if args.serve:
@@ -111,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def run_calibration(args: argparse.Namespace, manager: CalibrationManager, store: Path) -> int:
     """Call ``calibrate`` from a client node of the cell, with a progress bar; print the summary."""
-    client_node = rclpy.create_node("sim_cell_client", namespace="gls", context=manager.context)
+    client_node = rclpy.create_node("sim_cell_client", namespace=manager.get_namespace(), context=manager.context)
     bar = ProgressBar(sys.stderr)
     client_node.create_subscription(CalibrationProgress, "calibration/progress", bar.update, 10)
     client = client_node.create_client(Calibrate, "calibrate")
