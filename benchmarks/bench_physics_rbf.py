@@ -6,7 +6,10 @@ Per grid over 190 mm: a clean plate is scanned (plane), the double rings are mar
 nominal model on the measured plate plane (z from the plain sweep, as the calibration
 procedure commands), the plate is scanned at 0.1 mm and the fiducials measured, paired and turned
 into deviations ``Q - P`` -- once, and the SAME measurements train both (a) RBF-only
-(``rbf.select_model``) and (b) physics + RBF (``physical_model.train_physics_then_rbf``). Each
+(``rbf.select_model``) and (b) physics + RBF (``physical_model.train_physics_then_rbf``). RBF-only
+is trained twice: at the targets Q (the published way, ``K = Q + delta(Q)`` to first order) and at
+the landed points P (what the calibration procedure does: commanding Q landed at P, so Q - P is
+exactly the correction for a target at P). Each
 correction then marks a dense validation grid (18x18 over 180 mm, half a pitch off the 19x19 one)
 on a fresh plate, and the error is taken from the TRUTH: landed ring polylines -> centres -> best
 rigid 2-D alignment to the targets -> ``deviation_metrics`` over the field and the central 150x150 mm.
@@ -55,7 +58,7 @@ class PlatePlane:
 
 
 def measure_deviations(cell: SimulatedCell, grid_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, PlatePlane]:
-    """Mark ``grid_xy`` nominally on a clean plate, scan and measure: paired targets, deviations, true ones, plane.
+    """Mark ``grid_xy`` nominally on a clean plate, scan and measure: paired targets, landed points, true deviations, plane.
 
     As the calibration procedure does, every target is commanded on the measured plate plane.
     """
@@ -74,7 +77,7 @@ def measure_deviations(cell: SimulatedCell, grid_xy: np.ndarray) -> tuple[np.nda
     paired = grid_xy[pairing.target_index]
     true_centres = true_fiducial_centres(landed, len(RADII_MM))[:, :2]
     true_deviations = grid_xy - align_in_plane(true_centres, grid_xy)
-    return paired, paired - measured[:, :2], true_deviations[pairing.target_index], plane
+    return paired, measured[:, :2], true_deviations[pairing.target_index], plane
 
 
 def true_validation(cell: SimulatedCell, correction: Correction, plane: PlatePlane) -> dict:
@@ -106,7 +109,8 @@ def main() -> None:
     for per_side in GRIDS:
         grid_xy = grid_targets(per_side, SIZE_MM)
         began = time.perf_counter()
-        targets, deviations, true_deviations, plane = measure_deviations(cell, grid_xy)
+        targets, landed, true_deviations, plane = measure_deviations(cell, grid_xy)
+        deviations = targets - landed
         measuring = time.perf_counter() - began
         noise = rms(deviations - true_deviations)
         region = calibrated_region(ProcedureSettings(grid_per_side=per_side, grid_size_mm=SIZE_MM,
@@ -114,8 +118,13 @@ def main() -> None:
         rows = [("none (nominal model)", "", Correction(geometry), 0.0)]
         began = time.perf_counter()
         model, selection = rbf.select_model(targets, deviations)
-        rows.append((f"RBF only ({selection.method})", "", Correction(geometry, [model], region),
+        rows.append((f"RBF at Q ({selection.method})", "published way", Correction(geometry, [model], region),
                      time.perf_counter() - began))
+        # as the calibration procedure trains: at the landed points P, the correction Q - P
+        began = time.perf_counter()
+        model, selection = rbf.select_model(landed, deviations)
+        rows.append((f"RBF at P ({selection.method})", "this package, RBF only",
+                     Correction(geometry, [model], region), time.perf_counter() - began))
         began = time.perf_counter()
         model, report = train_physics_then_rbf(targets, deviations, geometry)
         rows.append((report.method, ", ".join(report.named_effects) or "none",

@@ -3,6 +3,11 @@ of an installed package (colcon/ament)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any, Callable, TypeVar
+
+import yaml
+
+Parsed = TypeVar("Parsed")
 
 
 def config_path(name: str) -> Path:
@@ -17,3 +22,20 @@ def config_path(name: str) -> Path:
         if (place / name).is_file():
             return place / name
     raise FileNotFoundError(f"config file {name} not found in {', '.join(str(p) for p in places)}")
+
+
+def read_config_file(path: str | Path, what: str, parse: Callable[[Any], Parsed]) -> Parsed:
+    """``parse`` the YAML document at ``path``; ValueError naming the file for any problem."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise ValueError(f"cannot read {what} {path}: {error.strerror or error}") from None
+    try:
+        document = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ValueError(f"cannot parse {what} {path}: {error}") from None
+    try:
+        return parse(document)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None

@@ -19,7 +19,8 @@ import yaml
 
 from gls_calibration.fiducials import FiducialMeasurement
 from gls_calibration.plate_pose import PlatePose
-from gls_calibration.procedure import Setpoints, TrainedModel
+from gls_calibration.correction import CorrectedSetpoints
+from gls_calibration.procedure import TrainedModel
 from gls_calibration_msgs.msg import PlatePose as PlatePoseMsg
 
 # ---------------------------------------------------------------------------------------------
@@ -351,9 +352,9 @@ def setpoints_to_response(result, response) -> None:
     response.within_limits = np.asarray(result.within_limits, dtype=bool).tolist()
 
 
-def setpoints_from_response(response) -> Setpoints:
-    """A ``procedure.Setpoints`` from a CorrectSetpoints response."""
-    return Setpoints(x=float64_array(response.x), y=float64_array(response.y),
+def setpoints_from_response(response) -> CorrectedSetpoints:
+    """A ``correction.CorrectedSetpoints`` from a CorrectSetpoints response."""
+    return CorrectedSetpoints(x=float64_array(response.x), y=float64_array(response.y),
                      alpha_x=float64_array(response.alpha_x), alpha_y=float64_array(response.alpha_y),
                      focus_shift=float64_array(response.focus_shift),
                      inside_calibrated_field=np.asarray(response.inside_calibrated_field, dtype=bool),

@@ -24,7 +24,7 @@ from typing import Any, Mapping
 
 import yaml
 
-from gls_calibration.config_files import config_path
+from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.kinematics import HeadGeometry
 from gls_calibration.optics import HeadEffects
 
@@ -117,16 +117,4 @@ def load_head_config(path: str | Path) -> tuple[HeadGeometry, HeadEffects]:
 
     Raises ValueError with the file name for unreadable YAML, unknown keys or unknown effect names.
     """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise ValueError(f"cannot read head configuration {path}: {error.strerror or error}") from None
-    try:
-        document = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise ValueError(f"cannot parse head configuration {path}: {error}") from None
-    try:
-        return head_config_from_dict(document)
-    except ValueError as error:
-        raise ValueError(f"{path}: {error}") from None
+    return read_config_file(path, "head configuration", head_config_from_dict)

@@ -113,12 +113,12 @@ def to_plain(value: Any) -> Any:
     return value
 
 
-def _nan_to_none(value: Any) -> Any:
+def nan_to_none(value: Any) -> Any:
     """Replace non-finite floats by None (used for metrics only, where 'not computable' is legitimate)."""
     if isinstance(value, dict):
-        return {key: _nan_to_none(item) for key, item in value.items()}
+        return {key: nan_to_none(item) for key, item in value.items()}
     if isinstance(value, list):
-        return [_nan_to_none(item) for item in value]
+        return [nan_to_none(item) for item in value]
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value
@@ -149,7 +149,7 @@ def new_record(*, head: HeadGeometry | Mapping, plate_pose: Any, models: list, c
         "models": list(models),
         "calibrated_region": calibrated_region,
         "hyper_parameters": hyper_parameters,
-        "metrics": _nan_to_none(to_plain(metrics)),
+        "metrics": nan_to_none(to_plain(metrics)),
         "fiducials": dict(fiducials),
     }
     record = to_plain(record)
@@ -347,7 +347,7 @@ class CalibrationStore:
         """
         plain = to_plain(record)  # a copy: the caller's record is not modified
         if isinstance(plain, dict) and "metrics" in plain:
-            plain["metrics"] = _nan_to_none(plain["metrics"])  # registration marks empty sub-fields NaN
+            plain["metrics"] = nan_to_none(plain["metrics"])  # registration marks empty sub-fields NaN
         validate_record(plain)
         text = dump_record(plain)
         self.history_directory.mkdir(parents=True, exist_ok=True)

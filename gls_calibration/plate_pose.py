@@ -152,3 +152,22 @@ def estimate_plate_pose(points, *, distance_threshold_mm: float = 0.2, head_dire
     return PlatePose(normal=normal, centre=centre, rotation=rotation,
                      flatness_rms_mm=flatness,
                      inlier_count=int(len(inliers)), inlier_fraction=float(fraction))
+
+
+def mean_plate_pose(poses: list[PlatePose]) -> PlatePose:
+    """The average of poses of one plate measured in several sweeps.
+
+    Each sweep's path is off by the robot's repeatability; averaging N sweeps divides that error
+    of the plate height (and so of the field's scale, dr/r = dz/d) by sqrt(N).
+    """
+    if not poses:
+        raise ValueError("mean_plate_pose needs at least one pose")
+    normal = np.mean([pose.normal for pose in poses], axis=0)
+    normal /= np.linalg.norm(normal)
+    centre = np.mean([pose.centre for pose in poses], axis=0)
+    x_axis = _in_plane_x_axis(normal)
+    rotation = np.column_stack([x_axis, np.cross(normal, x_axis), normal])
+    return PlatePose(normal=normal, centre=centre, rotation=rotation,
+                     flatness_rms_mm=float(np.mean([pose.flatness_rms_mm for pose in poses])),
+                     inlier_count=int(sum(pose.inlier_count for pose in poses)),
+                     inlier_fraction=float(np.mean([pose.inlier_fraction for pose in poses])))

@@ -15,26 +15,14 @@ from typing import Any, Callable, Optional, Protocol
 import numpy as np
 
 from gls_calibration import targets as grid
+from gls_calibration.correction import CorrectedSetpoints
 from gls_calibration.fiducials import FiducialMeasurement
-from gls_calibration.plate_pose import PlatePose
+from gls_calibration.plate_pose import PlatePose, mean_plate_pose
 from gls_calibration.registration import RigidTransform, deviation_metrics, fit_rigid, pair_with_targets
 
 
 class CalibrationError(RuntimeError):
     """The calibration cannot go on; the message says why. Nothing has been replaced."""
-
-
-@dataclass(frozen=True)
-class Setpoints:
-    """Joint-space setpoints for Cartesian points, as the correction service answers."""
-
-    x: np.ndarray
-    y: np.ndarray
-    alpha_x: np.ndarray
-    alpha_y: np.ndarray
-    focus_shift: np.ndarray
-    inside_calibrated_field: np.ndarray
-    within_limits: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -55,7 +43,7 @@ class Cell(Protocol):
     async def estimate_plate_pose(self, xyz: np.ndarray, intensity: np.ndarray) -> PlatePose: ...
     async def measure_fiducials(self, xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
                                 expected_count: int) -> FiducialMeasurement: ...
-    async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> Setpoints: ...
+    async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> CorrectedSetpoints: ...
     async def mark(self, alpha_x: np.ndarray, alpha_y: np.ndarray, focus_shift: np.ndarray,
                    polyline_starts: np.ndarray) -> float: ...
     async def train(self, measured_xy: np.ndarray, corrections: np.ndarray) -> TrainedModel:
@@ -74,6 +62,7 @@ class ProcedureSettings:
     grid_size_mm: float = 190.0
     ring_radii_mm: tuple[float, float] = (2.5, 2.7)
     plain_sweep_step_mm: float = 1.0
+    plain_sweeps: int = 4               # averaged: the plate height error of one sweep sets the field's scale
     marked_sweep_step_mm: float = 0.1
     scanner_to_gls: RigidTransform = field(default_factory=lambda: RigidTransform(np.eye(3), np.zeros(3)))
     tolerance_rms_mm: float = 0.05
@@ -147,9 +136,13 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
     def report(stage: str, part: float, text: str) -> None:
         progress(stage, start + width * part, text)
 
-    report("sweep_plain", 0.0, "scanning the plain plate")
-    xyz, intensity = await cell.acquire_sweep(settings.plain_sweep_step_mm)
-    pose_scanner = await cell.estimate_plate_pose(xyz, intensity)
+    poses = []
+    for repeat in range(settings.plain_sweeps):
+        report("sweep_plain", 0.1 * repeat / settings.plain_sweeps,
+               f"scanning the plain plate ({repeat + 1} of {settings.plain_sweeps})")
+        xyz, intensity = await cell.acquire_sweep(settings.plain_sweep_step_mm)
+        poses.append(await cell.estimate_plate_pose(xyz, intensity))
+    pose_scanner = mean_plate_pose(poses)
     pose_gls = pose_in_frame(pose_scanner, settings.scanner_to_gls)
     report("plate_pose", 0.15, f"plate flatness {pose_scanner.flatness_rms_mm:.4f} mm RMS")
 

@@ -28,6 +28,7 @@ from matplotlib.figure import Figure
 import numpy as np
 
 import gls_calibration
+from gls_calibration.persistence import nan_to_none, to_plain
 from gls_calibration.validation import as_points
 
 # Published results of the in-situ calibration (|delta| over the full 190 x 190 mm field).
@@ -116,19 +117,7 @@ def write_report(out_dir: str | Path, data: ReportData) -> Path:
 
 def json_safe(value: Any) -> Any:
     """Convert numpy types to Python ones and NaN/infinity to None, recursively."""
-    if isinstance(value, Mapping):
-        return {str(key): json_safe(item) for key, item in value.items()}
-    if isinstance(value, np.ndarray):
-        return json_safe(value.tolist())
-    if isinstance(value, (list, tuple)):
-        return [json_safe(item) for item in value]
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, Path):
-        return str(value)
-    return value
+    return nan_to_none(to_plain(value))
 
 
 def summary_json(summary: Mapping[str, Any]) -> str:

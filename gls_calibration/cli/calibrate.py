@@ -4,10 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
-
-from gls_calibration.cli.client import ProgressBar, call_and_wait, summary_table
+from gls_calibration.cli.client import ProgressBar, call_and_wait, client_node, summary_table
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import Calibrate
 
@@ -23,22 +20,17 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not 0 <= args.iterations <= 5:
         parser.error("--iterations must be between 0 and 5")
-    rclpy.init()
-    node = rclpy.create_node("gls_calibrate_client", namespace=args.namespace)
     bar = ProgressBar(sys.stderr)
-    node.create_subscription(CalibrationProgress, "calibration/progress", bar.update, 10)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    try:
-        response = call_and_wait(executor, node.create_client(Calibrate, "calibrate"), Calibrate.Request(
-            iterations=args.iterations, validate=not args.no_validate, force=args.force), args.timeout)
-    except TimeoutError as error:
-        print(error, file=sys.stderr)
-        return 1
-    finally:
-        bar.finish()
-        node.destroy_node()
-        rclpy.shutdown()
+    with client_node("gls_calibrate_client", args.namespace) as (node, executor):
+        node.create_subscription(CalibrationProgress, "calibration/progress", bar.update, 10)
+        try:
+            response = call_and_wait(executor, node.create_client(Calibrate, "calibrate"), Calibrate.Request(
+                iterations=args.iterations, validate=not args.no_validate, force=args.force), args.timeout)
+        except TimeoutError as error:
+            print(error, file=sys.stderr)
+            return 1
+        finally:
+            bar.finish()
     if response is None:
         print(f"calibrate did not answer within {args.timeout:g} s", file=sys.stderr)
         return 1

@@ -1,10 +1,28 @@
 """What the operator tools share: waiting for a service answer, a progress bar, the summary table."""
 from __future__ import annotations
 
+from contextlib import contextmanager
 import math
-from typing import Any, Optional, TextIO
+from typing import Any, Iterator, Optional, TextIO
 
-from rclpy.executors import Executor
+import rclpy
+from rclpy.executors import Executor, SingleThreadedExecutor
+from rclpy.node import Node
+
+
+@contextmanager
+def client_node(name: str, namespace: str) -> Iterator[tuple[Node, SingleThreadedExecutor]]:
+    """An initialised rclpy with one node for an operator tool, shut down afterwards."""
+    rclpy.init()
+    node = rclpy.create_node(name, namespace=namespace)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        yield node, executor
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown()
 
 
 def call_and_wait(executor: Executor, client, request: Any, timeout_s: float) -> Optional[Any]:

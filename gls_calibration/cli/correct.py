@@ -8,10 +8,8 @@ from pathlib import Path
 import sys
 
 import numpy as np
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
-
-from gls_calibration.cli.client import call_and_wait
+from gls_calibration.cli.client import call_and_wait, client_node
+from gls_calibration.conversions import float64_sequence
 from gls_calibration.persistence import atomic_write_text
 from gls_calibration_msgs.srv import CorrectSetpoints
 
@@ -52,19 +50,14 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as error:
         print(error, file=sys.stderr)
         return 2
-    rclpy.init()
-    node = rclpy.create_node("gls_correct_client", namespace=args.namespace)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    try:
-        response = call_and_wait(executor, node.create_client(CorrectSetpoints, "correct_setpoints"),
-                                 CorrectSetpoints.Request(x=x, y=y, z=z), args.timeout)
-    except TimeoutError as error:
-        print(error, file=sys.stderr)
-        return 1
-    finally:
-        node.destroy_node()
-        rclpy.shutdown()
+    with client_node("gls_correct_client", args.namespace) as (node, executor):
+        try:
+            response = call_and_wait(executor, node.create_client(CorrectSetpoints, "correct_setpoints"),
+                                     CorrectSetpoints.Request(x=float64_sequence(x), y=float64_sequence(y),
+                                                              z=float64_sequence(z)), args.timeout)
+        except TimeoutError as error:
+            print(error, file=sys.stderr)
+            return 1
     if response is None or not response.success:
         print(f"correct_setpoints: {'no answer' if response is None else response.message}", file=sys.stderr)
         return 1

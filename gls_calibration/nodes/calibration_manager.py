@@ -121,6 +121,10 @@ class CalibrationManager(GlsNode):
             plain_sweep_step_mm=self.declare("sweep.plain_step_mm", 1.0,
                                              "profile spacing of the sweep of the plain plate (mm)",
                                              minimum=0.01, maximum=10.0),
+            plain_sweeps=self.declare("sweep.plain_repeats", 4,
+                                      "sweeps of the plain plate whose poses are averaged: the robot's path "
+                                      "error in each sets the plate height, hence the field's scale",
+                                      minimum=1, maximum=20),
             marked_sweep_step_mm=self.declare("sweep.marked_step_mm", 0.1,
                                               "profile spacing of the sweep of the marked plate (mm)",
                                               minimum=0.01, maximum=1.0),

@@ -23,7 +23,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 import yaml
 
-from gls_calibration.config_files import config_path
+from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.head_config import parameters_block, head_config_from_dict
 from gls_calibration.kinematics import HeadGeometry, inverse
 from gls_calibration.optics import HeadEffects
@@ -157,19 +157,8 @@ def load_sim_config(path: str | Path | None = None) -> SimConfig:
     Raises ValueError with the file name for unreadable YAML, unknown keys or effect names, and
     non-positive speeds or step sizes.
     """
-    path = Path(path) if path is not None else default_sim_config_path()
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise ValueError(f"cannot read sim configuration {path}: {error.strerror or error}") from None
-    try:
-        document = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise ValueError(f"cannot parse sim configuration {path}: {error}") from None
-    try:
-        return sim_config_from_dict(document)
-    except ValueError as error:
-        raise ValueError(f"{path}: {error}") from None
+    return read_config_file(path if path is not None else default_sim_config_path(), "sim configuration",
+                            sim_config_from_dict)
 
 
 class SimulatedCell:
