@@ -39,6 +39,7 @@ $(STAMP)/requirements: requirements.txt $(STAMP)/apt
 # where its Python module is importable without sourcing anything.
 $(STAMP)/msgs: $(STAMP)/requirements $(shell find msg_defs -type f)
 	rm -rf build/msg_defs
+	mkdir -p build
 	AMENT_PREFIX_PATH=$(VENV) CMAKE_PREFIX_PATH=$(VENV) cmake -S msg_defs -B build/msg_defs \
 	  -DCMAKE_INSTALL_PREFIX=$(VENV) -DPython3_EXECUTABLE=$(PY) -DBUILD_TESTING=OFF \
 	  -DCMAKE_BUILD_TYPE=Release > build/msg_defs.log 2>&1 || { tail -40 build/msg_defs.log; exit 1; }

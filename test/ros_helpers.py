@@ -10,7 +10,6 @@ parameter files and overrides (the ``start_cell`` fixture wraps it).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import signal
 import subprocess
@@ -112,14 +111,15 @@ def cell_ros_arguments(calibration_dir: Path, report_dir: Path, *, grid: int = 3
     """``--ros-args`` of the simulated cell as gls-sim-cell builds them, plus ``parameters`` for every node.
 
     A name in ``parameters`` replaces gls-sim-cell's own ``-p`` override of that name (the config
-    files stay underneath). ``sim_config`` is also passed as the ``sim_config`` parameter, which is
-    where the simulation nodes read their scanner, plate and marking settings from.
+    files stay underneath).
     """
-    cell_args = argparse.Namespace(sim_config=sim_config, seed=seed, grid=grid)
+    # Through gls-sim-cell's own command line, so that options it adds later get their defaults.
+    command_line = ["--grid", str(grid), "--seed", str(seed)]
+    if sim_config is not None:
+        command_line += ["--sim-config", str(sim_config)]
+    cell_args = sim_cell.parse_args(command_line)
     ros_args = sim_cell.ros_arguments(cell_args, calibration_dir, report_dir)
     parameters = dict(parameters or {})
-    if sim_config is not None:
-        parameters.setdefault("sim_config", str(sim_config))
     kept: list[str] = []
     index = 0
     while index < len(ros_args):

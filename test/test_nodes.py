@@ -189,9 +189,6 @@ def test_correction_refuses_corrections_when_the_active_file_is_broken(ros_conte
     assert correct(node, [0.0], [0.0]).success
 
 
-@pytest.mark.xfail(strict=True, raises=CalibrationFileError,
-                   reason="CorrectionNode._load reads the active pointer outside its try: an unreadable "
-                          "active.yaml stops the node at start instead of refusing corrections")
 def test_correction_starts_with_a_broken_active_pointer(ros_context, add_node, tmp_path):
     store_dir = tmp_path / "store"
     store_dir.mkdir()

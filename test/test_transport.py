@@ -5,6 +5,7 @@ nominal model); the cloud comes from the test-only peer in _cloud_peer.py.
 """
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import threading
@@ -135,8 +136,25 @@ def test_cloud_and_service_across_processes(ros_context, add_node, tmp_path):
     finally:
         correction_code = stop_process(correction)
         cloud_code = stop_process(cloud_peer)
-    assert correction_code == 0, f"correction node exited with {correction_code}; log:\n{correction_log.read_text()}"
+    # The correction node must stop on SIGINT (not need the SIGKILL fallback); that it exits with 0
+    # is test_correction_process_exits_cleanly_on_sigint.
+    assert correction_code != -signal.SIGKILL, f"correction node ignored SIGINT; log:\n{correction_log.read_text()}"
     assert cloud_code == 0, f"cloud peer exited with {cloud_code}; log:\n{cloud_log.read_text()}"
+
+
+def test_correction_process_exits_cleanly_on_sigint(ros_context, add_node, tmp_path):
+    log_path = tmp_path / "correction.log"
+    with open(log_path, "w") as log:
+        correction = subprocess.Popen(
+            [sys.executable, "-c", CORRECTION_MAIN, "--ros-args",
+             "-p", f"calibration_dir:={tmp_path / 'empty_store'}"], stdout=log, stderr=subprocess.STDOUT)
+    try:
+        node = add_node(Node("sigint_test", namespace=NAMESPACE, context=ros_context))
+        client = node.create_client(CorrectSetpoints, SERVICE_NAME)
+        wait_for_peer_service(node, client, correction, log_path, PROCESS_START_TIMEOUT_S)
+    finally:
+        exit_code = stop_process(correction)
+    assert exit_code == 0, f"correction node exited with {exit_code}; log:\n{log_path.read_text()}"
 
 
 def test_call_service_without_server_times_out(ros_context, add_node):

@@ -2,9 +2,12 @@
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any, Callable
 
 import rclpy
+from rclpy.context import Context
+from rclpy.signals import SignalHandlerOptions
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -140,14 +143,16 @@ class NodeThreads:
 
 
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None:
-    """Console-script entry: init rclpy (ROS arguments such as remaps apply), spin one node, shut down."""
-    rclpy.init(args=args)
-    threads = NodeThreads([factory()])
+    """Console-script entry: init rclpy (ROS arguments such as remaps apply), spin one node until
+    Ctrl-C, then destroy the node before the context shuts down (the other order aborts in DDS)."""
+    context = Context()
+    rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
+    threads = NodeThreads([factory(context=context)])
     try:
-        threads.join()
+        while context.ok():
+            time.sleep(0.2)
     except KeyboardInterrupt:
         pass
     finally:
         threads.stop()
-        if rclpy.ok():
-            rclpy.shutdown()
+        context.try_shutdown()

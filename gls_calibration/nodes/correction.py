@@ -30,7 +30,13 @@ class CorrectionNode(GlsNode):
 
     def _load(self, file: str) -> str:
         """Load ``file`` (empty: the active calibration); on failure refuse corrections until a good load."""
-        path = Path(file) if file else self.store.active_path()
+        try:
+            path = Path(file) if file else self.store.active_path()
+        except CalibrationFileError as error:
+            self.correction, self.file = None, str(self.store.pointer_path)
+            self.problem = f"calibration store pointer is unusable: {error}"
+            self.get_logger().error(self.problem)
+            return self.problem
         if path is None:
             self.correction, self.file, self.problem = Correction(self.geometry), "", ""
             self.get_logger().info("no calibration in the store: nominal model")
