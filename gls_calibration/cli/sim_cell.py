@@ -54,6 +54,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--serve", action="store_true",
                         help="start every node and serve until interrupted, without calibrating")
     parser.add_argument("--timeout", type=float, default=600.0, help="give up on calibrate after this (s)")
+    parser.add_argument("--verbose", action="store_true", help="show the nodes' info logs")
     parser.add_argument("--namespace", default=None,
                         help="namespace of the cell's nodes (default: 'gls' with --serve; otherwise a private "
                              "one, so that concurrent one-shot cells on the same ROS domain never meet)")
@@ -81,7 +82,7 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
         "physics_first": args.physics_first,
         "sim_config": str(sim_config),
     }
-    ros_args = ["--ros-args"]
+    ros_args = ["--ros-args", "--log-level", "info" if args.verbose else "warn"]
     for path in (config_path("head.yaml"), config_path("gls.yaml"), sim_config):
         ros_args += ["--params-file", str(path)]
     for name, value in overrides.items():
@@ -145,6 +146,11 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager, store
         summary["calibration_file"] = str(kept)
         atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
     print(summary_table(response))
+    if response.report_dir:
+        truth = json.loads((Path(response.report_dir) / "summary.json").read_text())
+        if truth.get("true_post_rms_mm") is not None:
+            print(f"true error after (simulation ground truth): RMS {truth['true_post_rms_mm']:.4f} mm, "
+                  f"max {truth['true_post_max_mm']:.4f} mm")
     if not response.success:
         print(f"calibration failed: {response.message}", file=sys.stderr)
         return 1
