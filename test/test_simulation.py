@@ -231,13 +231,13 @@ def test_mounting_error_moves_the_measured_cloud():
 
 def test_scanner_rejects_bad_parameters():
     scanner = LaserLineScanner()
-    with pytest.raises(ValueError, match="speed_mm_s must be positive, got -15.0"):
+    with pytest.raises(ValueError, match="speed_mm_s must be a positive finite number, got -15.0"):
         next(scanner.sweep(Plate(), speed_mm_s=-15.0))
-    with pytest.raises(ValueError, match="step_mm must be positive, got 0.0"):
+    with pytest.raises(ValueError, match="step_mm must be a positive finite number, got 0.0"):
         scanner.sweep_cloud(Plate(), step_mm=0.0)
-    with pytest.raises(ValueError, match="length_mm must be positive"):
+    with pytest.raises(ValueError, match="length_mm must be a positive finite number"):
         scanner.sweep_cloud(Plate(), length_mm=-1.0)
-    with pytest.raises(ValueError, match="scanner point_spacing_mm must be positive"):
+    with pytest.raises(ValueError, match="scanner point_spacing_mm must be a positive finite number"):
         ScannerSettings(point_spacing_mm=0.0)
     with pytest.raises(ValueError, match="scanner dropout_fraction must be in"):
         ScannerSettings(dropout_fraction=1.5)
@@ -282,11 +282,11 @@ def minimal(**blocks) -> dict:
 def test_configuration_rejects_bad_values(tmp_path):
     with pytest.raises(ValueError, match="unknown effect 'lens_wobble'"):
         sim_config_from_dict(minimal(effects={"lens_wobble": [1.0]}))
-    with pytest.raises(ValueError, match="scanner speed_mm_s must be positive, got -15.0"):
+    with pytest.raises(ValueError, match="scanner speed_mm_s must be a positive finite number, got -15.0"):
         sim_config_from_dict(minimal(scanner={"speed_mm_s": -15.0}))
-    with pytest.raises(ValueError, match="scanner step_mm must be positive, got 0.0"):
+    with pytest.raises(ValueError, match="scanner step_mm must be a positive finite number, got 0.0"):
         sim_config_from_dict(minimal(scanner={"step_mm": 0.0}))
-    with pytest.raises(ValueError, match="scanner point_spacing_mm must be positive"):
+    with pytest.raises(ValueError, match="scanner point_spacing_mm must be a positive finite number"):
         sim_config_from_dict(minimal(scanner={"point_spacing_mm": -0.1}))
     with pytest.raises(ValueError, match="unknown scanner parameter.*'scanner.pixel_mm'"):
         sim_config_from_dict(minimal(scanner={"pixel_mm": 0.1}))

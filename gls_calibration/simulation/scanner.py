@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gls_calibration.simulation.plate import Plate
-from gls_calibration.validation import as_finite_array
+from gls_calibration.validation import as_finite_array, as_non_negative_number, as_positive_number
 
 PROFILE_DTYPE = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32), ("intensity", np.float32)])
 _CHUNK_ROWS = 128
@@ -38,18 +38,6 @@ def pose_matrix(xyz_mm, rpy_rad) -> np.ndarray:
     matrix[:3, :3] = Rotation.from_euler("xyz", as_finite_array(rpy_rad, "rpy_rad", ndim=1)).as_matrix()
     matrix[:3, 3] = as_finite_array(xyz_mm, "xyz_mm", ndim=1)
     return matrix
-
-
-def _positive(name: str, value: float) -> float:
-    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0.0):
-        raise ValueError(f"{name} must be positive, got {value!r}")
-    return float(value)
-
-
-def _non_negative(name: str, value: float) -> float:
-    if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0.0):
-        raise ValueError(f"{name} must be non-negative, got {value!r}")
-    return float(value)
 
 
 @dataclass(frozen=True)
@@ -74,9 +62,9 @@ class ScannerSettings:
     def __post_init__(self) -> None:
         for name in ("standoff_mm", "line_length_mm", "point_spacing_mm", "step_mm", "speed_mm_s",
                      "depth_max_mm", "gain"):
-            _positive(f"scanner {name}", getattr(self, name))
+            as_positive_number(getattr(self, name), f"scanner {name}")
         for name in ("depth_min_mm", "z_noise_mm", "linearity_mm", "speckle", "path_repeatability_mm"):
-            _non_negative(f"scanner {name}", getattr(self, name))
+            as_non_negative_number(getattr(self, name), f"scanner {name}")
         if self.depth_min_mm >= self.depth_max_mm:
             raise ValueError(f"scanner depth_min_mm ({self.depth_min_mm}) must be below depth_max_mm ({self.depth_max_mm})")
         if not 0.0 <= self.dropout_fraction < 1.0:
@@ -124,9 +112,9 @@ class LaserLineScanner:
         return (np.arange(count) - 0.5 * (count - 1)) * s.point_spacing_mm
 
     def _sweep_parameters(self, length_mm, speed_mm_s, step_mm) -> tuple[int, float, float]:
-        length = _positive("length_mm", length_mm)
-        speed = _positive("speed_mm_s", self.settings.speed_mm_s if speed_mm_s is None else speed_mm_s)
-        step = _positive("step_mm", self.settings.step_mm if step_mm is None else step_mm)
+        length = as_positive_number(length_mm, "length_mm")
+        speed = as_positive_number(self.settings.speed_mm_s if speed_mm_s is None else speed_mm_s, "speed_mm_s")
+        step = as_positive_number(self.settings.step_mm if step_mm is None else step_mm, "step_mm")
         return int(math.floor(length / step + 1e-9)) + 1, speed, step
 
     def _path_error(self, seed: int) -> np.ndarray:
