@@ -60,6 +60,16 @@ def test_serving_cell_calibrates_on_request_from_another_process(ros_context, ad
         assert corrected.message == "corrected"
         assert list(corrected.inside_calibrated_field) == [True, True, True]
         assert not np.allclose(np.asarray(corrected.alpha_x), expected.alpha_x, rtol=0, atol=1e-7)
+
+        # The operator tool gls-correct, a third process, gets the same answers as a CSV.
+        targets_csv, result_csv = tmp_path / "targets.csv", tmp_path / "corrected.csv"
+        targets_csv.write_text("x,y\n" + "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(x, y)))
+        tool = subprocess.run([sys.executable, "-m", "gls_calibration.cli.correct", str(targets_csv),
+                               "--out", str(result_csv)], capture_output=True, text=True, timeout=60)
+        assert tool.returncode == 0, tool.stderr
+        rows = np.genfromtxt(result_csv, delimiter=",", names=True)
+        np.testing.assert_allclose(rows["alpha_x_rad"], np.asarray(corrected.alpha_x), rtol=0, atol=1e-15)
+        assert rows["inside_calibrated_field"].tolist() == [1, 1, 1]
     finally:
         exit_code = stop_process(cell, STOP_TIMEOUT_S)
     # SIGINT is how an operator stops --serve: it must end the process without the SIGKILL fallback

@@ -1,0 +1,32 @@
+"""Operator tools on bad input and without a running system: clear message, exit code, no output."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from gls_calibration.cli.correct import main as correct_main, read_targets
+
+
+@pytest.mark.parametrize("text, message", [
+    ("x,z\n1,2\n", r"missing column\(s\) y \(header: x,z\)"),
+    ("x,y\n", r"no targets"),
+    ("x,y\n1,abc\n", r"non-numeric value"),
+])
+def test_gls_correct_rejects_bad_csv_with_exit_2(tmp_path, capsys, text, message):
+    targets = tmp_path / "targets.csv"
+    targets.write_text(text)
+    with pytest.raises(ValueError, match=message):
+        read_targets(targets)
+    assert correct_main([str(targets), "--out", str(tmp_path / "out.csv")]) == 2
+    assert not (tmp_path / "out.csv").exists()
+    assert "targets.csv" in capsys.readouterr().err
+
+
+def test_gls_calibrate_without_a_running_system_fails_cleanly():
+    # A namespace nobody serves: the tool gives up after its wait and exits 1 with a message.
+    tool = subprocess.run([sys.executable, "-m", "gls_calibration.cli.calibrate", "--namespace", "nobody_here",
+                           "--timeout", "1"], capture_output=True, text=True, timeout=60)
+    assert tool.returncode == 1
+    assert tool.stderr.strip() == "service calibrate is not available (waited 1 s)"
