@@ -102,14 +102,20 @@ def head_config_from_dict(document: Any) -> tuple[HeadGeometry, HeadEffects]:
         mirror_limit_rad=math.radians(values["mirror_limit_deg"]),
         focus_range_mm=values["focus_range_mm"],
     )
-    effects = head.get("effects") or {}
+    return geometry, effects_from_mapping(head.get("effects"), "head effects")
+
+
+def effects_from_mapping(effects: Any, what: str) -> HeadEffects:
+    """Named effects from a YAML mapping ``name: [parameters...]`` (a lone number for one parameter);
+    ValueError names a bad value or an unknown effect."""
+    effects = effects or {}
     if not isinstance(effects, Mapping):
-        raise ValueError(f"head effects must be a mapping of effect name to parameters, got {effects!r}")
+        raise ValueError(f"{what} must be a mapping of effect name to parameters, got {effects!r}")
     cleaned = {}
     for name, parameters_of_effect in effects.items():
         listed = parameters_of_effect if isinstance(parameters_of_effect, (list, tuple)) else [parameters_of_effect]
         cleaned[str(name)] = tuple(_number(value, f"effects.{name}") for value in listed)
-    return geometry, HeadEffects(cleaned)
+    return HeadEffects(cleaned)
 
 
 def load_head_config(path: str | Path) -> tuple[HeadGeometry, HeadEffects]:

@@ -24,7 +24,7 @@ import numpy as np
 import yaml
 
 from gls_calibration.config_files import config_path, read_config_file
-from gls_calibration.head_config import parameters_block, head_config_from_dict
+from gls_calibration.head_config import effects_from_mapping, head_config_from_dict, parameters_block
 from gls_calibration.kinematics import HeadGeometry, inverse
 from gls_calibration.optics import HeadEffects
 from gls_calibration.simulation.head import TruthHead
@@ -115,14 +115,7 @@ def sim_config_from_dict(document: Any) -> SimConfig:
         raise ValueError("put the true effects of the simulated head under 'effects', not 'head.effects'")
     geometry, _ = head_config_from_dict({"head": head})
 
-    effects = parameters.get("effects") or {}
-    if not isinstance(effects, Mapping):
-        raise ValueError(f"'effects' must be a mapping of effect name to parameters, got {effects!r}")
-    cleaned = {}
-    for name, values in effects.items():
-        listed = values if isinstance(values, (list, tuple)) else [values]
-        cleaned[str(name)] = tuple(_number(value, f"effects.{name}") for value in listed)
-    effects = HeadEffects(cleaned)       # unknown effect names raise here, named
+    effects = effects_from_mapping(parameters.get("effects"), "'effects'")
 
     seed = parameters.get("seed", 1)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
