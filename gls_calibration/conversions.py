@@ -290,12 +290,6 @@ def float64_array(sequence) -> np.ndarray:
     return np.asarray(sequence, dtype=np.float64)
 
 
-def cloud_msg_from_arrays(xyz: np.ndarray, intensity: np.ndarray, frame_id: str,
-                          stamp: Time | None = None) -> PointCloud2:
-    """An x, y, z, intensity float32 PointCloud2 (organized when ``xyz`` is (H, W, 3))."""
-    return array_to_pointcloud2(xyzi_array(xyz, intensity), frame_id=frame_id, stamp=stamp)
-
-
 def cloud_arrays_from_msg(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray]:
     """float64 xyz (H, W, 3) or (N, 3) and intensity of a PointCloud2 with x, y, z, intensity."""
     return xyz_intensity_arrays(pointcloud2_to_array(msg))

@@ -28,12 +28,13 @@ from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.kinematics import HeadGeometry
 from gls_calibration.optics import HeadEffects
 
-#: Geometry keys of the ``head`` block and their defaults (published set-up).
+_NOMINAL = HeadGeometry()
+#: Geometry keys of the ``head`` block and their defaults (HeadGeometry's: the published set-up).
 HEAD_DEFAULTS: dict[str, float] = {
-    "working_distance_mm": 490.0,
-    "mirror_distance_mm": 15.0,
-    "mirror_limit_deg": 10.5,
-    "focus_range_mm": 25.0,
+    "working_distance_mm": _NOMINAL.working_distance_mm,
+    "mirror_distance_mm": _NOMINAL.mirror_distance_mm,
+    "mirror_limit_deg": math.degrees(_NOMINAL.mirror_limit_rad),
+    "focus_range_mm": _NOMINAL.focus_range_mm,
 }
 
 

@@ -37,12 +37,16 @@ class TrainedModel:
 
 
 class Cell(Protocol):
-    """What the procedure needs from the cell. Clouds are (xyz (H, W, 3), intensity (H, W))."""
+    """What the procedure needs from the cell.
 
-    async def acquire_sweep(self, step_mm: float) -> tuple[np.ndarray, np.ndarray]: ...
-    async def estimate_plate_pose(self, xyz: np.ndarray, intensity: np.ndarray) -> PlatePose: ...
-    async def measure_fiducials(self, xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
-                                expected_count: int) -> FiducialMeasurement: ...
+    A cloud is whatever ``acquire_sweep`` returns; the procedure only hands it back to
+    ``estimate_plate_pose`` and ``measure_fiducials``, so a cell can keep it in its own form (the
+    manager keeps the PointCloud2 message and forwards it without converting it).
+    """
+
+    async def acquire_sweep(self, step_mm: float) -> Any: ...
+    async def estimate_plate_pose(self, cloud: Any) -> PlatePose: ...
+    async def measure_fiducials(self, cloud: Any, pose: PlatePose, expected_count: int) -> FiducialMeasurement: ...
     async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> CorrectedSetpoints: ...
     async def mark(self, alpha_x: np.ndarray, alpha_y: np.ndarray, focus_shift: np.ndarray,
                    polyline_starts: np.ndarray) -> float: ...
@@ -140,8 +144,7 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
     for repeat in range(settings.plain_sweeps):
         report("sweep_plain", 0.1 * repeat / settings.plain_sweeps,
                f"scanning the plain plate ({repeat + 1} of {settings.plain_sweeps})")
-        xyz, intensity = await cell.acquire_sweep(settings.plain_sweep_step_mm)
-        poses.append(await cell.estimate_plate_pose(xyz, intensity))
+        poses.append(await cell.estimate_plate_pose(await cell.acquire_sweep(settings.plain_sweep_step_mm)))
     pose_scanner = mean_plate_pose(poses)
     pose_gls = pose_in_frame(pose_scanner, settings.scanner_to_gls)
     report("plate_pose", 0.15, f"plate flatness {pose_scanner.flatness_rms_mm:.4f} mm RMS")
@@ -160,9 +163,9 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
     await cell.mark(setpoints.alpha_x, setpoints.alpha_y, setpoints.focus_shift, starts)
 
     report("sweep_marked", 0.45, "scanning the marked plate")
-    xyz, intensity = await cell.acquire_sweep(settings.marked_sweep_step_mm)
+    cloud = await cell.acquire_sweep(settings.marked_sweep_step_mm)
     report("measurement", 0.7, "measuring fiducials")
-    found = await cell.measure_fiducials(xyz, intensity, pose_scanner, len(grid_xy))
+    found = await cell.measure_fiducials(cloud, pose_scanner, len(grid_xy))
     needed = math.ceil(settings.min_found_fraction * len(grid_xy))
     if len(found.centres) < needed:
         raise CalibrationError(f"found {len(found.centres)} of {len(grid_xy)} fiducials; at least {needed} "

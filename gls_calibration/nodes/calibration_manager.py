@@ -43,7 +43,6 @@ class ServiceCell:
         self.trainer = node.client(TrainCorrection, "rbf/train")
         self.exchange = node.client(Trigger, node.plate_exchange_service) if node.plate_exchange_service else None
         self.truth = node.client(GetMarkedPaths, node.ground_truth_service) if node.ground_truth_service else None
-        self.sweep_step_mm = 0.0
 
     async def _checked(self, client, request, timeout_s: Optional[float] = None):
         response = await self.node.call(client, request, timeout_s or self.timeout_s)
@@ -54,22 +53,21 @@ class ServiceCell:
     async def acquire_sweep(self, step_mm: float):
         request = AcquireSweep.Request(timeout_s=self.sweep_timeout_s, step_mm=step_mm)
         response = await self._checked(self.acquire, request, self.sweep_timeout_s + self.timeout_s)
-        return conversions.cloud_arrays_from_msg(response.cloud)
+        return response.cloud  # forwarded as it came: the processing nodes convert it themselves
 
-    async def estimate_plate_pose(self, xyz, intensity):
-        request = EstimatePlatePose.Request(cloud=conversions.cloud_msg_from_arrays(xyz, intensity, "scanner"))
-        response = await self._checked(self.pose, request)
+    async def estimate_plate_pose(self, cloud):
+        response = await self._checked(self.pose, EstimatePlatePose.Request(cloud=cloud))
         return conversions.plate_pose_from_msg(response.pose)
 
-    async def measure_fiducials(self, xyz, intensity, pose, expected_count):
-        request = MeasureFiducials.Request(cloud=conversions.cloud_msg_from_arrays(xyz, intensity, "scanner"),
-                                           pose=conversions.plate_pose_to_msg(pose),
+    async def measure_fiducials(self, cloud, pose, expected_count):
+        request = MeasureFiducials.Request(cloud=cloud, pose=conversions.plate_pose_to_msg(pose),
                                            expected_count=int(expected_count))
         response = await self._checked(self.fiducials, request)
         return conversions.fiducials_from_response(response, pose)
 
     async def correct(self, x, y, z):
-        request = CorrectSetpoints.Request(x=np.asarray(x, float), y=np.asarray(y, float), z=np.asarray(z, float))
+        request = CorrectSetpoints.Request(x=conversions.float64_sequence(x), y=conversions.float64_sequence(y),
+                                           z=conversions.float64_sequence(z))
         return conversions.setpoints_from_response(await self._checked(self.corrector, request))
 
     async def mark(self, alpha_x, alpha_y, focus_shift, polyline_starts):
@@ -111,32 +109,33 @@ class CalibrationManager(GlsNode):
         super().__init__("calibration_manager", **kwargs)
         self.geometry = declare_head_geometry(self)
         scanner_to_gls = declare_scanner_to_gls(self)
+        defaults = procedure.ProcedureSettings()
         self.settings = procedure.ProcedureSettings(
-            grid_per_side=self.declare("grid.per_side", 19, "fiducials per side of the square grid",
-                                       minimum=3, maximum=101),
-            grid_size_mm=self.declare("grid.size_mm", 190.0, "side of the fiducial grid (mm)",
+            grid_per_side=self.declare("grid.per_side", defaults.grid_per_side,
+                                       "fiducials per side of the square grid", minimum=3, maximum=101),
+            grid_size_mm=self.declare("grid.size_mm", defaults.grid_size_mm, "side of the fiducial grid (mm)",
                                       minimum=1.0, maximum=1000.0),
-            ring_radii_mm=tuple(self.declare("grid.ring_radii_mm", [2.5, 2.7],
+            ring_radii_mm=tuple(self.declare("grid.ring_radii_mm", list(defaults.ring_radii_mm),
                                              "radii of the two concentric rings of a fiducial (mm)")),
-            plain_sweep_step_mm=self.declare("sweep.plain_step_mm", 1.0,
+            plain_sweep_step_mm=self.declare("sweep.plain_step_mm", defaults.plain_sweep_step_mm,
                                              "profile spacing of the sweep of the plain plate (mm)",
                                              minimum=0.01, maximum=10.0),
-            plain_sweeps=self.declare("sweep.plain_repeats", 4,
+            plain_sweeps=self.declare("sweep.plain_repeats", defaults.plain_sweeps,
                                       "sweeps of the plain plate whose poses are averaged: the robot's path "
                                       "error in each sets the plate height, hence the field's scale",
                                       minimum=1, maximum=20),
-            marked_sweep_step_mm=self.declare("sweep.marked_step_mm", 0.1,
+            marked_sweep_step_mm=self.declare("sweep.marked_step_mm", defaults.marked_sweep_step_mm,
                                               "profile spacing of the sweep of the marked plate (mm)",
                                               minimum=0.01, maximum=1.0),
             scanner_to_gls=scanner_to_gls,
-            tolerance_rms_mm=self.declare("tolerance_rms_mm", 0.05,
+            tolerance_rms_mm=self.declare("tolerance_rms_mm", defaults.tolerance_rms_mm,
                                           "no training when the measured RMS deviation is within this (mm)",
                                           minimum=0.0),
-            min_found_fraction=self.declare("min_found_fraction", 0.9,
+            min_found_fraction=self.declare("min_found_fraction", defaults.min_found_fraction,
                                             "fail when fewer fiducials than this fraction are found",
                                             minimum=0.0, maximum=1.0),
-            default_iterations=self.declare("default_iterations", 1, "iterations when a request says 0",
-                                            minimum=1, maximum=5),
+            default_iterations=self.declare("default_iterations", defaults.default_iterations,
+                                            "iterations when a request says 0", minimum=1, maximum=5),
         )
         self.service_timeout_s = self.declare("service_timeout_s", 60.0, "timeout of one service call (s)",
                                               minimum=0.1)
@@ -156,7 +155,6 @@ class CalibrationManager(GlsNode):
         self.cell = ServiceCell(self)
         self.progress = self.create_publisher(CalibrationProgress, "calibration/progress", 10)
         self._running = False
-        self.last_outcome: Optional[procedure.CalibrationOutcome] = None
         self.create_service(Calibrate, "calibrate", self.on_calibrate, callback_group=self.reentrant_group)
         self.create_service(ExplainDeviations, "explain_deviations", self.on_explain,
                             callback_group=self.reentrant_group)
@@ -210,7 +208,6 @@ class CalibrationManager(GlsNode):
             self.cell, self.settings, iterations=request.iterations, validate=request.validate,
             force=request.force, want_truth=bool(self.ground_truth_service),
             progress=self.publish_progress, save_candidate=save_candidate)
-        self.last_outcome = outcome
         first = outcome.runs[0]
         response.pre_rms_mm = first.metrics["full"]["rms_abs_mm"]
         response.pre_max_mm = first.metrics["full"]["max_abs_mm"]

@@ -6,22 +6,24 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from gls_calibration.head_config import HEAD_DEFAULTS
 from gls_calibration.kinematics import HeadGeometry
 from gls_calibration.nodes.base import GlsNode
 from gls_calibration.registration import RigidTransform
 
 
 def declare_head_geometry(node: GlsNode) -> HeadGeometry:
-    """Declare ``head.*`` parameters and return the nominal geometry they describe."""
+    """Declare ``head.*`` parameters (the keys of config/head.yaml) and return the nominal geometry."""
     return HeadGeometry(
-        working_distance_mm=node.declare("head.working_distance_mm", 490.0,
+        working_distance_mm=node.declare("head.working_distance_mm", HEAD_DEFAULTS["working_distance_mm"],
                                          "X mirror axis to the work plane, d (mm)", minimum=1.0),
-        mirror_distance_mm=node.declare("head.mirror_distance_mm", 15.0,
+        mirror_distance_mm=node.declare("head.mirror_distance_mm", HEAD_DEFAULTS["mirror_distance_mm"],
                                         "Y mirror axis to X mirror axis, e (mm)", minimum=0.0),
-        mirror_limit_rad=math.radians(node.declare("head.mirror_limit_deg", 10.5,
+        mirror_limit_rad=math.radians(node.declare("head.mirror_limit_deg", HEAD_DEFAULTS["mirror_limit_deg"],
                                                    "mechanical mirror limit (deg)", minimum=0.1,
                                                    maximum=45.0)),
-        focus_range_mm=node.declare("head.focus_range_mm", 25.0, "focus shift range, +- (mm)", minimum=0.1),
+        focus_range_mm=node.declare("head.focus_range_mm", HEAD_DEFAULTS["focus_range_mm"],
+                                    "focus shift range, +- (mm)", minimum=0.1),
     )
 
 

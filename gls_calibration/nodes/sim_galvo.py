@@ -47,9 +47,8 @@ class SimGalvoNode(GlsNode):
             return response
         began = self.head.clock_s
         for ax, ay in zip(np.split(alpha_x, starts[1:]), np.split(alpha_y, starts[1:])):
-            start_s = self.head.clock_s
             self.landed.append(self.head.mark(ax, ay))
-            self.times.append(np.linspace(start_s, self.head.clock_s, len(ax)))
+            self.times.append(self.head.log[-1].vertex_times)
         response.success = True
         response.duration_s = self.head.clock_s - began
         response.message = f"{len(starts)} polylines marked in {response.duration_s:.2f} s"

@@ -53,12 +53,12 @@ class SimScannerNode(GlsNode):
         if self.job is not None:
             response.success, response.message = False, "a sweep is running; request refused"
             return response
-        length = request.length_mm or self.config.sweep_length_mm
-        speed = request.speed_mm_s or self.config.scanner.speed_mm_s
-        step = request.step_mm or self.config.scanner.step_mm
-        if length <= 0 or speed <= 0 or step <= 0:
-            response.success = False
-            response.message = f"sweep length, speed and step must be positive, got {length}, {speed}, {step}"
+        length = request.length_mm or self.config.sweep_length_mm   # 0 in the request: the default
+        try:
+            profiles, speed, step = self.scanner.sweep_parameters(length, request.speed_mm_s or None,
+                                                                  request.step_mm or None)
+        except ValueError as error:
+            response.success, response.message = False, str(error)
             return response
         try:
             await self._load_marks()
@@ -70,7 +70,7 @@ class SimScannerNode(GlsNode):
         self.published = 0
         self.job = self.scanner.sweep(self.plate, length, speed, step, seed=self.config.seed * 100003 + self.sweep_id)
         response.sweep_id = self.sweep_id
-        response.expected_profiles = int(np.floor(length / step + 1e-9)) + 1
+        response.expected_profiles = profiles
         response.success, response.message = True, f"sweep {self.sweep_id} started"
         self.timer.reset()
         return response

@@ -21,13 +21,14 @@ from gls_calibration.validation import as_finite_array
 
 @dataclass(frozen=True)
 class MarkRecord:
-    """One marked polyline: its order, its start and end time (s) and its vertex count."""
+    """One marked polyline: its order, start and end time (s), vertex count and each vertex's time."""
 
     index: int
     start_s: float
     end_s: float
     vertex_count: int
     plate_id: int | None
+    vertex_times: np.ndarray    # marking time of each vertex (s), by the commanded path length
 
 
 class TruthHead:
@@ -85,7 +86,7 @@ class TruthHead:
         if self.plate is not None:
             self.plate.add_mark(landed)
             plate_id = self.plate.plate_id
-        self.log.append(MarkRecord(len(self.log), float(start), self.clock_s, int(alpha_x.size), plate_id))
+        self.log.append(MarkRecord(len(self.log), float(start), self.clock_s, int(alpha_x.size), plate_id, times))
         return landed
 
     def mark_polylines(self, polylines: Iterable) -> list[np.ndarray]:

@@ -21,7 +21,7 @@ from scipy.ndimage import binary_dilation, gaussian_filter, map_coordinates
 from scipy.spatial import cKDTree
 
 from gls_calibration.optics import plate_frame
-from gls_calibration.validation import as_finite_array, as_points
+from gls_calibration.validation import as_finite_array, as_points, as_positive_number
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 _PLATE_IDS = itertools.count(1)
@@ -44,9 +44,7 @@ class PlateSettings:
 
     def __post_init__(self) -> None:
         for name in ("size_mm", "texture_cell_mm", "texture_correlation_mm", "line_width_fwhm_mm"):
-            value = getattr(self, name)
-            if not math.isfinite(value) or value <= 0.0:
-                raise ValueError(f"plate {name} must be a positive finite number, got {value!r}")
+            as_positive_number(getattr(self, name), f"plate {name}")
         for name in ("tilt_x_rad", "tilt_y_rad", "delta_d_mm", "texture_std"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"plate {name} must be finite, got {getattr(self, name)!r}")

@@ -111,7 +111,8 @@ class LaserLineScanner:
         count = int(math.floor(s.line_length_mm / s.point_spacing_mm + 1e-9)) + 1
         return (np.arange(count) - 0.5 * (count - 1)) * s.point_spacing_mm
 
-    def _sweep_parameters(self, length_mm, speed_mm_s, step_mm) -> tuple[int, float, float]:
+    def sweep_parameters(self, length_mm, speed_mm_s=None, step_mm=None) -> tuple[int, float, float]:
+        """Profile count, speed and step of a sweep (None: the settings' defaults); ValueError if not positive."""
         length = as_positive_number(length_mm, "length_mm")
         speed = as_positive_number(self.settings.speed_mm_s if speed_mm_s is None else speed_mm_s, "speed_mm_s")
         step = as_positive_number(self.settings.step_mm if step_mm is None else step_mm, "step_mm")
@@ -167,7 +168,7 @@ class LaserLineScanner:
         return self.settings.linearity_mm * np.sin(1.5 * np.pi * x / half)
 
     def _chunks(self, plate, length_mm, speed_mm_s, step_mm, seed):
-        rows, speed, step = self._sweep_parameters(length_mm, speed_mm_s, step_mm)
+        rows, speed, step = self.sweep_parameters(length_mm, speed_mm_s, step_mm)
         path_error = self._path_error(seed)
         for number, first in enumerate(range(0, rows, _CHUNK_ROWS)):
             count = min(_CHUNK_ROWS, rows - first)
