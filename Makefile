@@ -2,6 +2,7 @@
 #   make sim    set up, then run the headless simulated calibration and write its report
 #   make test   set up, then run the tests
 #   make bench  set up, then run the benchmarks
+#   make colcon set up (with colcon), then build and test both packages in a temporary colcon workspace
 # Set-up is idempotent: each step leaves a stamp in .venv/ and runs again only when its inputs change.
 SHELL := /bin/bash
 .SHELLFLAGS := -eu -o pipefail -c
@@ -19,7 +20,7 @@ QUIET_PIP := sed '/is ignored: it is neither a file nor a directory/d'
 # Small matrices under two busy cores: threaded BLAS only adds jitter (see benchmarks/README.md).
 export OPENBLAS_NUM_THREADS ?= 1
 
-.PHONY: setup sim test bench clean
+.PHONY: setup sim test bench colcon clean
 setup: $(STAMP)/package
 
 $(PY):
@@ -51,6 +52,16 @@ $(STAMP)/msgs: $(STAMP)/requirements $(shell find msg_defs -type f)
 $(STAMP)/package: $(STAMP)/msgs setup.py setup.cfg package.xml
 	$(PY) -m pip install -q --no-deps --no-build-isolation -e . 2>&1 | $(QUIET_PIP)
 	touch $@
+
+# colcon from PyPI, into the same venv: its ament_python build runs setup.py with colcon's interpreter,
+# which must see setuptools and the ROS wheels.
+$(STAMP)/colcon: requirements-colcon.txt $(STAMP)/package
+	$(PY) -m pip install -q -r requirements-colcon.txt 2>&1 | $(QUIET_PIP)
+	$(PY) -m pip check >/dev/null
+	touch $@
+
+colcon: $(STAMP)/colcon
+	.ci/colcon_workspace
 
 sim: setup
 	$(VENV)/bin/gls-sim-cell --out $(OUT)

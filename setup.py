@@ -1,7 +1,8 @@
 """ament_python package gls_calibration.
 
-Console scripts go to the environment's bin/ (not lib/<package>/ as `ros2 run` expects) because
-ros2cli is not available from PyPI: the operator tools and every node are started by name.
+Console scripts: `pip install -e .` (make setup) puts them in the venv's bin/; an install by colcon
+puts them in lib/gls_calibration/, where `ros2 run gls_calibration <name>` looks (setup.cfg
+[install] install_scripts). The extra "test" lists pytest, which makes `colcon test` run pytest.
 """
 from glob import glob
 
@@ -33,9 +34,10 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.rviz")),
     ],
     install_requires=["setuptools"],
+    extras_require={"test": ["pytest", "pytest-timeout"]},
     zip_safe=False,
     maintainer="gls_calibration maintainers",
     maintainer_email="gls-calibration@example.com",
