@@ -6,13 +6,15 @@ parameters, the measured fiducials of the first plate) and where it came from (h
 """
 from __future__ import annotations
 
+from datetime import datetime
+import hashlib
 from typing import Mapping, Sequence
 
 import numpy as np
 
 from gls_calibration.correction import CalibratedRegion, Correction
 from gls_calibration.kinematics import HeadGeometry
-from gls_calibration.persistence import new_record
+from gls_calibration.persistence import dump_record, new_record
 from gls_calibration.procedure import PlateRun, ProcedureSettings, TrainedModel
 from gls_calibration.rbf import model_from_dict
 
@@ -65,3 +67,10 @@ def record_fiducials(record: Mapping) -> tuple[np.ndarray, np.ndarray]:
     commanded = np.column_stack([fiducials["target_x"], fiducials["target_y"]]).astype(float)
     measured = np.column_stack([fiducials["measured_x"], fiducials["measured_y"]]).astype(float)
     return commanded, measured
+
+
+def record_identity(record: Mapping) -> tuple[str, datetime]:
+    """Which calibration a record is: a content hash (sha256 of its YAML, 16 hex digits) and its
+    creation time; what a correction answer names so that a client knows who answered."""
+    content_hash = hashlib.sha256(dump_record(record).encode("utf-8")).hexdigest()[:16]
+    return content_hash, datetime.fromisoformat(record["created_utc"])

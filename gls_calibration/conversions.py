@@ -3,6 +3,9 @@
 Section "PointCloud2 <-> numpy": a PointCloud2 maps onto a numpy structured array whose dtype
 carries the message's field names, offsets, byte order and ``point_step`` (as the itemsize), so
 reading a cloud is a view over ``msg.data`` and writing one copies the points into the message once.
+
+Section "Units at the message boundary": clouds on the wire are in metres (REP 103), the core works
+in millimetres; :func:`cloud_to_msg` and :func:`cloud_from_msg` are the only places that scale.
 """
 from __future__ import annotations
 
@@ -264,6 +267,42 @@ def xyz_intensity_arrays(points: np.ndarray, dtype: npt.DTypeLike = np.float64
 
 
 # ---------------------------------------------------------------------------------------------
+# Units at the message boundary
+# ---------------------------------------------------------------------------------------------
+
+MM_PER_M = 1000.0
+
+
+def cloud_to_msg(points_mm: np.ndarray, frame_id: str, stamp: Time | None = None) -> PointCloud2:
+    """A PointCloud2 in metres (float32 x, y, z, intensity) of a structured cloud in mm."""
+    _require_fields(points_mm, _XYZ + ("intensity",))
+    wire = np.empty(points_mm.shape, dtype=xyzi_dtype())
+    for name in _XYZ:
+        wire[name] = points_mm[name].astype(np.float64) / MM_PER_M
+    wire["intensity"] = points_mm["intensity"]
+    return array_to_pointcloud2(wire, frame_id=frame_id, stamp=stamp)
+
+
+def cloud_from_msg(msg: PointCloud2, mm_per_unit: float = MM_PER_M) -> np.ndarray:
+    """The float32 x, y, z, intensity cloud (mm, a copy) of a PointCloud2 in metres, or in the unit
+    of which one is ``mm_per_unit`` mm (1.0 for a driver that publishes millimetres)."""
+    view = pointcloud2_to_array(msg)
+    _require_fields(view, _XYZ + ("intensity",))
+    points = np.empty(view.shape, dtype=xyzi_dtype())
+    for name in _XYZ:
+        points[name] = view[name].astype(np.float64) * mm_per_unit
+    points["intensity"] = view["intensity"]
+    return points
+
+
+def cloud_arrays_from_msg(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray]:
+    """float64 xyz (H, W, 3) or (N, 3) in mm and intensity of a PointCloud2 (x, y, z in metres, intensity)."""
+    xyz, intensity = xyz_intensity_arrays(pointcloud2_to_array(msg))
+    xyz *= MM_PER_M
+    return xyz, intensity
+
+
+# ---------------------------------------------------------------------------------------------
 # Calibration messages <-> core types
 # ---------------------------------------------------------------------------------------------
 # rclpy wants array.array (or lists) for unbounded sequence fields and hands array.array back;
@@ -290,9 +329,10 @@ def float64_array(sequence) -> np.ndarray:
     return np.asarray(sequence, dtype=np.float64)
 
 
-def cloud_arrays_from_msg(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray]:
-    """float64 xyz (H, W, 3) or (N, 3) and intensity of a PointCloud2 with x, y, z, intensity."""
-    return xyz_intensity_arrays(pointcloud2_to_array(msg))
+def time_to_msg(seconds: float) -> Time:
+    """A builtin_interfaces Time from seconds since the epoch (UTC)."""
+    nanoseconds = int(round(seconds * 1e9))
+    return Time(sec=nanoseconds // 1_000_000_000, nanosec=nanoseconds % 1_000_000_000)
 
 
 def plate_pose_to_msg(pose: PlatePose) -> PlatePoseMsg:

@@ -28,8 +28,14 @@ if "ROS_DOMAIN_ID" not in os.environ:
     # Not a data draw: isolation only, so deliberately unseeded (different for concurrent sessions).
     os.environ["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 100))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+# As `make test` sets it (before numpy loads OpenBLAS), so that `python -m pytest` runs alike.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import rclpy  # noqa: E402  (after the environment is set)
+try:
+    import rclpy  # noqa: E402  (after the environment is set)
+except ImportError as error:  # not the set-up venv: say what to run instead of failing in every test
+    raise pytest.UsageError(f"{error}: run `make setup`, then `.venv/bin/python -m pytest` "
+                            "(or `make test`)") from None
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402

@@ -29,4 +29,13 @@ def test_gls_calibrate_without_a_running_system_fails_cleanly():
     tool = subprocess.run([sys.executable, "-m", "gls_calibration.cli.calibrate", "--namespace", "nobody_here",
                            "--timeout", "1"], capture_output=True, text=True, timeout=60)
     assert tool.returncode == 1
-    assert tool.stderr.strip() == "service calibrate is not available (waited 1 s)"
+    assert tool.stderr.strip().splitlines() == ["gls-calibrate: action /nobody_here/calibrate",
+                                                "action /nobody_here/calibrate is not available (waited 1 s)"]
+
+
+def test_gls_calibrate_takes_ros_arguments():
+    # --ros-args remaps the namespace like a node's; the tool prints the name it resolved.
+    tool = subprocess.run([sys.executable, "-m", "gls_calibration.cli.calibrate", "--timeout", "1",
+                           "--ros-args", "-r", "__ns:=/cell_elsewhere"], capture_output=True, text=True, timeout=60)
+    assert tool.returncode == 1, tool.stderr
+    assert "action /cell_elsewhere/calibrate is not available (waited 1 s)" in tool.stderr

@@ -24,7 +24,7 @@ from sensor_msgs.msg import PointCloud2
 
 from gls_calibration import kinematics
 from gls_calibration.config_files import config_path
-from gls_calibration.conversions import array_to_pointcloud2, pointcloud2_to_array, xyzi_array
+from gls_calibration.conversions import cloud_from_msg, cloud_to_msg, pointcloud2_to_array, xyzi_array
 from gls_calibration.correction import CalibratedRegion, Correction
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
@@ -181,9 +181,15 @@ def test_correction_refuses_corrections_when_the_active_file_is_broken(ros_conte
     assert "invalid YAML" in response.message
     assert len(response.alpha_x) == 0
 
-    # A good calibration loaded by hand lifts the refusal.
+    # A good calibration that is not the active one is never served, even when named.
     record, _ = trained_record()
     good = CalibrationStore(store_dir).save(record, activate=False)
+    refused = load(node, str(good))
+    assert not refused.success
+    assert "is not the active calibration" in refused.message, refused.message
+    assert not correct(node, [0.0], [0.0]).success
+    # Activated, a reload of the active calibration lifts the refusal.
+    CalibrationStore(store_dir).activate(good)
     loaded = load(node, str(good))
     assert loaded.success, loaded.message
     assert correct(node, [0.0], [0.0]).success
@@ -230,15 +236,16 @@ def test_correction_hot_reload_applies_the_calibration(ros_context, add_node, tm
     assert not np.allclose(np.asarray(after.alpha_x)[:4], np.asarray(before.alpha_x)[:4], rtol=0, atol=1e-7)
 
 
-def test_correction_load_of_a_missing_file_fails_and_refuses(ros_context, add_node, tmp_path):
+def test_correction_load_of_another_file_is_refused_and_the_active_one_stays(ros_context, add_node, tmp_path):
     start_correction_node(ros_context, add_node, tmp_path / "store")
     node = client_node(ros_context, add_node)
     missing = tmp_path / "nowhere.yaml"
     loaded = load(node, str(missing))
     assert not loaded.success
-    assert str(missing) in loaded.message and "cannot read file" in loaded.message
-    refused = correct(node, [0.0], [0.0])
-    assert not refused.success and str(missing) in refused.message
+    assert loaded.message.startswith(f"{missing} is not the active calibration"), loaded.message
+    still = correct(node, [0.0], [0.0])
+    assert still.success and "nominal" in still.message
+    assert still.calibration_id == "nominal"
 
 
 # --- scan acquisition with a fake scanner ----------------------------------------------------------
@@ -281,7 +288,7 @@ class FakeScanner:
         count = PROFILES if self.script == "complete" else 5
         for index in range(count):
             stamp = Time(nanoseconds=int(round((FIRST_STAMP_S + index * PROFILE_PERIOD_S) * 1e9)))
-            self.points.publish(array_to_pointcloud2(self.profiles[index], "scanner", stamp))
+            self.points.publish(cloud_to_msg(self.profiles[index], "scanner_sensor", stamp))   # metres
         self.done.publish(SweepDone(sweep_id=7, profiles=count, step_mm=SPEED_MM_S * PROFILE_PERIOD_S,
                                     speed_mm_s=SPEED_MM_S, direction=[0.0, 1.0, 0.0],
                                     complete=self.script == "complete"))
@@ -318,14 +325,19 @@ def test_scan_acquisition_assembles_an_organized_cloud(ros_context, add_node):
     response, _, scanner = acquire(ros_context, add_node, "complete", timeout_s=TIMEOUT_S)
     assert response.success, response.message
     assert response.message == f"{PROFILES} profiles of {POINTS} points"
-    cloud = pointcloud2_to_array(response.cloud)
-    assert cloud.shape == (PROFILES, POINTS)
+    # On the wire in metres, in the frame of the sensor at the start of the sweep, stamped with the
+    # first profile.
     assert response.cloud.header.frame_id == "scanner"
+    assert Time.from_msg(response.cloud.header.stamp).nanoseconds == int(round(FIRST_STAMP_S * 1e9))
+    metres = pointcloud2_to_array(response.cloud)
+    assert 0.32 < float(np.nanmedian(metres["z"])) < 0.33
+    cloud = cloud_from_msg(response.cloud)
+    assert cloud.shape == (PROFILES, POINTS)
     travel = SPEED_MM_S * PROFILE_PERIOD_S * np.arange(PROFILES)        # y = speed (stamp - stamp0)
     np.testing.assert_allclose(cloud["y"], np.repeat(travel[:, None], POINTS, axis=1), rtol=0, atol=1e-4)
-    for row, profile in enumerate(scanner.profiles):
-        np.testing.assert_array_equal(cloud["x"][row], profile["x"])
-        np.testing.assert_array_equal(cloud["z"][row], profile["z"])
+    for row, profile in enumerate(scanner.profiles):      # float32 metres: well below a micrometre
+        np.testing.assert_allclose(cloud["x"][row], profile["x"], rtol=0, atol=1e-4)
+        np.testing.assert_allclose(cloud["z"][row], profile["z"], rtol=0, atol=1e-4)
         np.testing.assert_array_equal(cloud["intensity"][row], profile["intensity"])
 
 

@@ -1,28 +1,45 @@
-"""What the operator tools share: waiting for a service answer, a progress bar, the summary table."""
+"""What the operator tools share: ROS arguments, waiting for a service answer, a progress bar, the
+summary table."""
 from __future__ import annotations
 
 from contextlib import contextmanager
 import math
-from typing import Any, Iterator, Optional, TextIO
+import sys
+from typing import Any, Iterator, Optional, Sequence, TextIO
 
 import rclpy
+from rclpy.context import Context
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+
+
+def split_ros_arguments(argv: Sequence[str] | None) -> tuple[list[str], list[str]]:
+    """(the tool's own arguments, the whole command line for rclpy, which reads only what follows
+    ``--ros-args``) of e.g. ``gls-calibrate --iterations 2 --ros-args -r __ns:=/cell2``; None means
+    sys.argv[1:]."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    return remove_ros_args(["tool"] + argv)[1:], argv
 
 
 @contextmanager
-def client_node(name: str, namespace: str) -> Iterator[tuple[Node, SingleThreadedExecutor]]:
-    """An initialised rclpy with one node for an operator tool, shut down afterwards."""
-    rclpy.init()
-    node = rclpy.create_node(name, namespace=namespace)
-    executor = SingleThreadedExecutor()
+def client_node(name: str, namespace: str, ros_arguments: Sequence[str] = ()
+                ) -> Iterator[tuple[Node, SingleThreadedExecutor]]:
+    """An initialised rclpy (with ``ros_arguments``: remaps, namespace, parameters) and one node for
+    an operator tool, shut down afterwards. rclpy's signal handlers stay off, so Ctrl-C raises
+    KeyboardInterrupt where the tool can answer it."""
+    context = Context()
+    rclpy.init(args=["tool", *ros_arguments], context=context, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node(name, namespace=namespace, context=context)
+    executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     try:
         yield node, executor
     finally:
         executor.shutdown()
         node.destroy_node()
-        rclpy.shutdown()
+        context.try_shutdown()
 
 
 def call_and_wait(executor: Executor, client, request: Any, timeout_s: float) -> Optional[Any]:
@@ -46,23 +63,27 @@ class ProgressBar:
         self.width = width
         self.interactive = stream.isatty()
         self.last_stage = ""
+        self.line_open = False
 
     def update(self, message) -> None:
-        """Subscription callback."""
+        """Callback of ``calibration/progress`` messages and of the action's feedback."""
+        text = message.text if hasattr(message, "text") else message.message
         filled = int(round(self.width * message.fraction))
-        line = f"[{'#' * filled}{'.' * (self.width - filled)}] {message.fraction:4.0%} {message.stage}: {message.text}"
+        line = f"[{'#' * filled}{'.' * (self.width - filled)}] {message.fraction:4.0%} {message.stage}: {text}"
         if self.interactive:
             self.stream.write("\r" + line[:120].ljust(120))
+            self.line_open = True
         elif message.stage != self.last_stage:
             self.stream.write(line + "\n")
         self.last_stage = message.stage
         self.stream.flush()
 
     def finish(self) -> None:
-        """End the redrawn line."""
-        if self.interactive:
+        """End the redrawn line (once)."""
+        if self.line_open:
             self.stream.write("\n")
             self.stream.flush()
+            self.line_open = False
 
 
 def _mm(value: float) -> str:

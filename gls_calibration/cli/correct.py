@@ -8,7 +8,7 @@ from pathlib import Path
 import sys
 
 import numpy as np
-from gls_calibration.cli.client import call_and_wait, client_node
+from gls_calibration.cli.client import call_and_wait, client_node, split_ros_arguments
 from gls_calibration.conversions import float64_sequence
 from gls_calibration.persistence import atomic_write_text
 from gls_calibration_msgs.srv import CorrectSetpoints
@@ -38,19 +38,22 @@ def read_targets(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Exit 0 on success, 1 when the service refused, 2 on bad input."""
+    """Exit 0 on success, 1 when the service refused, 2 on bad input. ROS arguments (remaps,
+    namespace) follow ``--ros-args``."""
+    own_arguments, ros_arguments = split_ros_arguments(argv)
     parser = argparse.ArgumentParser(prog="gls-correct", description=__doc__.splitlines()[0])
     parser.add_argument("targets", type=Path, help="CSV with columns x,y[,z] (mm)")
     parser.add_argument("--out", type=Path, required=True, help="CSV to write")
     parser.add_argument("--namespace", default="gls")
     parser.add_argument("--timeout", type=float, default=30.0)
-    args = parser.parse_args(argv)
+    args = parser.parse_args(own_arguments)
     try:
         x, y, z = read_targets(args.targets)
     except (OSError, ValueError) as error:
         print(error, file=sys.stderr)
         return 2
-    with client_node("gls_correct_client", args.namespace) as (node, executor):
+    with client_node("gls_correct_client", args.namespace, ros_arguments) as (node, executor):
+        print(f"gls-correct: service {node.resolve_service_name('correct_setpoints')}", file=sys.stderr)
         try:
             response = call_and_wait(executor, node.create_client(CorrectSetpoints, "correct_setpoints"),
                                      CorrectSetpoints.Request(x=float64_sequence(x), y=float64_sequence(y),

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Optional, Sequence
 
 import rclpy
 from rclpy.context import Context
@@ -12,7 +12,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 
 DEFAULT_NAMESPACE = "gls"
 
@@ -31,12 +31,17 @@ class GlsNode(Node):
         # a mutually exclusive group would stay busy while the awaiting coroutine runs and block the
         # very response it waits for.
         self.reentrant_group = ReentrantCallbackGroup()
+        self.dynamic_parameters: set[str] = set()
 
     def declare(self, name: str, default: Any, description: str, *,
                 minimum: float | None = None, maximum: float | None = None,
-                read_only: bool = False) -> Any:
-        """Declare a parameter with a descriptor (and range) and return its value."""
-        descriptor = ParameterDescriptor(description=description, read_only=read_only)
+                dynamic: bool = False) -> Any:
+        """Declare a parameter with a descriptor (and range) and return its value.
+
+        A parameter is read-only after start unless ``dynamic``: then the node must apply its changes
+        through :meth:`apply_parameter_changes` (a change nobody applied would be accepted and ignored).
+        """
+        descriptor = ParameterDescriptor(description=description, read_only=not dynamic)
         if minimum is not None or maximum is not None:
             if isinstance(default, bool):
                 raise TypeError(f"parameter {name}: a range makes no sense for a bool")
@@ -49,6 +54,25 @@ class GlsNode(Node):
                     from_value=float(minimum if minimum is not None else -1e308),
                     to_value=float(maximum if maximum is not None else 1e308), step=0.0)]
         return self.declare_parameter(name, default, descriptor).value
+
+    def apply_parameter_changes(self, names: Sequence[str],
+                                apply: Callable[[dict[str, Any]], Optional[str]]) -> None:
+        """Apply run-time changes of the dynamic parameters ``names`` with ``apply(values)``.
+
+        ``values`` holds every one of ``names`` with the requested changes in; ``apply`` returns None
+        once it has applied them, or the reason to refuse them (the parameters then keep their values).
+        """
+        watched = list(names)
+        self.dynamic_parameters.update(watched)
+
+        def on_set(parameters) -> SetParametersResult:
+            changed = {parameter.name: parameter.value for parameter in parameters if parameter.name in watched}
+            if not changed:
+                return SetParametersResult(successful=True)
+            values = {name: self.get_parameter(name).value for name in watched} | changed
+            reason = apply(values)
+            return SetParametersResult(successful=reason is None, reason=reason or "")
+        self.add_on_set_parameters_callback(on_set)
 
     def client(self, srv_type: type, name: str):
         """A client in the reentrant group, so that coroutine callbacks can await it."""

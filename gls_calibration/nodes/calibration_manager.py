@@ -1,7 +1,10 @@
-"""calibration_manager: serves ``calibrate`` and ``explain_deviations``, publishes progress.
+"""calibration_manager: serves ``calibrate`` (an action with feedback and cancel, and a service for
+simple clients) and ``explain_deviations``, publishes progress.
 
 It implements the procedure's ``Cell`` with service calls to the scanner, the galvo and the
-processing nodes; the flow itself is ``gls_calibration.procedure``.
+processing nodes; the flow itself is ``gls_calibration.procedure``. A run's candidate calibration
+is evaluated here, in-process: the correction node keeps serving the active calibration until the
+run has succeeded and the candidate is activated.
 """
 from __future__ import annotations
 
@@ -9,29 +12,46 @@ import json
 import math
 from pathlib import Path
 import time
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
+from geometry_msgs.msg import PoseStamped
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 
 from gls_calibration import conversions, discrepancy, procedure
-from gls_calibration.calibration_record import build_record, correction_from_record, record_fiducials, record_models
+from gls_calibration.calibration_record import (build_record, correction_from_record, record_fiducials,
+                                                record_identity, record_models)
+from gls_calibration.correction import Correction
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
+from gls_calibration.nodes import rviz
+from gls_calibration.nodes.diagnostics import Health, publish_diagnostics, record_summary
 from gls_calibration.nodes.head_parameters import declare_head_geometry, declare_scanner_to_gls
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.report import json_safe
 from gls_calibration.run_report import write_outcome_report
+from gls_calibration_msgs.action import Calibrate as CalibrateAction
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints, EstimatePlatePose,
                                       ExplainDeviations, GetMarkedPaths, LoadCalibration,
                                       MarkPolylines, MeasureFiducials, TrainCorrection)
 
 
+class CalibrationCanceled(Exception):
+    """The client canceled the run; raised at the next step boundary (the message names the stage)."""
+
+
 class ServiceCell:
-    """The procedure's Cell, reached through the services of the other nodes."""
+    """The procedure's Cell, reached through the services of the other nodes.
+
+    A candidate calibration loaded by the procedure is evaluated here (``correct``), never by the
+    correction node, which serves only the active calibration to everybody else.
+    """
 
     def __init__(self, node: "CalibrationManager") -> None:
         self.node = node
+        self.candidate: Optional[Correction] = None
         self.timeout_s = node.service_timeout_s
         self.sweep_timeout_s = node.sweep_timeout_s
         self.acquire = node.client(AcquireSweep, "scan/acquire")
@@ -66,6 +86,8 @@ class ServiceCell:
         return conversions.fiducials_from_response(response, pose)
 
     async def correct(self, x, y, z):
+        if self.candidate is not None:
+            return self.candidate.correct(x, y, z)
         request = CorrectSetpoints.Request(x=conversions.float64_sequence(x), y=conversions.float64_sequence(y),
                                            z=conversions.float64_sequence(z))
         return conversions.setpoints_from_response(await self._checked(self.corrector, request))
@@ -84,7 +106,12 @@ class ServiceCell:
         return conversions.trained_model_from_response(response)
 
     async def load_calibration(self, path: str) -> None:
-        await self._checked(self.loader, LoadCalibration.Request(file=path))
+        """Evaluate the candidate ``path`` from now on (empty: the active one, through the correction node)."""
+        self.candidate = correction_from_record(self.node.store.load(Path(path)), self.node.geometry) if path else None
+
+    async def reload_correction_node(self) -> str:
+        """Make the correction node serve the store's (newly) active calibration; its answer."""
+        return (await self._checked(self.loader, LoadCalibration.Request(file=""))).message
 
     async def exchange_plate(self) -> None:
         if self.exchange is None:
@@ -152,12 +179,50 @@ class CalibrationManager(GlsNode):
         self.report_root = Path(self.declare("report_dir", "reports", "folder for calibration reports"))
         self.report_per_run = self.declare("report_per_run", True,
                                            "a subfolder of report_dir per calibration (false: report_dir itself)")
+        self.arrow_scale = self.declare("rviz.arrow_scale", 50.0,
+                                        "RViz deviation arrows are this many times longer than the deviation",
+                                        minimum=1.0, maximum=10000.0)
+        self.colour_full_scale_mm = self.declare("rviz.colour_full_scale_mm", 1.0,
+                                                 "deviation drawn fully red in RViz (mm)", minimum=1e-4)
+        self.plate_pose_publisher = self.create_publisher(PoseStamped, "calibration/plate_pose", rviz.LATCHED)
+        self.markers_publisher = self.create_publisher(MarkerArray, "calibration/markers", rviz.LATCHED)
         self.cell = ServiceCell(self)
         self.progress = self.create_publisher(CalibrationProgress, "calibration/progress", 10)
         self._running = False
         self.create_service(Calibrate, "calibrate", self.on_calibrate, callback_group=self.reentrant_group)
+        self.action_server = ActionServer(
+            self, CalibrateAction, "calibrate", execute_callback=self.execute_calibrate,
+            goal_callback=self.on_goal, cancel_callback=lambda goal_handle: CancelResponse.ACCEPT,
+            callback_group=self.reentrant_group)
         self.create_service(ExplainDeviations, "explain_deviations", self.on_explain,
                             callback_group=self.reentrant_group)
+        self.last_failed, self.last_message, self.last_rms_mm = False, "no calibration run yet", math.nan
+        self._active_cache: tuple[object, dict] = ("not read yet", {})
+        publish_diagnostics(self, self.health)
+
+    def health(self) -> Health:
+        """What /diagnostics says: state, the last run, the store's active calibration."""
+        state = "running" if self._running else ("failed" if self.last_failed else "idle")
+        values: dict[str, object] = {"state": state, "last_run": self.last_message,
+                                     "last_measured_rms_mm": f"{self.last_rms_mm:.4f}"}
+        try:
+            active = self.store.active_path()
+            if active != self._active_cache[0]:
+                summary: dict[str, object] = {"active_calibration_id": "nominal"}
+                if active is not None:
+                    record = self.store.load(active)
+                    content_hash, created = record_identity(record)
+                    summary = {"active_calibration_id": content_hash,
+                               "active_created": created.timestamp()} | record_summary(record)
+                self._active_cache = (active, summary)
+        except CalibrationFileError as error:
+            return Health("error", f"calibration store: {error}", values)
+        summary = dict(self._active_cache[1])
+        created = summary.pop("active_created", None)
+        if created is not None:
+            summary["active_calibration_age_s"] = f"{time.time() - created:.0f}"
+        values |= summary
+        return Health("warn" if self.last_failed else "ok", f"{state}; {self.last_message}", values)
 
     def publish_progress(self, stage: str, fraction: float, text: str) -> None:
         """Publish one progress message and log it."""
@@ -166,6 +231,25 @@ class CalibrationManager(GlsNode):
         self.progress.publish(message)
         self.get_logger().info(f"[{fraction:4.0%}] {stage}: {text}")
 
+    def on_goal(self, goal_request) -> GoalResponse:
+        """Accept a ``calibrate`` goal unless a calibration runs (it is then refused at once)."""
+        if self._running:
+            self.get_logger().warning("a calibration is already running; goal refused")
+            return GoalResponse.REJECT
+        self._running = True   # claimed now: a service request between acceptance and execution is refused
+        return GoalResponse.ACCEPT
+
+    async def execute_calibrate(self, goal_handle):
+        """Run an accepted goal with feedback; a cancel request stops it after the current step."""
+        result = CalibrateAction.Result()
+
+        def feedback(stage: str, fraction: float, text: str) -> None:
+            goal_handle.publish_feedback(CalibrateAction.Feedback(
+                stage=stage, fraction=float(min(max(fraction, 0.0), 1.0)), message=text))
+        status = await self._run(goal_handle.request, result, feedback, lambda: goal_handle.is_cancel_requested)
+        {"succeeded": goal_handle.succeed, "aborted": goal_handle.abort, "canceled": goal_handle.canceled}[status]()
+        return result
+
     async def on_calibrate(self, request: Calibrate.Request, response: Calibrate.Response):
         """Serve ``calibrate``: run the procedure, keep the active calibration unless it succeeds."""
         if self._running:
@@ -173,25 +257,49 @@ class CalibrationManager(GlsNode):
             response.message = "a calibration is already running; request refused"
             return response
         self._running = True
+        await self._run(request, response, None, lambda: False)
+        return response
+
+    async def _run(self, request, response, feedback: Optional[Callable[[str, float, str], None]],
+                   cancel_requested: Callable[[], bool]) -> str:
+        """One calibration into ``response`` (service response or action result); its final status:
+        "succeeded", "aborted" or "canceled". Whatever ends it early, the active calibration stays."""
         began = time.monotonic()
+
+        def progress(stage: str, fraction: float, text: str) -> None:
+            if cancel_requested():
+                raise CalibrationCanceled(stage)
+            self.publish_progress(stage, fraction, text)
+            if feedback is not None:
+                feedback(stage, fraction, text)
+        status = "aborted"
         try:
-            await self._calibrate(request, response)
+            await self._calibrate(request, response, progress, cancel_requested)
+            status = "succeeded" if response.success else "aborted"
+        except CalibrationCanceled as stop:
+            response.success = False
+            response.message = (f"calibration canceled before stage {stop}; the active calibration stays in use")
+            self.get_logger().warning(response.message)
+            status = "canceled"
         except (procedure.CalibrationError, ServiceCallError, ValueError, CalibrationFileError) as error:
             response.success = False
             response.message = f"calibration failed: {error}"
             self.get_logger().error(response.message)
-            await self._restore_active()
-        except Exception as error:  # a bug must not kill the node nor leave the candidate loaded
+        except Exception as error:  # a bug must not kill the node nor leave a candidate in use
             response.success = False
             response.message = f"calibration failed on an internal error: {type(error).__name__}: {error}"
             self.get_logger().error(response.message)
-            await self._restore_active()
         finally:
+            self.cell.candidate = None
             self._running = False
             response.duration_s = time.monotonic() - began
-        return response
+        self.last_failed, self.last_message = status == "aborted", response.message
+        measured = response.post_rms_mm if math.isfinite(response.post_rms_mm) else response.pre_rms_mm
+        if math.isfinite(measured):
+            self.last_rms_mm = measured
+        return status
 
-    async def _calibrate(self, request, response) -> None:
+    async def _calibrate(self, request, response, progress, cancel_requested: Callable[[], bool]) -> None:
         for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "cv_rms_mm"):
             setattr(response, name, math.nan)
         active = self.store.active_path()
@@ -207,32 +315,40 @@ class CalibrationManager(GlsNode):
         outcome = await procedure.calibrate(
             self.cell, self.settings, iterations=request.iterations, validate=request.validate,
             force=request.force, want_truth=bool(self.ground_truth_service),
-            progress=self.publish_progress, save_candidate=save_candidate)
+            progress=progress, save_candidate=save_candidate)
         first = outcome.runs[0]
+        stamp = self.get_clock().now().to_msg()
+        self.plate_pose_publisher.publish(rviz.plate_pose_msg(outcome.runs[-1].plate_pose_gls, stamp))
+        self.markers_publisher.publish(rviz.calibration_markers(first, outcome.validation, stamp, self.arrow_scale,
+                                                                self.colour_full_scale_mm))
         response.pre_rms_mm = first.metrics["full"]["rms_abs_mm"]
         response.pre_max_mm = first.metrics["full"]["max_abs_mm"]
         response.fiducials_expected = len(first.targets)
         response.fiducials_found = first.fiducials_found
         correction = None
+        message = outcome.message
         if outcome.models:
             response.neurons = int(outcome.models[-1].neurons)
             response.cv_rms_mm = float(outcome.models[-1].cv_rms_mm)
             candidate = Path(outcome.calibration_file)
             correction = correction_from_record(self.store.load(candidate), self.geometry)
+            if cancel_requested():
+                raise CalibrationCanceled("activation")
             self.store.activate(candidate)
             response.calibration_file = str(candidate)
+            self.cell.candidate = None
+            try:
+                await self.cell.reload_correction_node()
+            except (procedure.CalibrationError, ServiceCallError) as error:
+                message += (f"; activated, but the correction node did not reload it ({error}): "
+                            "call correction/load")
+                self.get_logger().error(message)
         if outcome.validation is not None:
             response.post_rms_mm = outcome.validation.metrics["full"]["rms_abs_mm"]
             response.post_max_mm = outcome.validation.metrics["full"]["max_abs_mm"]
         response.report_dir = str(write_outcome_report(report_dir, outcome, correction))
         response.success = outcome.success
-        response.message = outcome.message
-
-    async def _restore_active(self) -> None:
-        try:
-            await self.cell.load_calibration("")
-        except (procedure.CalibrationError, ServiceCallError) as error:
-            self.get_logger().error(f"could not restore the active calibration in the correction node: {error}")
+        response.message = message
 
     def on_explain(self, request, response):
         """Serve ``explain_deviations``: the discrepancy workflow on a calibration's measured fiducials."""

@@ -1,67 +1,128 @@
-"""correction: serves ``correct_setpoints`` and ``correction/load`` (hot reload)."""
+"""correction: serves ``correct_setpoints`` with the store's ACTIVE calibration, and ``correction/load``
+(reload the active calibration, e.g. after an activation).
+
+It never serves anything else: a calibration run evaluates its candidate inside the calibration
+manager, so other nodes are never corrected by a calibration that has not passed. Every answer
+names the calibration that gave it (content hash and creation time).
+"""
 from __future__ import annotations
 
+from datetime import datetime, timezone
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 from gls_calibration import conversions
-from gls_calibration.calibration_record import correction_from_record
+from gls_calibration.calibration_record import correction_from_record, record_identity
 from gls_calibration.correction import Correction
 from gls_calibration.nodes.base import GlsNode, run_node
-from gls_calibration.nodes.head_parameters import declare_head_geometry
+from gls_calibration.nodes.diagnostics import Health, publish_diagnostics, record_summary
+from gls_calibration.nodes.head_parameters import HEAD_PARAMETERS, declare_head_geometry, head_geometry_from
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration_msgs.srv import CorrectSetpoints, LoadCalibration
 
+NOMINAL_ID = "nominal"
+
 
 class CorrectionNode(GlsNode):
-    """Corrects setpoints with the loaded calibration; the nominal model when there is none."""
+    """Corrects setpoints with the active calibration; the nominal model when there is none."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__("correction", **kwargs)
-        self.geometry = declare_head_geometry(self)
+        self.geometry = declare_head_geometry(self, dynamic=True)
         self.store = CalibrationStore(Path(self.declare("calibration_dir", "calibrations",
                                                         "folder of the calibration store")))
         self.correction: Optional[Correction] = Correction(self.geometry)
         self.file = ""
         self.problem = ""
-        self._load("")
+        self.calibration_id, self.created = NOMINAL_ID, None
+        self.summary: dict[str, object] = {}
+        self._load()
+        # A new head geometry changes every answer: reload the active calibration with it.
+        self.apply_parameter_changes(HEAD_PARAMETERS, self._apply_head)
         self.create_service(CorrectSetpoints, "correct_setpoints", self.on_correct)
         self.create_service(LoadCalibration, "correction/load", self.on_load)
+        publish_diagnostics(self, self.health)
 
-    def _load(self, file: str) -> str:
-        """Load ``file`` (empty: the active calibration); on failure refuse corrections until a good load."""
+    def health(self) -> Health:
+        """What /diagnostics says about this node."""
+        values = {"state": "failed" if self.problem else "serving", "active_calibration_id": self.calibration_id,
+                  "calibration_file": self.file or "none (nominal model)"} | self.summary
+        if self.created is not None:
+            created = self.created if self.created.tzinfo else self.created.replace(tzinfo=timezone.utc)
+            values["active_calibration_age_s"] = f"{datetime.now(timezone.utc).timestamp() - created.timestamp():.0f}"
+        if self.problem:
+            return Health("error", self.problem, values)
+        return Health("ok", f"serving calibration {self.calibration_id}", values)
+
+    def _apply_head(self, values: dict[str, Any]) -> Optional[str]:
         try:
-            path = Path(file) if file else self.store.active_path()
+            geometry = head_geometry_from(values)
+        except ValueError as error:
+            return str(error)
+        previous = self.geometry
+        self.geometry = geometry
+        message = self._load()
+        if self.problem:
+            self.geometry = previous
+            self._load()
+            return f"head geometry refused: {message}"
+        self.get_logger().info(f"head geometry changed: {geometry}; {message}")
+        return None
+
+    def _load(self) -> str:
+        """Load the store's active calibration; on failure refuse corrections until a good load."""
+        try:
+            path = self.store.active_path()
         except CalibrationFileError as error:
-            self.correction, self.file = None, str(self.store.pointer_path)
-            self.problem = f"calibration store pointer is unusable: {error}"
-            self.get_logger().error(self.problem)
+            self._serve(None, str(self.store.pointer_path), f"calibration store pointer is unusable: {error}")
             return self.problem
         if path is None:
-            self.correction, self.file, self.problem = Correction(self.geometry), "", ""
+            self._serve(Correction(self.geometry), "", "")
             self.get_logger().info("no calibration in the store: nominal model")
             return "no calibration in the store: nominal model in use"
         try:
             record = self.store.load(path)
             correction = correction_from_record(record, self.geometry)
         except (CalibrationFileError, ValueError, OSError) as error:
-            self.correction, self.file = None, str(path)
-            self.problem = f"calibration file {path} is unusable: {error}"
-            self.get_logger().error(self.problem)
+            self._serve(None, str(path), f"calibration file {path} is unusable: {error}")
             return self.problem
-        self.correction, self.file, self.problem = correction, str(path), ""
-        self.get_logger().info(f"calibration loaded from {path}")
-        return f"calibration loaded from {path}"
+        self._serve(correction, str(path), "", *record_identity(record))
+        self.summary = record_summary(record)
+        self.get_logger().info(f"calibration {self.calibration_id} loaded from {path}")
+        return f"calibration {self.calibration_id} loaded from {path}"
+
+    def _serve(self, correction: Optional[Correction], file: str, problem: str,
+               calibration_id: str = NOMINAL_ID, created: Optional[datetime] = None) -> None:
+        self.correction, self.file, self.problem = correction, file, problem
+        self.summary = {}
+        self.calibration_id, self.created = (calibration_id, created) if correction is not None else ("", None)
+        if problem:
+            self.get_logger().error(problem)
 
     def on_load(self, request, response):
-        """Hot reload."""
-        response.message = self._load(request.file)
+        """Reload the active calibration. A ``file`` must name the active one: nothing else is served."""
+        if request.file:
+            try:
+                active = self.store.active_path()
+            except CalibrationFileError as error:
+                active, response.message = None, f"calibration store pointer is unusable: {error}"
+            if active is None or Path(request.file).resolve() != active.resolve():
+                response.success = False
+                response.message = (f"{request.file} is not the active calibration of {self.store.directory}; "
+                                    "only the active calibration is served (activate it first)")
+                response.file = self.file
+                return response
+        response.message = self._load()
         response.success = not self.problem
         response.file = self.file
         return response
 
     def on_correct(self, request, response):
         """Correct the targets; ``success=false`` and a message naming the problem on bad input."""
+        response.calibration_id = self.calibration_id
+        if self.created is not None:
+            created = self.created if self.created.tzinfo else self.created.replace(tzinfo=timezone.utc)
+            response.calibration_created = conversions.time_to_msg(created.timestamp())
         if self.correction is None:
             response.success = False
             response.message = f"corrections refused: {self.problem}"

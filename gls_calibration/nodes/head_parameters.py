@@ -12,19 +12,38 @@ from gls_calibration.nodes.base import GlsNode
 from gls_calibration.registration import RigidTransform
 
 
-def declare_head_geometry(node: GlsNode) -> HeadGeometry:
-    """Declare ``head.*`` parameters (the keys of config/head.yaml) and return the nominal geometry."""
-    return HeadGeometry(
-        working_distance_mm=node.declare("head.working_distance_mm", HEAD_DEFAULTS["working_distance_mm"],
-                                         "X mirror axis to the work plane, d (mm)", minimum=1.0),
-        mirror_distance_mm=node.declare("head.mirror_distance_mm", HEAD_DEFAULTS["mirror_distance_mm"],
-                                        "Y mirror axis to X mirror axis, e (mm)", minimum=0.0),
-        mirror_limit_rad=math.radians(node.declare("head.mirror_limit_deg", HEAD_DEFAULTS["mirror_limit_deg"],
-                                                   "mechanical mirror limit (deg)", minimum=0.1,
-                                                   maximum=45.0)),
-        focus_range_mm=node.declare("head.focus_range_mm", HEAD_DEFAULTS["focus_range_mm"],
-                                    "focus shift range, +- (mm)", minimum=0.1),
-    )
+HEAD_PARAMETERS = ("head.working_distance_mm", "head.mirror_distance_mm", "head.mirror_limit_deg",
+                   "head.focus_range_mm")
+
+
+def declare_head_geometry(node: GlsNode, *, dynamic: bool = False) -> HeadGeometry:
+    """Declare ``head.*`` parameters (the keys of config/head.yaml) and return the nominal geometry.
+
+    ``dynamic``: the node applies changes at run time (see GlsNode.apply_parameter_changes).
+    """
+    values = {
+        "head.working_distance_mm": node.declare(
+            "head.working_distance_mm", HEAD_DEFAULTS["working_distance_mm"],
+            "X mirror axis to the work plane, d (mm)", minimum=1.0, dynamic=dynamic),
+        "head.mirror_distance_mm": node.declare(
+            "head.mirror_distance_mm", HEAD_DEFAULTS["mirror_distance_mm"],
+            "Y mirror axis to X mirror axis, e (mm)", minimum=0.0, dynamic=dynamic),
+        "head.mirror_limit_deg": node.declare(
+            "head.mirror_limit_deg", HEAD_DEFAULTS["mirror_limit_deg"], "mechanical mirror limit (deg)",
+            minimum=0.1, maximum=45.0, dynamic=dynamic),
+        "head.focus_range_mm": node.declare(
+            "head.focus_range_mm", HEAD_DEFAULTS["focus_range_mm"], "focus shift range, +- (mm)",
+            minimum=0.1, dynamic=dynamic),
+    }
+    return head_geometry_from(values)
+
+
+def head_geometry_from(values: dict) -> HeadGeometry:
+    """The HeadGeometry of the ``head.*`` parameter values (names as in HEAD_PARAMETERS)."""
+    return HeadGeometry(working_distance_mm=values["head.working_distance_mm"],
+                        mirror_distance_mm=values["head.mirror_distance_mm"],
+                        mirror_limit_rad=math.radians(values["head.mirror_limit_deg"]),
+                        focus_range_mm=values["head.focus_range_mm"])
 
 
 def declare_scanner_to_gls(node: GlsNode) -> RigidTransform:

@@ -1,5 +1,10 @@
 """scan_acquisition: serves ``scan/acquire``; starts a sweep, collects ``scan/points`` profiles and
-returns them assembled as one organized cloud, placed by their stamps and the sweep's known motion."""
+returns them assembled as one organized cloud, placed by their stamps and the sweep's known motion.
+
+Profiles come in the driver's moving sensor frame, in metres (REP 103; ``profile_unit`` "mm" takes a
+driver that publishes millimetres). The assembled cloud is in metres too, in the frame ``frame_id``
+(default ``scanner``: the sensor at the start of the sweep), stamped with the sweep's first profile.
+"""
 from __future__ import annotations
 
 from typing import Optional
@@ -13,6 +18,9 @@ from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
 from gls_calibration.sweep import SweepCollector, SweepMotion
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, StartSweep
+
+
+PROFILE_UNITS_MM = {"m": conversions.MM_PER_M, "mm": 1.0}
 
 
 def profile_qos(depth: int) -> QoSProfile:
@@ -31,7 +39,15 @@ class ScanAcquisitionNode(GlsNode):
                                        minimum=1, maximum=100000)
         self.default_timeout_s = self.declare("timeout_s", 120.0, "default time limit of one sweep (s)",
                                               minimum=0.1)
+        unit = self.declare("profile_unit", "m",
+                            "unit of x, y, z in the driver's scan/points profiles: m (REP 103) or mm")
+        if unit not in PROFILE_UNITS_MM:
+            raise ValueError(f"profile_unit must be one of {', '.join(PROFILE_UNITS_MM)}, got {unit!r}")
+        self.mm_per_unit = PROFILE_UNITS_MM[unit]
+        self.frame_id = self.declare("frame_id", "scanner",
+                                     "frame of the assembled cloud: the sensor's pose at the start of the sweep")
         self.collector: Optional[SweepCollector] = None
+        self.first_stamp: Optional[Time] = None
         self.done: Optional[SweepDone] = None
         self.start_client = self.client(StartSweep, "scanner/start_sweep")
         self.create_subscription(PointCloud2, "scan/points", self.on_profile, profile_qos(self.max_profiles),
@@ -46,12 +62,15 @@ class ScanAcquisitionNode(GlsNode):
         if collector is None:
             return
         try:
-            profile = conversions.pointcloud2_to_array(message)
+            profile = conversions.cloud_from_msg(message, self.mm_per_unit)
         except ValueError as error:
             self.get_logger().warning(f"profile dropped: {error}")
             collector.dropped += 1
             return
-        collector.add(Time.from_msg(message.header.stamp).nanoseconds * 1e-9, profile)
+        stamp = Time.from_msg(message.header.stamp)
+        if collector.add(stamp.nanoseconds * 1e-9, profile) and (
+                self.first_stamp is None or stamp < self.first_stamp):
+            self.first_stamp = stamp
 
     def on_sweep_done(self, message: SweepDone) -> None:
         """Remember the end of the sweep; the acquire coroutine waits for it."""
@@ -66,6 +85,7 @@ class ScanAcquisitionNode(GlsNode):
             return response
         timeout_s = request.timeout_s or self.default_timeout_s
         self.collector, self.done = SweepCollector(self.max_profiles, self.max_points), None
+        self.first_stamp = None
         try:
             started = await self.call(self.start_client, StartSweep.Request(
                 length_mm=request.length_mm, speed_mm_s=request.speed_mm_s, step_mm=request.step_mm), timeout_s)
@@ -87,7 +107,7 @@ class ScanAcquisitionNode(GlsNode):
             return response
         finally:
             self.collector = None
-        response.cloud = conversions.array_to_pointcloud2(cloud, frame_id="scanner")
+        response.cloud = conversions.cloud_to_msg(cloud, self.frame_id, self.first_stamp)
         response.success = True
         response.message = f"{cloud.shape[0]} profiles of {cloud.shape[1]} points"
         return response

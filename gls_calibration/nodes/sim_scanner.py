@@ -1,8 +1,8 @@
 """sim_scanner: the simulated laser-line scanner, a drop-in for a real scanner driver.
 
 Serves ``scanner/start_sweep``; each sweep's profiles go out on ``scan/points`` (PointCloud2 with
-x, y, z, intensity in the moving sensor frame, y = 0 on the line, stamped with the time each
-profile was taken), then ``scan/sweep_done``. The plate's marks come from the simulated galvo
+x, y, z in metres and intensity, in the moving sensor frame ``frame_id``, y = 0 on the line,
+stamped with the time each profile was taken), then ``scan/sweep_done``. The plate's marks come from the simulated galvo
 (``sim/marked_paths``) at the start of each sweep, as a real scanner sees the real plate.
 """
 from __future__ import annotations
@@ -33,6 +33,7 @@ class SimScannerNode(GlsNode):
         self.batch = self.declare("profiles_per_tick", 50, "profiles published per timer tick", minimum=1)
         depth = self.declare("queue_depth", 4000, "profiles the reliable publisher keeps for slow subscribers",
                              minimum=1)
+        self.frame_id = self.declare("frame_id", "scanner_sensor", "frame of the profiles: the moving sensor")
         self.scanner = LaserLineScanner(self.config.scanner, self.config.scanner_to_gls, self.config.mounting_error)
         self.plate = Plate(self.config.plate_settings, seed=self.config.seed)
         self.sweep_id = 0
@@ -105,7 +106,7 @@ class SimScannerNode(GlsNode):
             # A real sensor measures each profile in its own moving frame: take the travel out again.
             points["y"] -= np.float32(profile.stamp_s * speed)
             stamp = (began + Duration(nanoseconds=int(round(profile.stamp_s * 1e9)))).to_msg()
-            self.points.publish(conversions.array_to_pointcloud2(points, frame_id="scanner", stamp=stamp))
+            self.points.publish(conversions.cloud_to_msg(points, self.frame_id, stamp))
             self.published += 1
 
 
