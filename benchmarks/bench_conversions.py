@@ -13,7 +13,8 @@ from collections.abc import Callable
 import numpy as np
 
 from gls_calibration.conversions import (
-    array_to_pointcloud2, pointcloud2_to_array, xyz_intensity_arrays, xyzi_array)
+    array_to_pointcloud2, cloud_arrays_from_msg, cloud_from_msg, cloud_to_msg, pointcloud2_to_array,
+    xyz_intensity_arrays, xyzi_array)
 
 
 def median_ms(action: Callable[[], object], repeats: int) -> float:
@@ -48,6 +49,13 @@ def main() -> None:
             lambda: pointcloud2_to_array(message, skip_nans=True),
         "structured -> float64 xyz, intensity":
             lambda: xyz_intensity_arrays(pointcloud2_to_array(message)),
+        # The message boundary: clouds on the wire in metres, the core in mm.
+        "mm array -> PointCloud2 in metres (cloud_to_msg)":
+            lambda: cloud_to_msg(points, "scanner"),
+        "PointCloud2 in metres -> mm array (cloud_from_msg)":
+            lambda: cloud_from_msg(message),
+        "PointCloud2 in metres -> float64 xyz mm (cloud_arrays_from_msg)":
+            lambda: cloud_arrays_from_msg(message),
     }
     print(f"{args.points:,} points x, y, z, intensity (float32, {points.nbytes / 1e6:.0f} MB), "
           f"median of {args.repeats}:")

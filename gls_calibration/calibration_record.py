@@ -6,7 +6,7 @@ parameters, the measured fiducials of the first plate) and where it came from (h
 """
 from __future__ import annotations
 
-from datetime import datetime
+from datetime import datetime, timezone
 import hashlib
 from typing import Mapping, Sequence
 
@@ -71,6 +71,7 @@ def record_fiducials(record: Mapping) -> tuple[np.ndarray, np.ndarray]:
 
 def record_identity(record: Mapping) -> tuple[str, datetime]:
     """Which calibration a record is: a content hash (sha256 of its YAML, 16 hex digits) and its
-    creation time; what a correction answer names so that a client knows who answered."""
+    creation time (UTC); what a correction answer names so that a client knows who answered."""
     content_hash = hashlib.sha256(dump_record(record).encode("utf-8")).hexdigest()[:16]
-    return content_hash, datetime.fromisoformat(record["created_utc"])
+    created = datetime.fromisoformat(record["created_utc"])
+    return content_hash, created if created.tzinfo else created.replace(tzinfo=timezone.utc)

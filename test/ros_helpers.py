@@ -86,6 +86,12 @@ def spin_in_background(executor: Executor) -> threading.Thread:
     return thread
 
 
+def default_sigint() -> None:
+    """``preexec_fn`` of a ROS child process: SIGINT back to its default, so that the child's Python
+    turns it into KeyboardInterrupt even when the test run itself ignores SIGINT (a background job)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def stop_process(process: subprocess.Popen, timeout_s: float = 5.0) -> int:
     """Stop a ROS process with SIGINT (rclpy's clean shutdown), escalating to SIGKILL; return its code."""
     if process.poll() is None:

@@ -24,7 +24,7 @@ from gls_calibration.persistence import CalibrationStore
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import Calibrate, CorrectSetpoints
 
-from ros_helpers import call_service, stop_process, wait_for, wait_for_peer_service
+from ros_helpers import call_service, default_sigint, stop_process, wait_for, wait_for_peer_service
 from test_nodes import trained_record
 
 CELL_START_TIMEOUT_S = 60.0          # interpreter start, imports, eight nodes, discovery on a busy machine
@@ -39,7 +39,8 @@ def test_serving_cell_calibrates_on_request_from_another_process(ros_context, ad
     log_path = tmp_path / "sim_cell.log"
     with open(log_path, "w") as log:
         cell = subprocess.Popen([sys.executable, "-m", "gls_calibration.cli.sim_cell", "--serve", "--grid", "3",
-                                 "--out", str(out)], stdout=log, stderr=subprocess.STDOUT)
+                                 "--out", str(out)], stdout=log, stderr=subprocess.STDOUT,
+                                preexec_fn=default_sigint)
     try:
         node = add_node(Node("cross_process_test", namespace="gls", context=ros_context))
         corrector = node.create_client(CorrectSetpoints, "correct_setpoints")
@@ -100,7 +101,8 @@ def test_correct_setpoints_serves_only_the_active_calibration_throughout_a_run(r
     log_path = tmp_path / "sim_cell.log"
     with open(log_path, "w") as log:
         cell = subprocess.Popen([sys.executable, "-m", "gls_calibration.cli.sim_cell", "--serve", "--grid", "3",
-                                 "--out", str(out)], stdout=log, stderr=subprocess.STDOUT)
+                                 "--out", str(out)], stdout=log, stderr=subprocess.STDOUT,
+                                preexec_fn=default_sigint)
     try:
         node = add_node(Node("active_only_test", namespace="gls", context=ros_context))
         corrector = node.create_client(CorrectSetpoints, "correct_setpoints")
@@ -164,7 +166,8 @@ def test_correct_setpoints_serves_only_the_active_calibration_throughout_a_run(r
         tool_log = tmp_path / "gls_calibrate.log"
         with open(tool_log, "w") as stream:
             tool = subprocess.Popen([sys.executable, "-m", "gls_calibration.cli.calibrate", "--force"],
-                                    stdout=stream, stderr=subprocess.STDOUT)
+                                    stdout=stream, stderr=subprocess.STDOUT,
+                                    preexec_fn=default_sigint)
         try:
             wait_for(lambda: "sweep_plain" in tool_log.read_text() or tool.poll() is not None, CALIBRATE_TIMEOUT_S,
                      what="gls-calibrate showing its first stage")

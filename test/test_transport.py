@@ -24,7 +24,7 @@ from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration_msgs.srv import CorrectSetpoints
 
 from _cloud_peer import CLOUD_QOS, CLOUD_SHAPE, CLOUD_TOPIC, NAMESPACE, publish_cloud, transport_cloud
-from ros_helpers import call_service, stop_process, wait_for, wait_for_peer_service
+from ros_helpers import call_service, default_sigint, stop_process, wait_for, wait_for_peer_service
 
 PEER_SCRIPT = Path(__file__).with_name("_cloud_peer.py")
 SERVICE_NAME = "correct_setpoints"
@@ -117,10 +117,12 @@ def test_cloud_and_service_across_processes(ros_context, add_node, tmp_path):
     with open(correction_log, "w") as log:
         correction = subprocess.Popen(
             [sys.executable, "-c", CORRECTION_MAIN, "--ros-args",
-             "-p", f"calibration_dir:={tmp_path / 'empty_store'}"], stdout=log, stderr=subprocess.STDOUT)
+             "-p", f"calibration_dir:={tmp_path / 'empty_store'}"], stdout=log, stderr=subprocess.STDOUT,
+            preexec_fn=default_sigint)
     with open(cloud_log, "w") as log:
         cloud_peer = subprocess.Popen([sys.executable, str(PEER_SCRIPT), "--seed", str(seed), "--lifetime", "60"],
-                                      stdout=log, stderr=subprocess.STDOUT)
+                                      stdout=log, stderr=subprocess.STDOUT,
+                                      preexec_fn=default_sigint)
     try:
         node = add_node(Node("transport_test", namespace=NAMESPACE, context=ros_context))
         inbox = subscribe_clouds(node)
@@ -147,7 +149,8 @@ def test_correction_process_exits_cleanly_on_sigint(ros_context, add_node, tmp_p
     with open(log_path, "w") as log:
         correction = subprocess.Popen(
             [sys.executable, "-c", CORRECTION_MAIN, "--ros-args",
-             "-p", f"calibration_dir:={tmp_path / 'empty_store'}"], stdout=log, stderr=subprocess.STDOUT)
+             "-p", f"calibration_dir:={tmp_path / 'empty_store'}"], stdout=log, stderr=subprocess.STDOUT,
+            preexec_fn=default_sigint)
     try:
         node = add_node(Node("sigint_test", namespace=NAMESPACE, context=ros_context))
         client = node.create_client(CorrectSetpoints, SERVICE_NAME)

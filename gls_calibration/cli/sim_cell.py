@@ -28,7 +28,7 @@ from gls_calibration.nodes.rbf_trainer import RbfTrainerNode
 from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import SimScannerNode
-from gls_calibration.cli.client import ProgressBar, call_and_wait, summary_table
+from gls_calibration.cli.client import ProgressBar, call_and_wait, split_ros_arguments, summary_table
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import Calibrate
 
@@ -37,7 +37,9 @@ NODE_TYPES = (SimGalvoNode, SimScannerNode, ScanAcquisitionNode, PlatePoseNode, 
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    """Command line of gls-sim-cell."""
+    """Command line of gls-sim-cell; ROS arguments after ``--ros-args`` go to every node (after the
+    cell's own, so that they win)."""
+    own_arguments, user_ros_arguments = split_ros_arguments(argv)
     parser = argparse.ArgumentParser(prog="gls-sim-cell", description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("reports/sim-cell"),
                         help="folder for the report, summary.json and the calibration file")
@@ -58,7 +60,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--namespace", default=None,
                         help="namespace of the cell's nodes (default: 'gls' with --serve; otherwise a private "
                              "one, so that concurrent one-shot cells on the same ROS domain never meet)")
-    args = parser.parse_args(argv)
+    args = parser.parse_args(own_arguments)
+    args.user_ros_arguments = user_ros_arguments if own_arguments != user_ros_arguments else []
     if args.grid < 3:
         parser.error("--grid must be at least 3")
     if not 1 <= args.iterations <= 5:
@@ -98,7 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     # its store in the output folder so that successive external calibrations compose.
     store = args.out / "calibrations" if args.serve else Path(tempfile.mkdtemp(prefix="gls-sim-store-"))
     context = rclpy.Context()
-    rclpy.init(args=ros_arguments(args, store, args.out), context=context)
+    # "--" ends the cell's ROS arguments; the user's command line follows with its own --ros-args.
+    user = ["--", *args.user_ros_arguments] if args.user_ros_arguments else []
+    rclpy.init(args=ros_arguments(args, store, args.out) + user, context=context)
     namespace = args.namespace or ("gls" if args.serve else f"gls_sim_{os.getpid()}")
     nodes = [node_type(context=context, namespace=namespace) for node_type in NODE_TYPES]
     threads = NodeThreads(nodes)

@@ -21,12 +21,11 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from gls_calibration import conversions, discrepancy, procedure
-from gls_calibration.calibration_record import (build_record, correction_from_record, record_fiducials,
-                                                record_identity, record_models)
+from gls_calibration.calibration_record import build_record, correction_from_record, record_fiducials, record_models
 from gls_calibration.correction import Correction
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
 from gls_calibration.nodes import rviz
-from gls_calibration.nodes.diagnostics import Health, publish_diagnostics, record_summary
+from gls_calibration.nodes.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
 from gls_calibration.nodes.head_parameters import declare_head_geometry, declare_scanner_to_gls
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.report import json_safe
@@ -208,20 +207,11 @@ class CalibrationManager(GlsNode):
         try:
             active = self.store.active_path()
             if active != self._active_cache[0]:
-                summary: dict[str, object] = {"active_calibration_id": "nominal"}
-                if active is not None:
-                    record = self.store.load(active)
-                    content_hash, created = record_identity(record)
-                    summary = {"active_calibration_id": content_hash,
-                               "active_created": created.timestamp()} | record_summary(record)
+                summary = record_summary(self.store.load(active)) if active else NOMINAL_SUMMARY
                 self._active_cache = (active, summary)
         except CalibrationFileError as error:
             return Health("error", f"calibration store: {error}", values)
-        summary = dict(self._active_cache[1])
-        created = summary.pop("active_created", None)
-        if created is not None:
-            summary["active_calibration_age_s"] = f"{time.time() - created:.0f}"
-        values |= summary
+        values |= with_age(self._active_cache[1])
         return Health("warn" if self.last_failed else "ok", f"{state}; {self.last_message}", values)
 
     def publish_progress(self, stage: str, fraction: float, text: str) -> None:

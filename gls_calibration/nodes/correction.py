@@ -7,7 +7,7 @@ names the calibration that gave it (content hash and creation time).
 """
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import datetime
 from pathlib import Path
 from typing import Any, Optional
 
@@ -15,7 +15,7 @@ from gls_calibration import conversions
 from gls_calibration.calibration_record import correction_from_record, record_identity
 from gls_calibration.correction import Correction
 from gls_calibration.nodes.base import GlsNode, run_node
-from gls_calibration.nodes.diagnostics import Health, publish_diagnostics, record_summary
+from gls_calibration.nodes.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
 from gls_calibration.nodes.head_parameters import HEAD_PARAMETERS, declare_head_geometry, head_geometry_from
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration_msgs.srv import CorrectSetpoints, LoadCalibration
@@ -35,7 +35,7 @@ class CorrectionNode(GlsNode):
         self.file = ""
         self.problem = ""
         self.calibration_id, self.created = NOMINAL_ID, None
-        self.summary: dict[str, object] = {}
+        self.summary: dict[str, object] = dict(NOMINAL_SUMMARY)
         self._load()
         # A new head geometry changes every answer: reload the active calibration with it.
         self.apply_parameter_changes(HEAD_PARAMETERS, self._apply_head)
@@ -45,11 +45,8 @@ class CorrectionNode(GlsNode):
 
     def health(self) -> Health:
         """What /diagnostics says about this node."""
-        values = {"state": "failed" if self.problem else "serving", "active_calibration_id": self.calibration_id,
-                  "calibration_file": self.file or "none (nominal model)"} | self.summary
-        if self.created is not None:
-            created = self.created if self.created.tzinfo else self.created.replace(tzinfo=timezone.utc)
-            values["active_calibration_age_s"] = f"{datetime.now(timezone.utc).timestamp() - created.timestamp():.0f}"
+        values = {"state": "failed" if self.problem else "serving",
+                  "calibration_file": self.file or "none"} | with_age(self.summary)
         if self.problem:
             return Health("error", self.problem, values)
         return Health("ok", f"serving calibration {self.calibration_id}", values)
@@ -94,7 +91,7 @@ class CorrectionNode(GlsNode):
     def _serve(self, correction: Optional[Correction], file: str, problem: str,
                calibration_id: str = NOMINAL_ID, created: Optional[datetime] = None) -> None:
         self.correction, self.file, self.problem = correction, file, problem
-        self.summary = {}
+        self.summary = dict(NOMINAL_SUMMARY) if correction is not None else {"active_calibration_id": "none"}
         self.calibration_id, self.created = (calibration_id, created) if correction is not None else ("", None)
         if problem:
             self.get_logger().error(problem)
@@ -121,8 +118,7 @@ class CorrectionNode(GlsNode):
         """Correct the targets; ``success=false`` and a message naming the problem on bad input."""
         response.calibration_id = self.calibration_id
         if self.created is not None:
-            created = self.created if self.created.tzinfo else self.created.replace(tzinfo=timezone.utc)
-            response.calibration_created = conversions.time_to_msg(created.timestamp())
+            response.calibration_created = conversions.time_to_msg(self.created.timestamp())
         if self.correction is None:
             response.success = False
             response.message = f"corrections refused: {self.problem}"

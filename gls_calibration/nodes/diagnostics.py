@@ -6,10 +6,12 @@ whole system, whatever the node's namespace).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import time
 from typing import Callable, Mapping
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+from gls_calibration.calibration_record import record_identity
 from gls_calibration.nodes.base import GlsNode
 
 PERIOD_S = 1.0
@@ -41,12 +43,27 @@ def publish_diagnostics(node: GlsNode, health: Callable[[], Health]) -> None:
     node.create_timer(PERIOD_S, tick)
 
 
+NOMINAL_SUMMARY = {"active_calibration_id": "nominal", "model_type": "none (nominal model)"}
+
+
 def record_summary(record: Mapping) -> dict[str, object]:
-    """Diagnostic values of a calibration record: its model types and the RMS measured last."""
-    values: dict[str, object] = {"model_type": "+".join(str(model.get("type")) for model in record["models"])
-                                 or "none"}
+    """Diagnostic values of the active calibration's record: id, creation time, model types and
+    the RMS measured last; :func:`with_age` turns the creation time into an age."""
+    content_hash, created = record_identity(record)
+    values: dict[str, object] = {
+        "active_calibration_id": content_hash, "created_s": created.timestamp(),
+        "model_type": "+".join(str(model.get("type")) for model in record["models"]) or "none"}
     iterations = record.get("metrics", {}).get("iterations") or []
     rms = iterations[-1].get("full", {}).get("rms_abs_mm") if iterations else None
     if rms is not None:
         values["measured_rms_mm"] = f"{rms:.4f}"
+    return values
+
+
+def with_age(summary: Mapping[str, object]) -> dict[str, object]:
+    """``summary`` with its creation time replaced by the age now (s)."""
+    values = dict(summary)
+    created = values.pop("created_s", None)
+    if created is not None:
+        values["active_calibration_age_s"] = f"{time.time() - float(created):.0f}"
     return values
