@@ -277,8 +277,8 @@ def cloud_to_msg(points_mm: np.ndarray, frame_id: str, stamp: Time | None = None
     """A PointCloud2 in metres (float32 x, y, z, intensity) of a structured cloud in mm."""
     _require_fields(points_mm, _XYZ + ("intensity",))
     wire = np.empty(points_mm.shape, dtype=xyzi_dtype())
-    for name in _XYZ:
-        wire[name] = points_mm[name].astype(np.float64) / MM_PER_M
+    for name in _XYZ:   # float32 division is correctly rounded: as exact as float32 metres can be
+        np.divide(points_mm[name], np.float32(MM_PER_M), out=wire[name], dtype=np.float32)
     wire["intensity"] = points_mm["intensity"]
     return array_to_pointcloud2(wire, frame_id=frame_id, stamp=stamp)
 
@@ -290,7 +290,7 @@ def cloud_from_msg(msg: PointCloud2, mm_per_unit: float = MM_PER_M) -> np.ndarra
     _require_fields(view, _XYZ + ("intensity",))
     points = np.empty(view.shape, dtype=xyzi_dtype())
     for name in _XYZ:
-        points[name] = view[name].astype(np.float64) * mm_per_unit
+        np.multiply(view[name], np.float32(mm_per_unit), out=points[name], dtype=np.float32)
     points["intensity"] = view["intensity"]
     return points
 
