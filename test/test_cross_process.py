@@ -33,20 +33,31 @@ CALL_TIMEOUT_S = 20.0
 STOP_TIMEOUT_S = 15.0
 
 
+def start_serving_cell(out: Path, log_path: Path) -> subprocess.Popen:
+    """``gls-sim-cell --serve`` on a 3x3 grid in another process, its store in ``out``/calibrations."""
+    with open(log_path, "w") as log:
+        return subprocess.Popen([sys.executable, "-m", "gls_calibration.cli.sim_cell", "--serve", "--grid", "3",
+                                 "--out", str(out)], stdout=log, stderr=subprocess.STDOUT,
+                                preexec_fn=default_sigint)
+
+
+def connect(node: Node, cell: subprocess.Popen, log_path: Path):
+    """``node`` and its clients of the cell's correct_setpoints and calibrate, once both are served."""
+    corrector = node.create_client(CorrectSetpoints, "correct_setpoints")
+    calibrator = node.create_client(Calibrate, "calibrate")
+    wait_for_peer_service(node, corrector, cell, log_path, CELL_START_TIMEOUT_S)
+    wait_for_peer_service(node, calibrator, cell, log_path, CELL_START_TIMEOUT_S)
+    return node, corrector, calibrator
+
+
 @pytest.mark.slow
 def test_serving_cell_calibrates_on_request_from_another_process(ros_context, add_node, tmp_path):
     out = tmp_path / "cell"
     log_path = tmp_path / "sim_cell.log"
-    with open(log_path, "w") as log:
-        cell = subprocess.Popen([sys.executable, "-m", "gls_calibration.cli.sim_cell", "--serve", "--grid", "3",
-                                 "--out", str(out)], stdout=log, stderr=subprocess.STDOUT,
-                                preexec_fn=default_sigint)
+    cell = start_serving_cell(out, log_path)
     try:
-        node = add_node(Node("cross_process_test", namespace="gls", context=ros_context))
-        corrector = node.create_client(CorrectSetpoints, "correct_setpoints")
-        calibrator = node.create_client(Calibrate, "calibrate")
-        wait_for_peer_service(node, corrector, cell, log_path, CELL_START_TIMEOUT_S)
-        wait_for_peer_service(node, calibrator, cell, log_path, CELL_START_TIMEOUT_S)
+        node, corrector, calibrator = connect(add_node(Node("cross_process_test", namespace="gls",
+                                                            context=ros_context)), cell, log_path)
 
         x, y = np.array([0.0, 40.0, -80.0]), np.array([0.0, -60.0, 30.0])
         nominal = call_service(node, corrector, CorrectSetpoints.Request(x=x, y=y), CALL_TIMEOUT_S)
@@ -99,16 +110,10 @@ def test_correct_setpoints_serves_only_the_active_calibration_throughout_a_run(r
     store.save(record, activate=True)
     previous_id = record_identity(record)[0]
     log_path = tmp_path / "sim_cell.log"
-    with open(log_path, "w") as log:
-        cell = subprocess.Popen([sys.executable, "-m", "gls_calibration.cli.sim_cell", "--serve", "--grid", "3",
-                                 "--out", str(out)], stdout=log, stderr=subprocess.STDOUT,
-                                preexec_fn=default_sigint)
+    cell = start_serving_cell(out, log_path)
     try:
-        node = add_node(Node("active_only_test", namespace="gls", context=ros_context))
-        corrector = node.create_client(CorrectSetpoints, "correct_setpoints")
-        calibrator = node.create_client(Calibrate, "calibrate")
-        wait_for_peer_service(node, corrector, cell, log_path, CELL_START_TIMEOUT_S)
-        wait_for_peer_service(node, calibrator, cell, log_path, CELL_START_TIMEOUT_S)
+        node, corrector, calibrator = connect(add_node(Node("active_only_test", namespace="gls",
+                                                            context=ros_context)), cell, log_path)
         stages: list[tuple[float, str]] = []
         node.create_subscription(CalibrationProgress, "calibration/progress",
                                  lambda message: stages.append((time.monotonic(), message.stage)), 100)
