@@ -90,8 +90,8 @@ def main() -> None:
                      Correction(geometry, [model_from_dict(trained.model)], region), seconds))
         trained, seconds = timed(lambda: train_correction(landed, run.corrections, geometry, physics_first=True,
                                                           options=options))
-        named = trained.description[trained.description.find("(") + 1:trained.description.find(")")]
-        rows.append((trained.method, named, Correction(geometry, [model_from_dict(trained.model)], region), seconds))
+        rows.append((trained.method, ", ".join(trained.named_effects) or "none",
+                     Correction(geometry, [model_from_dict(trained.model)], region), seconds))
         # where the gain comes from: the same physics used to first order only (as the RBF is)
         (first_order, report), seconds = timed(lambda: train_physics_then_rbf(
             landed + run.corrections, run.corrections, geometry, inverse=False, **options.select_kwargs()))
