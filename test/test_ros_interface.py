@@ -21,7 +21,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 from gls_calibration import kinematics
 from gls_calibration.calibration_record import record_identity
 from gls_calibration.config_files import config_path
-from gls_calibration.conversions import (array_to_pointcloud2, cloud_from_msg, cloud_to_msg, pointcloud2_to_array,
+from gls_calibration.nodes.conversions import (array_to_pointcloud2, cloud_from_msg, cloud_to_msg, pointcloud2_to_array,
                                          time_to_msg, xyzi_array)
 from gls_calibration.nodes import rviz
 from gls_calibration.nodes.correction import CorrectionNode

@@ -12,6 +12,7 @@ import json
 import math
 from pathlib import Path
 import time
+import traceback
 from typing import Callable, Optional
 
 import numpy as np
@@ -20,13 +21,15 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from gls_calibration import conversions, discrepancy, procedure
-from gls_calibration.calibration_record import build_record, correction_from_record, record_fiducials, record_models
+from gls_calibration import discrepancy, procedure
+from gls_calibration.nodes import conversions, rviz
+from gls_calibration.calibration_record import (build_record, correction_from_record, record_fiducials,
+                                                record_models, save_candidate)
 from gls_calibration.correction import Correction
-from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
-from gls_calibration.nodes import rviz
+from gls_calibration.nodes.base import GlsNode, ServiceCallError, answers_errors, run_node
 from gls_calibration.nodes.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
 from gls_calibration.nodes.head_parameters import declare_head_geometry, declare_scanner_to_gls
+from gls_calibration.outcome import RunSummary, summarise
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.report import json_safe
 from gls_calibration.run_report import write_outcome_report
@@ -97,16 +100,20 @@ class ServiceCell:
         response = await self._checked(self.galvo, request, self.node.marking_timeout_s)
         return response.duration_s
 
-    async def train(self, measured_xy, corrections):
+    async def train(self, landed_xy, corrections):
         request = TrainCorrection.Request(
-            x=conversions.float64_sequence(measured_xy[:, 0]), y=conversions.float64_sequence(measured_xy[:, 1]),
+            x=conversions.float64_sequence(landed_xy[:, 0]), y=conversions.float64_sequence(landed_xy[:, 1]),
             dx=conversions.float64_sequence(corrections[:, 0]), dy=conversions.float64_sequence(corrections[:, 1]))
         response = await self._checked(self.trainer, request)
         return conversions.trained_model_from_response(response)
 
     async def load_calibration(self, path: str) -> None:
-        """Evaluate the candidate ``path`` from now on (empty: the active one, through the correction node)."""
-        self.candidate = correction_from_record(self.node.store.load(Path(path)), self.node.geometry) if path else None
+        """Evaluate the candidate ``path`` here from now on; the correction node does not see it."""
+        self.candidate = correction_from_record(self.node.store.load(Path(path)), self.node.geometry)
+
+    async def reload_active(self) -> None:
+        """Correct through the active calibration again (the correction node's): drop the candidate."""
+        self.candidate = None
 
     async def reload_correction_node(self) -> str:
         """Make the correction node serve the store's (newly) active calibration; its answer."""
@@ -255,6 +262,8 @@ class CalibrationManager(GlsNode):
         """One calibration into ``response`` (service response or action result); its final status:
         "succeeded", "aborted" or "canceled". Whatever ends it early, the active calibration stays."""
         began = time.monotonic()
+        for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "cv_rms_mm"):
+            setattr(response, name, math.nan)   # what a failed run answers
 
         def progress(stage: str, fraction: float, text: str) -> None:
             if cancel_requested():
@@ -278,9 +287,9 @@ class CalibrationManager(GlsNode):
         except Exception as error:  # a bug must not kill the node nor leave a candidate in use
             response.success = False
             response.message = f"calibration failed on an internal error: {type(error).__name__}: {error}"
-            self.get_logger().error(response.message)
+            self.get_logger().error(f"{response.message}\n{traceback.format_exc()}")
         finally:
-            self.cell.candidate = None
+            await self.cell.reload_active()
             self._running = False
             response.duration_s = time.monotonic() - began
         self.last_failed, self.last_message = status == "aborted", response.message
@@ -290,71 +299,53 @@ class CalibrationManager(GlsNode):
         return status
 
     async def _calibrate(self, request, response, progress, cancel_requested: Callable[[], bool]) -> None:
-        for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "cv_rms_mm"):
-            setattr(response, name, math.nan)
         active = self.store.active_path()
         existing_models = record_models(self.store.load(active)) if active else []
         report_dir = self.report_root
         if self.report_per_run:
             report_dir = report_dir / time.strftime("calibration_%Y%m%dT%H%M%SZ", time.gmtime())
 
-        def save_candidate(runs, models) -> str:
+        def save(runs, models):
             record = build_record(self.geometry, self.settings, runs, models, existing_models)
-            return str(self.store.save(record, activate=False))
+            return save_candidate(self.store, record, self.geometry)
 
         outcome = await procedure.calibrate(
             self.cell, self.settings, iterations=request.iterations, validate=request.validate,
             force=request.force, want_truth=bool(self.ground_truth_service),
-            progress=progress, save_candidate=save_candidate)
-        first = outcome.runs[0]
+            progress=progress, save_candidate=save)
         stamp = self.get_clock().now().to_msg()
         self.plate_pose_publisher.publish(rviz.plate_pose_msg(outcome.runs[-1].plate_pose_gls, stamp))
-        self.markers_publisher.publish(rviz.calibration_markers(first, outcome.validation, stamp, self.arrow_scale,
-                                                                self.colour_full_scale_mm))
-        response.pre_rms_mm = first.metrics["full"]["rms_abs_mm"]
-        response.pre_max_mm = first.metrics["full"]["max_abs_mm"]
-        response.fiducials_expected = len(first.targets)
-        response.fiducials_found = first.fiducials_found
-        correction = None
-        message = outcome.message
-        if outcome.models:
-            response.neurons = int(outcome.models[-1].neurons)
-            response.cv_rms_mm = float(outcome.models[-1].cv_rms_mm)
-            candidate = Path(outcome.calibration_file)
-            correction = correction_from_record(self.store.load(candidate), self.geometry)
+        self.markers_publisher.publish(rviz.calibration_markers(outcome.runs[0], outcome.validation, stamp,
+                                                                self.arrow_scale, self.colour_full_scale_mm))
+        summary = summarise(outcome)
+        message = summary.message
+        if outcome.candidate is not None:
             if cancel_requested():
                 raise CalibrationCanceled("activation")
-            self.store.activate(candidate)
-            response.calibration_file = str(candidate)
-            self.cell.candidate = None
+            self.store.activate(outcome.candidate.path)
+            await self.cell.reload_active()
             try:
                 await self.cell.reload_correction_node()
             except (procedure.CalibrationError, ServiceCallError) as error:
                 message += (f"; activated, but the correction node did not reload it ({error}): "
                             "call correction/load")
                 self.get_logger().error(message)
-        if outcome.validation is not None:
-            response.post_rms_mm = outcome.validation.metrics["full"]["rms_abs_mm"]
-            response.post_max_mm = outcome.validation.metrics["full"]["max_abs_mm"]
-        response.report_dir = str(write_outcome_report(report_dir, outcome, correction))
-        response.success = outcome.success
+        response.report_dir = str(write_outcome_report(report_dir, outcome, summary))
+        _fill_response(response, summary)
         response.message = message
 
+    @answers_errors(CalibrationFileError, ValueError)
     def on_explain(self, request, response):
         """Serve ``explain_deviations``: the discrepancy workflow on a calibration's measured fiducials."""
-        try:
-            path = Path(request.calibration_file) if request.calibration_file else self.store.active_path()
-            if path is None:
-                raise CalibrationFileError(self.store.pointer_path, "no active calibration (nothing saved yet)")
-            record = self.store.load(path)
-            if not record["fiducials"].get("commanded_through_nominal_model", True):
-                self.get_logger().warning(f"{path}: the first plate was marked through an earlier calibration; "
-                                          "the named effects describe what that calibration left")
-            commanded, measured = record_fiducials(record)
-            result = discrepancy.explain(commanded, measured, self.geometry)
-        except (CalibrationFileError, ValueError) as error:
-            response.success, response.message = False, str(error)
-            return response
+        path = Path(request.calibration_file) if request.calibration_file else self.store.active_path()
+        if path is None:
+            raise CalibrationFileError(self.store.pointer_path, "no active calibration (nothing saved yet)")
+        record = self.store.load(path)
+        if not record["fiducials"].get("commanded_through_nominal_model", True):
+            self.get_logger().warning(f"{path}: the first plate was marked through an earlier calibration; "
+                                      "the named effects describe what that calibration left")
+        commanded, measured = record_fiducials(record)
+        result = discrepancy.explain(commanded, measured, self.geometry)
         response.success = True
         response.named_effects = list(result.named_effects)
         response.rms_before_mm = float(result.rms_before_mm)
@@ -365,6 +356,15 @@ class CalibrationManager(GlsNode):
         response.message = (f"{path.name}: {named}; residual {result.rms_before_mm:.4f} -> "
                             f"{result.rms_after_mm:.4f} mm RMS (noise floor {result.noise_floor_mm:.4f} mm)")
         return response
+
+
+def _fill_response(response, summary: RunSummary) -> None:
+    """The ``calibrate`` answer: the run summary's figures."""
+    response.success = True
+    response.message = summary.message
+    for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "fiducials_expected",
+                 "fiducials_found", "neurons", "cv_rms_mm", "calibration_file"):
+        setattr(response, name, getattr(summary, name))
 
 
 def main(args=None) -> None:

@@ -11,10 +11,10 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, Optional
 
-from gls_calibration import conversions
+from gls_calibration.nodes import conversions
 from gls_calibration.calibration_record import correction_from_record, record_identity
 from gls_calibration.correction import Correction
-from gls_calibration.nodes.base import GlsNode, run_node
+from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
 from gls_calibration.nodes.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
 from gls_calibration.nodes.head_parameters import HEAD_PARAMETERS, declare_head_geometry, head_geometry_from
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
@@ -114,6 +114,7 @@ class CorrectionNode(GlsNode):
         response.file = self.file
         return response
 
+    @answers_errors(ValueError)
     def on_correct(self, request, response):
         """Correct the targets; ``success=false`` and a message naming the problem on bad input."""
         response.calibration_id = self.calibration_id
@@ -123,12 +124,7 @@ class CorrectionNode(GlsNode):
             response.success = False
             response.message = f"corrections refused: {self.problem}"
             return response
-        try:
-            result = self.correction.correct(request.x, request.y, request.z if len(request.z) else None)
-        except ValueError as error:
-            response.success = False
-            response.message = str(error)
-            return response
+        result = self.correction.correct(request.x, request.y, request.z if len(request.z) else None)
         conversions.setpoints_to_response(result, response)
         unreachable = int((~result.within_limits).sum())
         if unreachable:

@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from gls_calibration.conversions import MM_PER_M
+from gls_calibration.nodes.conversions import MM_PER_M
 from gls_calibration.plate_pose import PlatePose
 from gls_calibration.procedure import PlateRun
 
