@@ -175,6 +175,9 @@ class Correction:
         Through Q' on the calibration plane (see the module docstring); without models the nominal
         kinematics of Q.
         """
+        single = _single_target(x, y, z)
+        if single is not None and self.models:
+            return self._correct_one(*single)
         x, y, z = as_coordinate_arrays(x, y, z)
         if not self.models:
             joints = inverse(self.geometry, x, y, z)
@@ -188,6 +191,59 @@ class Correction:
         joints = inverse(self.geometry, commanded_x, commanded_y, z)
         return CorrectedSetpoints(commanded_x, commanded_y, joints.alpha_x, joints.alpha_y, joints.focus_shift,
                                   inside, joints.within_limits)
+
+    def _correct_one(self, x: float, y: float, z: float) -> CorrectedSetpoints:
+        """:meth:`correct` for one target in scalar arithmetic (same formulas; numpy per call costs ~1 us)."""
+        geometry, region = self.geometry, self.calibrated_region
+        d, e, plane_z = geometry.working_distance_mm, geometry.mirror_distance_mm, region.plane_z_mm
+
+        def transfer(px: float, py: float, z_from: float, z_to: float) -> tuple[float, float]:
+            ratio = (d - z_to) / (d - z_from)
+            slant = math.hypot(d - z_from, px)
+            return px * ratio, py * ((e + slant * ratio) / (e + slant))
+
+        on_plane_x, on_plane_y = transfer(x, y, z, plane_z)
+        clamped_x = min(max(on_plane_x, region.x_min), region.x_max)
+        clamped_y = min(max(on_plane_y, region.y_min), region.y_max)
+        distance = math.hypot(on_plane_x - clamped_x, on_plane_y - clamped_y)
+        weight = float(taper_weight(distance, self.taper_mm)) if distance > 0.0 else 1.0
+        delta_x = delta_y = 0.0
+        for model in self.models:
+            at_point = getattr(model, "at_point", None)
+            if at_point is not None:
+                model_x, model_y = at_point(clamped_x, clamped_y)
+            else:
+                model_x, model_y = as_finite_array(model(np.array([[clamped_x, clamped_y]])), "model output",
+                                                   ndim=2)[0]
+            delta_x += model_x
+            delta_y += model_y
+        if not (math.isfinite(delta_x) and math.isfinite(delta_y)):
+            raise ValueError("model output contains NaN or infinite value(s)")
+        commanded_x, commanded_y = transfer(on_plane_x + weight * delta_x, on_plane_y + weight * delta_y, plane_z, z)
+        height = d - z
+        slant = math.hypot(height, commanded_x)
+        alpha_x = 0.5 * math.atan2(commanded_x, height)
+        alpha_y = 0.5 * math.atan2(commanded_y, e + slant)
+        focus_shift = math.hypot(e + slant, commanded_y) - (e + height)
+        limit = geometry.mirror_limit_rad
+        within = abs(alpha_x) <= limit and abs(alpha_y) <= limit and abs(focus_shift) <= geometry.focus_range_mm
+        inside = bool(region.contains(on_plane_x, on_plane_y))
+        return CorrectedSetpoints(np.array([commanded_x]), np.array([commanded_y]), np.array([alpha_x]),
+                                  np.array([alpha_y]), np.array([focus_shift]), np.array([inside]),
+                                  np.array([within]))
+
+
+def _single_target(x, y, z) -> Optional[tuple[float, float, float]]:
+    """(x, y, z) as floats when the request is one finite target (z absent or one value), else None."""
+    try:
+        if len(x) != 1 or len(y) != 1 or (z is not None and len(z) > 1):
+            return None
+        values = (float(x[0]), float(y[0]), float(z[0]) if z is not None and len(z) else 0.0)
+    except (TypeError, ValueError, IndexError):
+        return None           # scalars, nested or odd input: the general path validates and reports
+    if isinstance(x[0], (bool, np.bool_)) or not all(math.isfinite(value) for value in values):
+        return None
+    return values
 
 
 def transfer_along_ray(geometry: HeadGeometry, x, y, z_from, z_to) -> tuple[np.ndarray, np.ndarray]:

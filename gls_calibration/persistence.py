@@ -211,7 +211,7 @@ def validate_record(record: Any, source: str | os.PathLike | None = None) -> Non
         fail(f"key 'format_version' must be an integer, got {_type_name(version)}")
     if version > FORMAT_VERSION:
         fail(f"format_version {version} is newer than this software reads (up to {FORMAT_VERSION}); "
-             f"update gls_calibration (software_version {gls_calibration.__version__})")
+             "update gls_calibration")
     if version not in READABLE_FORMAT_VERSIONS:
         fail(f"unsupported format_version {version} (this software reads versions "
              f"{', '.join(map(str, READABLE_FORMAT_VERSIONS))})")
