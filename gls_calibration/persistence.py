@@ -74,15 +74,19 @@ def atomic_write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8
     On any error the temporary file is removed and the error re-raised; the target is untouched.
     A new file gets mode 0644; an existing target keeps its mode.
     """
+    atomic_write_bytes(path, text.encode(encoding))
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """:func:`atomic_write_text` for bytes (e.g. an NPZ archive built in memory)."""
     path = Path(path)
     directory = path.parent
     mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
     handle = tempfile.NamedTemporaryFile(
-        "w", encoding=encoding, newline="\n", dir=directory, prefix=f".{path.name}.", suffix=".tmp",
-        delete=False)
+        "wb", dir=directory, prefix=f".{path.name}.", suffix=".tmp", delete=False)
     try:
         with handle:
-            handle.write(text)
+            handle.write(data)
             handle.flush()
             os.fsync(handle.fileno())
             os.fchmod(handle.fileno(), mode)

@@ -46,7 +46,7 @@ def summary(outcome: CalibrationOutcome) -> dict:
 
 
 def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, correction: Optional[Correction]) -> Path:
-    """Write report.md, plots, fiducials.csv and summary.json for ``outcome``; the folder's path."""
+    """Write report.md, plots, fiducials.csv, summary.json and training.csv for ``outcome``; the folder's path."""
     first, validation = outcome.runs[0], outcome.validation
     field = None
     if correction is not None and correction.models:
@@ -66,4 +66,13 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, correction:
                           for index, run in enumerate(outcome.runs)) + (outcome.message,),
     )
     write_report(out_dir, data)
+    (out_dir / "training.csv").write_text(training_csv_text(first), encoding="utf-8")
     return out_dir
+
+
+def training_csv_text(run) -> str:
+    """The first plate's fiducials as gls-train reads them: commanded targets and measured centres
+    (gls frame, mm). Training from it reproduces the run's model when the plate was marked through
+    the nominal model (the first calibration of a head)."""
+    rows = np.column_stack([run.paired_targets_xy, run.measured_gls[:, :2]]).tolist()
+    return "x_cmd,y_cmd,x_meas,y_meas\n" + "".join(",".join(map(repr, row)) + "\n" for row in rows)
