@@ -87,3 +87,23 @@ def test_the_single_target_path_agrees_with_the_documented_evaluator(tmp_path):
         expected = evaluate(record, np.array([x]), np.array([y]), np.array([z]))
         np.testing.assert_allclose([one.x[0], one.y[0], one.alpha_x[0], one.alpha_y[0], one.focus_shift[0]],
                                    [value[0] for value in expected], rtol=0.0, atol=1e-9)
+
+
+def test_a_format_version_1_file_still_loads(tmp_path):
+    grid = grid_targets(19, 190.0)
+    spline = ThinPlateSplineModel(grid, field(grid), smoothing=10.0)
+    record = stored_calibration(tmp_path, [spline], plane_z_mm=0.0)
+    record["format_version"] = 1
+    record["models"] = [{"type": "thin_plate_spline", "smoothing": 10.0, "points": grid.tolist(),
+                         "values": field(grid).tolist()}]
+    record["calibrated_region"] = {key: record["calibrated_region"][key] for key in ("type", "x_min", "x_max",
+                                                                                      "y_min", "y_max")}
+    old = tmp_path / "old.yaml"
+    old.write_text(yaml.safe_dump(record))
+    loaded = load_record(old)
+    x, y, z = queries(300)
+    expected = correction_from_record(stored_calibration(tmp_path / "new", [spline], plane_z_mm=0.0),
+                                      HeadGeometry()).correct(x, y, z)
+    result = correction_from_record(loaded, head_geometry(loaded)).correct(x, y, z)
+    np.testing.assert_allclose(result.alpha_x, expected.alpha_x, rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(result.x, expected.x, rtol=0.0, atol=1e-9)
