@@ -32,6 +32,9 @@ from gls_calibration.rbf import DeviationModel
 from gls_calibration.validation import as_coordinate_arrays, as_finite_array, as_non_negative_number, as_points
 
 
+_INSIDE_TOLERANCE_MM = 1e-9
+
+
 @dataclass(frozen=True)
 class CalibratedRegion:
     """Axis-aligned box (mm, gls frame) on the calibration plane ``z = plane_z_mm`` where the models were trained."""
@@ -61,7 +64,7 @@ class CalibratedRegion:
     def contains(self, x, y) -> np.ndarray:
         """True for points inside the box or on its boundary (1e-9 mm tolerance)."""
         x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-        tolerance = 1e-9
+        tolerance = _INSIDE_TOLERANCE_MM
         return ((x >= self.x_min - tolerance) & (x <= self.x_max + tolerance)
                 & (y >= self.y_min - tolerance) & (y <= self.y_max + tolerance))
 
@@ -209,9 +212,8 @@ class Correction:
         weight = float(taper_weight(distance, self.taper_mm)) if distance > 0.0 else 1.0
         delta_x = delta_y = 0.0
         for model in self.models:
-            at_point = getattr(model, "at_point", None)
-            if at_point is not None:
-                model_x, model_y = at_point(clamped_x, clamped_y)
+            if hasattr(model, "at_point"):
+                model_x, model_y = model.at_point(clamped_x, clamped_y)
             else:
                 model_x, model_y = as_finite_array(model(np.array([[clamped_x, clamped_y]])), "model output",
                                                    ndim=2)[0]
@@ -227,7 +229,9 @@ class Correction:
         focus_shift = math.hypot(e + slant, commanded_y) - (e + height)
         limit = geometry.mirror_limit_rad
         within = abs(alpha_x) <= limit and abs(alpha_y) <= limit and abs(focus_shift) <= geometry.focus_range_mm
-        inside = bool(region.contains(on_plane_x, on_plane_y))
+        tolerance = _INSIDE_TOLERANCE_MM
+        inside = (region.x_min - tolerance <= on_plane_x <= region.x_max + tolerance
+                  and region.y_min - tolerance <= on_plane_y <= region.y_max + tolerance)
         return CorrectedSetpoints(np.array([commanded_x]), np.array([commanded_y]), np.array([alpha_x]),
                                   np.array([alpha_y]), np.array([focus_shift]), np.array([inside]),
                                   np.array([within]))
