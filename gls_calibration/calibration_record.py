@@ -43,8 +43,9 @@ def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequ
     return new_record(
         head=geometry, plate_pose=runs[-1].plate_pose_gls,
         models=list(existing_models) + [model.model for model in models],
-        # The calibration plane: the first plate's mean measured height (targets off it go through Q').
-        calibrated_region={**calibrated_region(settings, float(np.mean(first.measured_gls[:, 2]))).to_dict(),
+        # The calibration plane: the mean height the first plate's targets were commanded at (the
+        # plate's plane); targets off it are corrected through Q'.
+        calibrated_region={**calibrated_region(settings, float(np.mean(first.targets[:, 2]))).to_dict(),
                            "taper_mm": TAPER_MM},
         hyper_parameters={"trained_models": [
             {"method": model.method, "neurons": model.neurons, "spread_mm": model.spread_mm,

@@ -71,8 +71,10 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, correction:
 
 
 def training_csv_text(run) -> str:
-    """The first plate's fiducials as gls-train reads them: commanded targets and measured centres
-    (gls frame, mm). Training from it reproduces the run's model when the plate was marked through
-    the nominal model (the first calibration of a head)."""
-    rows = np.column_stack([run.paired_targets_xy, run.measured_gls[:, :2]]).tolist()
-    return "x_cmd,y_cmd,x_meas,y_meas\n" + "".join(",".join(map(repr, row)) + "\n" for row in rows)
+    """The first plate's fiducials as gls-train reads them: commanded targets, the height they were
+    commanded at and the measured centres (gls frame, mm). Training from it reproduces the run's
+    model when the plate was marked through the nominal model (the first calibration of a head)."""
+    height = {(float(x), float(y)): float(z) for x, y, z in run.targets}
+    z_cmd = [height[(float(x), float(y))] for x, y in run.paired_targets_xy]
+    rows = np.column_stack([run.paired_targets_xy, z_cmd, run.measured_gls[:, :2]]).tolist()
+    return "x_cmd,y_cmd,z_cmd,x_meas,y_meas\n" + "".join(",".join(map(repr, row)) + "\n" for row in rows)

@@ -1,8 +1,9 @@
 """gls-train: a calibration file from measured fiducials, without a running cell.
 
 Input: a CSV ``x_cmd,y_cmd,x_meas,y_meas`` (mm): targets commanded through the nominal model on the
-plane z = ``--plane-z`` (default 0) of the gls frame, and where they were measured, in any frame a
-rigid motion away (the measurement is aligned onto the targets first, as the calibrate flow does).
+plane z = 0 of the gls frame (or ``--plane-z``, or the mean of an optional ``z_cmd`` column, as the
+main job's ``training.csv`` has it), and where they were measured, in any frame a rigid motion away
+(the measurement is aligned onto the targets first, as the calibrate flow does).
 The model is trained exactly as the calibrate flow trains it (:func:`gls_calibration.training.
 train_correction`, grid search from ``config/gls.yaml``), at the measured points on ``Q - P``. The
 calibrated region is the box of the commanded targets. Writes ``--out`` (the calibration YAML) and
@@ -29,8 +30,9 @@ COLUMNS = ("x_cmd", "y_cmd", "x_meas", "y_meas")
 TAPER_MM = 10.0
 
 
-def read_measured(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Commanded (N, 2) and measured (N, 2) points from the CSV; ValueError naming the problem."""
+def read_measured(path: Path) -> tuple[np.ndarray, np.ndarray, Optional[float]]:
+    """Commanded (N, 2) and measured (N, 2) points and the mean ``z_cmd`` (None without that column)
+    from the CSV; ValueError naming the problem."""
     try:
         with path.open(newline="") as stream:
             reader = csv.DictReader(stream)
@@ -38,7 +40,8 @@ def read_measured(path: Path) -> tuple[np.ndarray, np.ndarray]:
             missing = [name for name in COLUMNS if name not in header]
             if missing:
                 raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (header: {','.join(header)})")
-            values = np.array([[float(row[name]) for name in COLUMNS] for row in reader])
+            names = COLUMNS + (("z_cmd",) if "z_cmd" in header else ())
+            values = np.array([[float(row[name]) for name in names] for row in reader]).reshape(-1, len(names))
     except (TypeError, ValueError) as error:
         if str(error).startswith(str(path)):
             raise
@@ -48,7 +51,7 @@ def read_measured(path: Path) -> tuple[np.ndarray, np.ndarray]:
     bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
     if bad.size:
         raise ValueError(f"{path}: {bad.size} row(s) with NaN or infinite values (first: data row {bad[0] + 1})")
-    return values[:, :2], values[:, 2:]
+    return values[:, :2], values[:, 2:4], float(np.mean(values[:, 4])) if values.shape[1] > 4 else None
 
 
 def training_options(config: Path) -> TrainingOptions:
@@ -61,9 +64,12 @@ def training_options(config: Path) -> TrainingOptions:
     return read_config_file(config, "parameter file", parse)
 
 
-def train_file(measured_csv: Path, head_file: Path, config: Path, physics_first: bool, plane_z_mm: float):
-    """(record, report text): the calibration the CSV gives."""
-    commanded, measured = read_measured(measured_csv)
+def train_file(measured_csv: Path, head_file: Path, config: Path, physics_first: bool,
+               plane_z_mm: Optional[float]):
+    """(record, report text): the calibration the CSV gives (plane: ``plane_z_mm``, else the CSV's, else 0)."""
+    commanded, measured, commanded_height = read_measured(measured_csv)
+    if plane_z_mm is None:
+        plane_z_mm = commanded_height if commanded_height is not None else 0.0
     geometry, _known = load_head_config(head_file)
     aligned = align_in_plane(measured, commanded)
     # Commanding Q through the nominal model landed at P: Q - P is the correction to add at P.
@@ -104,11 +110,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--physics-first", action="store_true", help="fit the named physical effects first")
     parser.add_argument("--head", type=Path, default=None, help="head file (default: config/head.yaml)")
     parser.add_argument("--config", type=Path, default=None, help="trainer grid search (default: config/gls.yaml)")
-    parser.add_argument("--plane-z", type=float, default=0.0, help="height the targets were commanded at (mm)")
+    parser.add_argument("--plane-z", type=float, default=None,
+                        help="height the targets were commanded at (mm; default: mean z_cmd of the CSV, else 0)")
     args = parser.parse_args(argv)
     report_path = args.out.with_name(args.out.name + ".report.md")
     try:
-        if not np.isfinite(args.plane_z):
+        if args.plane_z is not None and not np.isfinite(args.plane_z):
             raise ValueError(f"--plane-z must be finite, got {args.plane_z}")
         for output in (args.out, report_path):
             if not output.parent.is_dir():
