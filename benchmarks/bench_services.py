@@ -29,7 +29,7 @@ import numpy as np
 import rclpy
 
 from gls_calibration.calibration_record import correction_from_record
-from gls_calibration.conversions import float64_sequence
+from gls_calibration.nodes.conversions import float64_sequence
 from gls_calibration.nodes.base import NodeThreads
 from gls_calibration.persistence import CalibrationStore, head_geometry, load_record
 from gls_calibration_msgs.srv import AcquireSweep, CorrectSetpoints
@@ -38,7 +38,7 @@ from gls_calibration_msgs.srv import AcquireSweep, CorrectSetpoints
 # from the request without computing anything.
 ECHO_NODE = """
 import numpy as np
-from gls_calibration.conversions import setpoints_to_response
+from gls_calibration.nodes.conversions import setpoints_to_response
 from gls_calibration.correction import CorrectedSetpoints
 from gls_calibration.nodes.base import GlsNode, run_node
 from gls_calibration_msgs.srv import CorrectSetpoints

@@ -70,7 +70,7 @@ def correct_offline(calibration: Path, x, y, z):
 def correct_by_service(namespace: str, timeout: float, x, y, z):
     """The same from the running cell's ``correct_setpoints``; RuntimeError when it gives no usable answer."""
     from gls_calibration.cli.client import call_and_wait, client_node
-    from gls_calibration.conversions import float64_sequence
+    from gls_calibration.nodes.conversions import float64_sequence
     from gls_calibration_msgs.srv import CorrectSetpoints
     with client_node("gls_correct_client", namespace) as (node, executor):
         try:
