@@ -60,12 +60,12 @@ run_node(Echo)
 
 
 def default_main_job_calibration(directory: Path) -> Path:
-    """Run ``gls-sim-cell`` with its defaults; the calibration.yaml it keeps in its report folder."""
+    """Run ``gls-sim-cell`` with its defaults; the active calibration of the store in its report folder."""
     tool = shutil.which("gls-sim-cell", path=str(Path(sys.executable).parent)) or "gls-sim-cell"
     began = time.perf_counter()
     subprocess.run([tool, "--out", str(directory)], check=True, stdout=subprocess.DEVNULL)
     print(f"default main job (gls-sim-cell, no option) ran in {time.perf_counter() - began:.1f} s")
-    return directory / "calibration.yaml"
+    return CalibrationStore(directory / "calibrations").active_path()
 
 
 def timed_calls(client, request, count: int) -> list[float]:
