@@ -119,7 +119,7 @@ def test_export_writes_tables_the_interpolation_error_and_the_deviations(tmp_pat
     # The reported worst error is what bilinear interpolation really gives inside the cells (checked here
     # at other points than the tool's), and a finer pitch lowers it.
     summary = json.loads((out / "interpolation_error.json").read_text())
-    worst = summary["worst_interpolation_error"][0]
+    worst = summary["worst_interpolation_error"][0]["whole_table"]
     rng = np.random.default_rng(0)
     x, y = rng.uniform(axis_x[0], axis_x[-1], 5000), rng.uniform(axis_y[0], axis_y[-1], 5000)
     exact_here = correction_from_record(record, head_geometry(record)).correct(x, y)
@@ -128,7 +128,10 @@ def test_export_writes_tables_the_interpolation_error_and_the_deviations(tmp_pat
     finer = tmp_path / "finer"
     assert export_main(["--calibration", str(calibration_file), "--out", str(finer), "--pitch", "2"]) == 0
     finer_worst = json.loads((finer / "interpolation_error.json").read_text())["worst_interpolation_error"][0]
-    assert finer_worst["landing_from_interpolated_angles_mm"] < worst["landing_from_interpolated_angles_mm"]
+    coarse_inside = summary["worst_interpolation_error"][0]["cells_inside_calibrated_field"]
+    assert finer_worst["whole_table"]["landing_from_interpolated_angles_mm"] < worst["landing_from_interpolated_angles_mm"]
+    assert (finer_worst["cells_inside_calibrated_field"]["landing_from_interpolated_angles_mm"]
+            < coarse_inside["landing_from_interpolated_angles_mm"] <= worst["landing_from_interpolated_angles_mm"])
     deviations = np.genfromtxt(out / "deviations.txt", delimiter=",", names=True)
     assert deviations.dtype.names == ("x", "y", "dx", "dy") and deviations.shape == (361,)
     np.testing.assert_array_equal(deviations["dx"], record["fiducials"]["dx"])
