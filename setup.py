@@ -24,6 +24,7 @@ TOOLS = {
     "gls-calibrate": "calibrate",
     "gls-correct": "correct",
     "gls-discrepancy": "discrepancy",
+    "gls-measure": "measure",
 }
 
 setup(

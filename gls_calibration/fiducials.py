@@ -23,7 +23,8 @@ What we know is used throughout: every fiducial is two concentric rings of known
    left out of the final fit. The standard uncertainty per axis comes from the fit: the residual
    variance of the edge points, inflated by their correlation along the circumference (integrated
    autocorrelation), propagated through the fit's normal matrix, plus ``MODEL_SIGMA_MM``.
-5. Status: candidates are rejected with a reason (``partial``: coverage below ``MIN_COVERAGE``;
+5. Status: candidates are rejected with a reason (``spurious``: coverage below ``SPURIOUS_COVERAGE``,
+   no ring there; ``partial``: coverage below ``MIN_COVERAGE``;
    ``radius``: ring radii off the nominal ones; ``fit``: too few usable rays or an ill-posed fit;
    ``uncertain``: stated uncertainty above ``MAX_SIGMA_MM``; ``duplicate``: the same fiducial as a
    better candidate). Accepted centres are returned in plate coordinates and, via
@@ -63,6 +64,9 @@ SECTOR_SEEN_FRACTION = 0.4
 
 MIN_COVERAGE = 0.75
 """Accepted fiducials show their rings on at least this share of the circumference."""
+
+SPURIOUS_COVERAGE = 0.3
+"""Below this coverage a candidate is not a damaged ring but no ring at all (``spurious``)."""
 
 MIN_VALID_RAY_FRACTION = 0.5
 """A fit needs this share of all rays usable."""
@@ -438,26 +442,32 @@ def _centre_covariance(directions: np.ndarray, residual: np.ndarray, used: np.nd
                        sector_of_ray: np.ndarray) -> np.ndarray:
     """Covariance (M, 2, 2) of the fitted centre (plate axes, mm^2) from the radial residuals.
 
-    Cluster-robust (sandwich) estimate with the angular sectors as clusters: neighbouring rays share
-    pixels and speckle grains, so their residuals are correlated; sectors (0.7 mm of arc) are much
-    longer than that correlation, so sums over sectors are nearly independent.
+    Delete-one-sector jackknife of the (linearised) circle fit: neighbouring rays share pixels and
+    speckle grains, so their residuals are correlated; sectors (0.7 mm of arc) are much longer than
+    that correlation, so leaving out a whole sector at a time sees it. Leaving out sector g moves
+    the solution by -(N - N_g)^-1 X_g' e_g (N the normal matrix, X the design, e the residuals).
     """
     count, rays = residual.shape
     u = used.astype(float)
     design = np.concatenate([np.broadcast_to(directions, (count, rays, 2)), np.ones((count, rays, 1))], axis=-1)
-    normal_matrix = np.einsum("mai,ma,maj->mij", design, u, design)
-    normal_matrix[np.linalg.cond(normal_matrix) > 1e12] = np.eye(3)
-    bread = np.linalg.inv(normal_matrix)
-    scores = design * np.where(used, residual, 0.0)[..., None]                 # (M, A, 3)
-    clusters = np.zeros((count, SECTORS, 3))
-    np.add.at(clusters, (slice(None), sector_of_ray), scores)
-    meat = np.einsum("msi,msj->mij", clusters, clusters)
+    sector_normal = np.zeros((count, SECTORS, 3, 3))
+    np.add.at(sector_normal, (slice(None), sector_of_ray),
+              np.einsum("mai,ma,maj->maij", design, u, design))
+    sector_score = np.zeros((count, SECTORS, 3))
+    np.add.at(sector_score, (slice(None), sector_of_ray), design * np.where(used, residual, 0.0)[..., None])
     per_sector = np.zeros((count, SECTORS))
     np.add.at(per_sector, (slice(None), sector_of_ray), u)
-    groups = (per_sector > 0).sum(axis=1)
-    # Small-sample correction for clusters: the fit takes 3 parameters out of ``groups`` sums.
-    correction = groups / np.maximum(groups - 3, 1)
-    covariance = correction[:, None, None] * np.einsum("mij,mjk,mkl->mil", bread, meat, bread)
+    present = per_sector > 0
+    left_out = sector_normal.sum(axis=1, keepdims=True) - sector_normal          # (M, S, 3, 3)
+    solvable = np.linalg.cond(left_out) < 1e10
+    left_out[~solvable] = np.eye(3)
+    moves = -np.linalg.solve(left_out, sector_score[..., None])[..., 0]          # (M, S, 3)
+    # Sectors without rays, or whose removal leaves an ill-posed fit, do not enter.
+    moves = np.where((solvable & present)[..., None], moves, 0.0)
+    groups = np.maximum(present.sum(axis=1), 2)
+    mean = moves.sum(axis=1) / groups[:, None]
+    deviation = np.where(present[..., None], moves - mean[:, None, :], 0.0)
+    covariance = ((groups - 1) / groups)[:, None, None] * np.einsum("msi,msj->mij", deviation, deviation)
     return covariance[:, :2, :2] + MODEL_SIGMA_MM**2 * np.eye(2)
 
 
@@ -636,7 +646,8 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=(2.5, 2.
     radius_ok = np.all(np.abs(fit["radii"] - radii_nominal) <= radius_tolerance_mm, axis=1)
     reasons = np.full(len(candidates), STATUS_OK, dtype=object)
     # The first failing check names the reason, most basic first.
-    checks = (("fit", fit["fit_ok"] & affine_ok), ("partial", fit["coverage"] >= MIN_COVERAGE),
+    checks = (("fit", fit["fit_ok"] & affine_ok), ("spurious", fit["coverage"] >= SPURIOUS_COVERAGE),
+              ("partial", fit["coverage"] >= MIN_COVERAGE),
               ("radius", radius_ok), ("uncertain", sigma_plane.max(axis=1, initial=0.0) <= MAX_SIGMA_MM))
     for reason, passed in reversed(checks):
         reasons[~passed] = reason

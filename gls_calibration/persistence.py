@@ -60,9 +60,14 @@ class CalibrationFileError(ValueError):
 
 
 def atomic_write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8") -> None:
-    """Replace ``path`` by ``text`` so that readers see either the old or the whole new content.
+    """Replace ``path`` by ``text`` atomically (``atomic_write_bytes``), with newlines as ``\\n``."""
+    atomic_write_bytes(path, text.encode(encoding))
 
-    The text goes to a temporary file in the same directory (same file system, so the rename is
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Replace ``path`` by ``data`` so that readers see either the old or the whole new content.
+
+    The data go to a temporary file in the same directory (same file system, so the rename is
     atomic), is flushed to disk, renamed onto the target and the directory entry is flushed too.
     On any error the temporary file is removed and the error re-raised; the target is untouched.
     A new file gets mode 0644; an existing target keeps its mode.
@@ -70,12 +75,11 @@ def atomic_write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8
     path = Path(path)
     directory = path.parent
     mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
-    handle = tempfile.NamedTemporaryFile(
-        "w", encoding=encoding, newline="\n", dir=directory, prefix=f".{path.name}.", suffix=".tmp",
-        delete=False)
+    handle = tempfile.NamedTemporaryFile("wb", dir=directory, prefix=f".{path.name}.", suffix=".tmp",
+                                         delete=False)
     try:
         with handle:
-            handle.write(text)
+            handle.write(data)
             handle.flush()
             os.fsync(handle.fileno())
             os.fchmod(handle.fileno(), mode)
