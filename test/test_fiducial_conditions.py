@@ -72,6 +72,7 @@ def test_bright_marks_are_found_without_being_told():
     assert len(measurement.centres) == PER_SIDE**2
 
 
+@pytest.mark.slow
 def test_full_plate_19x19_with_speckle():
     measurement, truth = measured("speckle_0.3", 19)
     error, index = per_axis_errors(measurement, truth)
