@@ -288,7 +288,7 @@ def test_helpers_reject_bad_input(call, message):
 
 
 def test_fiducial_uncertainties_and_rejections_survive_the_service_response():
-    from gls_calibration.conversions import fiducials_from_response, fiducials_to_response
+    from gls_calibration.nodes.conversions import fiducials_from_response, fiducials_to_response
     from gls_calibration.fiducials import FiducialMeasurement
     from gls_calibration.plate_pose import estimate_plate_pose
     from gls_calibration_msgs.srv import MeasureFiducials
