@@ -333,8 +333,10 @@ def _detect(image: np.ndarray, pitch: tuple[float, float], radii: np.ndarray, ma
     binned, (factor_rows, factor_cols) = _detection_image(image, pitch)
     binned_pitch = (pitch[0] * factor_rows, pitch[1] * factor_cols)
     template = _ring_template(binned_pitch, radii, max(0.6 * max(binned_pitch), 0.06))
-    if binned.shape[0] < template.shape[0] or binned.shape[1] < template.shape[1]:
-        return np.empty((0, 2)), np.empty(0), True if marks_darker is None else marks_darker
+    # Zero padding (the whitened image's mean) lets rings that touch the scan's border be found; the
+    # fit then sees how much of them is there (coverage).
+    pad_rows, pad_cols = (template.shape[0] - 1) // 2, (template.shape[1] - 1) // 2
+    binned = cv2.copyMakeBorder(binned, pad_rows, pad_rows, pad_cols, pad_cols, cv2.BORDER_CONSTANT, value=0.0)
     score = cv2.matchTemplate(binned, template, cv2.TM_CCOEFF_NORMED)
     score = np.nan_to_num(score, nan=0.0)
     # Bare steel sets the spread of the correlation; marks cover a small share of the plate.
@@ -359,7 +361,7 @@ def _detect(image: np.ndarray, pitch: tuple[float, float], radii: np.ndarray, ma
     if expected_count:
         peaks = peaks[:max(2 * expected_count, expected_count + 20)]
     values = signed[peaks[:, 1].astype(int), peaks[:, 0].astype(int)] if len(peaks) else np.empty(0)
-    offset = np.array([(template.shape[1] - 1) / 2, (template.shape[0] - 1) / 2])
+    offset = np.array([(template.shape[1] - 1) / 2 - pad_cols, (template.shape[0] - 1) / 2 - pad_rows])
     binned_centre = peaks + offset
     # Binned pixel k covers full pixels k*f .. k*f + f - 1: centre at k*f + (f - 1) / 2.
     centres = binned_centre * np.array([factor_cols, factor_rows]) + np.array(

@@ -185,7 +185,8 @@ def summary(measurement: FiducialMeasurement, pose: PlatePose, args, seconds: fl
         "missing": expected - len(measurement.centres),
         "sigma_x_um": stats(sigma_um[:, 0]),
         "sigma_y_um": stats(sigma_um[:, 1]),
-        "coverage": stats(np.asarray(measurement.coverage)) if len(measurement.coverage) else None,
+        "coverage": ({"median": float(np.median(measurement.coverage)), "min": float(np.min(measurement.coverage))}
+                     if len(measurement.coverage) else None),
         "plate_pose": {"normal": [float(v) for v in pose.normal], "centre_mm": [float(v) for v in pose.centre],
                        "flatness_rms_mm": float(pose.flatness_rms_mm)},
         "image_shape": list(measurement.image_shape),
