@@ -32,8 +32,8 @@ from gls_calibration.fiducials import measure_fiducials
 from gls_calibration.kinematics import inverse
 from gls_calibration.physical_model import train_physics_then_rbf
 from gls_calibration.plate_pose import estimate_plate_pose
-from gls_calibration.procedure import ProcedureSettings, align_in_plane, true_fiducial_centres
-from gls_calibration.registration import deviation_metrics, pair_with_targets
+from gls_calibration.procedure import ProcedureSettings, true_fiducial_centres
+from gls_calibration.registration import align_rigid_2d, deviation_metrics, pair_with_targets
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 from gls_calibration.targets import grid_targets, rings_polylines
 
@@ -76,7 +76,7 @@ def measure_deviations(cell: SimulatedCell, grid_xy: np.ndarray) -> tuple[np.nda
     measured = pairing.transform.apply(centres_gls[pairing.measured_index])
     paired = grid_xy[pairing.target_index]
     true_centres = true_fiducial_centres(landed, len(RADII_MM))[:, :2]
-    true_deviations = grid_xy - align_in_plane(true_centres, grid_xy)
+    true_deviations = grid_xy - align_rigid_2d(true_centres, grid_xy)[1]
     return paired, measured[:, :2], true_deviations[pairing.target_index], plane
 
 
@@ -88,7 +88,7 @@ def true_validation(cell: SimulatedCell, correction: Correction, plane: PlatePla
         setpoints = correction.correct(ring[:, 0], ring[:, 1], plane.z(ring[:, 0], ring[:, 1]))
         landed.append(cell.head.mark(setpoints.alpha_x, setpoints.alpha_y))
     centres = true_fiducial_centres(landed, len(RADII_MM))[:, :2]
-    return deviation_metrics(VALIDATION, VALIDATION - align_in_plane(centres, VALIDATION), (None, 150.0))
+    return deviation_metrics(VALIDATION, VALIDATION - align_rigid_2d(centres, VALIDATION)[1], (None, 150.0))
 
 
 def rms(vectors: np.ndarray) -> float:
