@@ -42,14 +42,18 @@ from gls_calibration.discrepancy.fitting import fit_effects, physical_prediction
 from gls_calibration.discrepancy.observability import ObservabilityReport, observability_report
 from gls_calibration.discrepancy.residual_statistics import (
     MIN_POINTS, estimate_noise_floor, locate_residual, structure_test)
+from gls_calibration.discrepancy.noise_floor import NOISE_SOURCES, average_repeats
 from gls_calibration.discrepancy.results import (
-    CandidateScore, DiscrepancyResult, EffectsFit, EffectStep, NoiseFloor, ResidualLocation, StructureTest)
+    CandidateScore, DiscrepancyResult, EffectsFit, EffectStep, FloorEvidence, Implausible, NoiseFloor, Outlier,
+    ResidualLocation, StructureTest, Verdict)
 from gls_calibration.discrepancy.selection import CRITERIA, RIGID_NOTE, explain
+from gls_calibration.discrepancy.verdict import verdict_lines
 from gls_calibration.registration import RigidAlignment2D, align_rigid_2d
 
 __all__ = [
-    "CRITERIA", "MIN_POINTS", "RIGID_NOTE", "CandidateScore", "DiscrepancyResult", "EffectStep", "EffectsFit",
-    "NoiseFloor", "ObservabilityReport", "ResidualLocation", "RigidAlignment2D", "StructureTest", "align_rigid_2d",
-    "estimate_noise_floor", "explain", "fit_effects", "locate_residual", "observability_report",
-    "physical_prediction", "structure_test",
+    "CRITERIA", "MIN_POINTS", "NOISE_SOURCES", "RIGID_NOTE", "CandidateScore", "DiscrepancyResult", "EffectStep",
+    "EffectsFit", "FloorEvidence", "Implausible", "NoiseFloor", "ObservabilityReport", "Outlier", "ResidualLocation",
+    "RigidAlignment2D", "StructureTest", "Verdict", "align_rigid_2d", "average_repeats", "estimate_noise_floor",
+    "explain", "fit_effects", "locate_residual", "observability_report", "physical_prediction", "structure_test",
+    "verdict_lines",
 ]

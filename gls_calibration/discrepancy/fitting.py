@@ -9,6 +9,7 @@ rotation or translation of the measured frame. Unknowns are measured in their ty
 """
 from __future__ import annotations
 
+from types import MappingProxyType
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -16,7 +17,7 @@ from scipy import optimize
 
 from gls_calibration.discrepancy.residual_statistics import MIN_POINTS, estimate_noise_floor
 from gls_calibration.discrepancy.results import DiscrepancyResult, EffectsFit
-from gls_calibration.effect_table import EFFECT_TABLE
+from gls_calibration.effect_table import EFFECT_TABLE, EffectContext, EffectSpec, UserEffect
 from gls_calibration.kinematics import HeadGeometry, inverse
 from gls_calibration.optics import HeadEffects, PhysicalHead
 from gls_calibration.registration import RigidAlignment2D, align_rigid_2d
@@ -24,25 +25,54 @@ from gls_calibration.validation import as_finite_array, as_points
 
 
 class Predictor:
-    """Landing (N, 2) of the commanded targets for given effects; commands go through the nominal model."""
+    """Landing (N, 2) of the commanded targets for given effects; commands go through the nominal model.
 
-    def __init__(self, geometry: HeadGeometry, commanded_xy: np.ndarray, t: np.ndarray | None) -> None:
+    Library effects go through the ray trace; user effects (:class:`gls_calibration.effect_table.UserEffect`)
+    add their in-plane deviation to its landing.
+    """
+
+    def __init__(self, geometry: HeadGeometry, commanded_xy: np.ndarray, t: np.ndarray | None,
+                 user_effects: Sequence[UserEffect] = ()) -> None:
         self.geometry = geometry
         self.commanded_xy = commanded_xy
         joints = inverse(geometry, commanded_xy[:, 0], commanded_xy[:, 1])
         self.alpha_x = joints.alpha_x
         self.alpha_y = joints.alpha_y
         self.t = t
+        self.user_effects = {effect.name: effect for effect in user_effects}
+        self.context = EffectContext(geometry, commanded_xy, self.alpha_x, self.alpha_y, t)
 
-    def __call__(self, effects: HeadEffects | Mapping[str, Sequence[float]]) -> np.ndarray:
-        return PhysicalHead(self.geometry, effects).land(self.alpha_x, self.alpha_y, self.t)[:, :2]
+    def spec(self, name: str) -> EffectSpec:
+        """Table entry of a library or user effect."""
+        if name in self.user_effects:
+            return self.user_effects[name].spec
+        if name not in EFFECT_TABLE:
+            known = ", ".join(list(EFFECT_TABLE) + list(self.user_effects))
+            raise ValueError(f"unknown effect {name!r}; known effects: {known}")
+        return EFFECT_TABLE[name]
+
+    def __call__(self, effects: HeadEffects | Mapping[str, Sequence[float]],
+                 user_values: Mapping[str, Sequence[float]] | None = None) -> np.ndarray:
+        landing = PhysicalHead(self.geometry, effects).land(self.alpha_x, self.alpha_y, self.t)[:, :2]
+        for name, values in (user_values or {}).items():
+            change = np.asarray(self.user_effects[name].deviation(self.context, np.asarray(values, dtype=float)),
+                                dtype=float)
+            if change.shape != landing.shape or not np.all(np.isfinite(change)):
+                raise ValueError(f"user effect {name!r} must return finite (N, 2) deviations for N = "
+                                 f"{len(landing)} points, got shape {change.shape}")
+            landing = landing + change
+        return landing
+
+    def subset(self, keep: np.ndarray) -> "Predictor":
+        """The same predictor for the points ``keep`` (a boolean mask or indices)."""
+        return Predictor(self.geometry, self.commanded_xy[keep], None if self.t is None else self.t[keep],
+                         tuple(self.user_effects.values()))
 
 
-def typical_scales(names: Sequence[str], t: np.ndarray | None) -> np.ndarray:
-    """Typical size of each parameter of ``names`` (flat, table order); per-run rates divided by the time span."""
+def typical_scales(specs: Sequence[EffectSpec], t: np.ndarray | None) -> np.ndarray:
+    """Typical size of each parameter of ``specs`` (flat, table order); per-run rates divided by the time span."""
     span = max(float(np.ptp(t)), 1.0) if t is not None and len(t) else 1.0
-    return np.array([p.typical / span if p.per_run else p.typical
-                     for name in names for p in EFFECT_TABLE[name].parameters])
+    return np.array([p.typical / span if p.per_run else p.typical for spec in specs for p in spec.parameters])
 
 
 def aligned_residual(predicted_xy: np.ndarray, measured_xy: np.ndarray) -> tuple[RigidAlignment2D, np.ndarray]:
@@ -51,21 +81,37 @@ def aligned_residual(predicted_xy: np.ndarray, measured_xy: np.ndarray) -> tuple
     return alignment, aligned - predicted_xy
 
 
-def fit(predict: Predictor, measured_xy: np.ndarray, names: Sequence[str], known: HeadEffects,
-        initial: np.ndarray, sigma_axis_mm: float) -> EffectsFit:
-    """Fit ``names`` (starting at ``initial``) on top of ``known``; covariance for ``sigma_axis_mm`` per axis."""
-    names = tuple(names)
-    scales = typical_scales(names, predict.t)
-    base = dict(known.values)
+def split_values(predict: Predictor, names: Sequence[str], vector: np.ndarray,
+                 known: HeadEffects) -> tuple[HeadEffects, dict[str, tuple[float, ...]]]:
+    """The flat vector of ``names`` as library effects (on top of ``known``) and user-effect values."""
+    library = dict(known.values)
+    user: dict[str, tuple[float, ...]] = {}
+    start = 0
+    for name in names:
+        count = len(predict.spec(name).parameters)
+        values = tuple(float(v) for v in vector[start:start + count])
+        (user if name in predict.user_effects else library)[name] = values
+        start += count
+    return HeadEffects(library), user
 
-    def model(vector: np.ndarray) -> HeadEffects:
-        values = dict(base)
-        values.update(HeadEffects.from_vector(names, vector).values)
-        return HeadEffects(values)
+
+def fit(predict: Predictor, measured_xy: np.ndarray, names: Sequence[str], known: HeadEffects,
+        initial: np.ndarray, sigma_axis_mm) -> EffectsFit:
+    """Fit ``names`` (starting at ``initial``) on top of ``known``.
+
+    ``sigma_axis_mm`` (a number or one value per point) is the per-axis noise the covariance and the
+    chi-square refer to; per-point values also weight the fit.
+    """
+    names = tuple(names)
+    specs = [predict.spec(name) for name in names]
+    scales = typical_scales(specs, predict.t)
+    sigma = np.asarray(sigma_axis_mm, dtype=float)
+    weights = None if sigma.ndim == 0 else np.repeat(1.0 / sigma, 2)   # per point, both axes
 
     def residuals(u: np.ndarray) -> np.ndarray:
-        predicted = predict(model(initial + scales * u))
-        return aligned_residual(predicted, measured_xy)[1].ravel()
+        predicted = predict(*split_values(predict, names, initial + scales * u, known))
+        flat = aligned_residual(predicted, measured_xy)[1].ravel()
+        return flat if weights is None else flat * weights
 
     if names:
         # unknowns in units of their typical size: one step size suits every parameter
@@ -74,15 +120,66 @@ def fit(predict: Predictor, measured_xy: np.ndarray, names: Sequence[str], known
         vector = initial + scales * solution.x
         # covariance in the scaled unknowns (well conditioned), then back to parameter units
         jacobian = np.atleast_2d(solution.jac)
-        covariance = sigma_axis_mm ** 2 * np.linalg.pinv(jacobian.T @ jacobian) * np.outer(scales, scales)
+        factor = float(sigma) ** 2 if weights is None else 1.0
+        covariance = factor * np.linalg.pinv(jacobian.T @ jacobian) * np.outer(scales, scales)
         success, evaluations = bool(solution.success), int(solution.nfev)
     else:
         vector, covariance, success, evaluations = np.zeros(0), np.zeros((0, 0)), True, 1
-    effects = model(vector) if names else known
-    predicted = predict(effects)
+    effects, user = split_values(predict, names, vector, known)
+    predicted = predict(effects, user)
     alignment, residual = aligned_residual(predicted, measured_xy)
-    return EffectsFit(names, vector, covariance, effects, predicted, residual, alignment,
-                      float(np.sum(residual ** 2)), success, evaluations)
+    rss = float(np.sum(residual ** 2))
+    chi2 = rss / float(sigma) ** 2 if weights is None else float(np.sum((residual.ravel() * weights) ** 2))
+    layout = MappingProxyType({spec.name: spec.parameter_names for spec in specs})
+    return EffectsFit(names, vector, covariance, effects, predicted, residual, alignment, rss, success, evaluations,
+                      MappingProxyType(user), layout, chi2)
+
+
+def implausible_values(predict: Predictor, model: EffectsFit) -> list[str]:
+    """Why ``model`` is not physically plausible: each fitted value outside its effect's plausible range."""
+    reasons = []
+    for name in model.names:
+        spec = predict.spec(name)
+        for parameter, value in zip(spec.parameters, model.parameters(name).values()):
+            if not parameter.plausible(value):
+                reasons.append(f"{name}.{parameter.name} = {value:.4g} {parameter.unit} is outside the plausible "
+                               f"range [{parameter.low:g}, {parameter.high:g}] {parameter.unit}")
+    return reasons
+
+
+def rigid_correlation(predict: Predictor, model: EffectsFit, sigma_axis_mm) -> dict[str, dict[str, float]]:
+    """Correlation of each fitted parameter with the rigid motion (rotation, translation x, y).
+
+    The fit profiles the rigid motion out; here the full Jacobian (effects and rigid motion, finite
+    differences in typical units) is inverted once at the solution. A value near +-1 means the
+    parameter is mostly a rotation or shift of the whole field.
+    """
+    if not model.names:
+        return {}
+    specs = [predict.spec(name) for name in model.names]
+    scales = typical_scales(specs, predict.t)
+    base = model.predicted_xy
+    columns = []
+    for i, scale in enumerate(scales):
+        step = np.zeros_like(model.vector)
+        step[i] = 1e-3 * scale
+        moved = predict(*split_values(predict, model.names, model.vector + step, model.effects))
+        columns.append(((moved - base) / 1e-3).ravel())
+    centred = base - base.mean(axis=0)
+    columns.append(np.column_stack([-centred[:, 1], centred[:, 0]]).ravel())      # rotation (rad)
+    columns.append(np.tile([1.0, 0.0], len(base)))                                 # translation x (mm)
+    columns.append(np.tile([0.0, 1.0], len(base)))                                 # translation y (mm)
+    jacobian = np.column_stack(columns)
+    sigma = np.asarray(sigma_axis_mm, dtype=float)
+    if sigma.ndim:
+        jacobian = jacobian / np.repeat(sigma, 2)[:, None]
+    covariance = np.linalg.pinv(jacobian.T @ jacobian)
+    deviation = np.sqrt(np.clip(np.diag(covariance), 1e-300, None))
+    correlation = covariance / np.outer(deviation, deviation)
+    labels = [f"{name}.{p}" for name in model.names for p in model.layout[name]]
+    rigid = len(labels)
+    return {label: {"rotation": float(correlation[i, rigid]), "translation_x": float(correlation[i, rigid + 1]),
+                    "translation_y": float(correlation[i, rigid + 2])} for i, label in enumerate(labels)}
 
 
 def check_inputs(commanded_xy, measured_xy, t) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -139,4 +236,4 @@ def physical_prediction(result: DiscrepancyResult, commanded_xy, t=None) -> np.n
         t = as_finite_array(t, "t", ndim=1)
         if t.shape[0] != commanded_xy.shape[0]:
             raise ValueError(f"t must hold one marking time per point ({commanded_xy.shape[0]}), got {t.shape[0]}")
-    return Predictor(result.geometry, commanded_xy, t)(result.model_effects)
+    return Predictor(result.geometry, commanded_xy, t, result.user_effects)(result.model_effects, result.user_values)

@@ -67,7 +67,7 @@ def observability_report(geometry: HeadGeometry | None = None, *, per_side: int 
     t = np.linspace(0.0, duration_s, len(targets))
     predict = Predictor(geometry, targets, t)
     base = predict(HeadEffects())
-    scales = {name: typical_scales([name], t) for name in EFFECTS}
+    scales = {name: typical_scales([spec], t) for name, spec in EFFECT_TABLE.items()}
     rows, spans = [], {}
     for name, parameters in EFFECTS.items():
         columns = []

@@ -6,7 +6,7 @@ from typing import Mapping
 
 import numpy as np
 
-from gls_calibration.effect_table import EFFECTS
+from gls_calibration.effect_table import UserEffect
 from gls_calibration.kinematics import HeadGeometry
 from gls_calibration.optics import HeadEffects
 from gls_calibration.persistence import to_plain
@@ -66,6 +66,9 @@ class EffectsFit:
     rss_mm2: float
     success: bool
     evaluations: int
+    user_values: Mapping[str, tuple[float, ...]]     # fitted user effects (not in ``effects``)
+    layout: Mapping[str, tuple[str, ...]]            # effect name -> its parameter names, in ``vector`` order
+    chi2: float                                      # sum of (residual / sigma)^2 over both axes
 
     @property
     def rms_mm(self) -> float:
@@ -75,19 +78,19 @@ class EffectsFit:
     def parameters(self, name: str) -> dict[str, float]:
         """Fitted parameters of one effect, parameter name -> value."""
         start = self._start(name)
-        return {p: float(self.vector[start + i]) for i, p in enumerate(EFFECTS[name])}
+        return {p: float(self.vector[start + i]) for i, p in enumerate(self.layout[name])}
 
     def uncertainty(self, name: str) -> dict[str, float]:
         """One-sigma uncertainty of one effect's parameters."""
         start = self._start(name)
         diagonal = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
-        return {p: float(diagonal[start + i]) for i, p in enumerate(EFFECTS[name])}
+        return {p: float(diagonal[start + i]) for i, p in enumerate(self.layout[name])}
 
     def _start(self, name: str) -> int:
         if name not in self.names:
             raise ValueError(f"effect {name!r} was not fitted; fitted: {', '.join(self.names) or 'none'}")
         index = self.names.index(name)
-        return sum(len(EFFECTS[n]) for n in self.names[:index])
+        return sum(len(self.layout[n]) for n in self.names[:index])
 
 
 @dataclass(frozen=True)
@@ -153,11 +156,19 @@ class DiscrepancyResult:
     criterion: str
     stop_reason: str
     notes: tuple[str, ...]
+    floor: FloorEvidence                       # the floor the verdict uses, and its source
+    outliers: tuple[Outlier, ...]              # excluded from every fit
+    implausible: tuple[Implausible, ...]       # fits outside the plausible ranges, not named
+    verdict: Verdict
+    rigid_correlation: Mapping[str, Mapping[str, float]]   # "effect.parameter" -> rotation/translation_x/_y
+    user_effects: tuple[UserEffect, ...]       # candidates from outside the library
+    user_values: Mapping[str, tuple[float, ...]]   # named user effects, final joint fit
+    inliers: np.ndarray                        # (N_input,) bool: the points the fits used
 
     @property
     def noise_floor_mm(self) -> float:
-        """RMS of the 2-D measurement noise estimated from the data."""
-        return self.noise.noise_floor_mm
+        """RMS of the 2-D measurement noise: independent evidence when given, else estimated from the residual."""
+        return self.floor.noise_floor_mm
 
     @property
     def gap_per_step_mm(self) -> tuple[float, ...]:
@@ -172,7 +183,19 @@ class DiscrepancyResult:
             "rms_before_mm": self.rms_before_mm,
             "rms_after_mm": self.rms_after_mm,
             "noise_floor_mm": self.noise_floor_mm,
-            "noise_sigma_axis_mm": self.noise.sigma_axis_mm,
+            "noise_floor_source": self.floor.source,
+            "noise_floor": to_plain(self.floor),
+            "noise_sigma_axis_mm": self.floor.sigma_axis_mm,
+            "residual_noise_estimate": to_plain(self.noise),
+            "verdict": self.verdict.verdict,
+            "unexplained_rms_mm": self.verdict.unexplained_rms_mm,
+            "verdict_detail": to_plain(self.verdict),
+            "outliers": [{"index": o.index, "size_mm": o.size_mm, "x_mm": o.position_mm[0], "y_mm": o.position_mm[1]}
+                         for o in self.outliers],
+            "implausible": to_plain(self.implausible),
+            "rigid_correlation": to_plain(self.rigid_correlation),
+            "user_effects": [to_plain(effect.spec) for effect in self.user_effects],
+            "user_values": to_plain(self.user_values),
             "gap_per_step_mm": list(self.gap_per_step_mm),
             "criterion": self.criterion,
             "stop_reason": self.stop_reason,
@@ -190,3 +213,46 @@ class DiscrepancyResult:
             "rigid_motion_before": to_plain(self.alignment_before),
             "rigid_motion_after": to_plain(self.alignment_after),
         }
+
+
+@dataclass(frozen=True)
+class FloorEvidence:
+    """The noise floor the verdict compares with, where it came from, and the residual's cross-check."""
+
+    source: str                    # repeats | per_point | stated | residual
+    sigma_axis_mm: float           # per-axis noise of the data the fit uses (RMS over points)
+    noise_floor_mm: float          # RMS of the 2-D noise vector, sqrt(2) * sigma_axis_mm
+    residual_estimate_mm: float    # the residual-roughness estimate of the same floor (cross-check)
+    repeats: int                   # measurements averaged per point (1 unless repeats)
+    cross_check: str               # agreement or disagreement of the two, in words
+
+
+@dataclass(frozen=True)
+class Outlier:
+    """A gross outlier excluded from every fit: its data index, size and position."""
+
+    index: int                     # index into the input points (the CLI reports the CSV data row)
+    size_mm: float                 # departure from the smooth field and from its neighbours
+    position_mm: tuple[float, float]   # commanded target, gls frame
+
+
+@dataclass(frozen=True)
+class Implausible:
+    """A candidate whose fit fell outside the physically plausible ranges: not named."""
+
+    name: str
+    parameters: Mapping[str, float]    # of the candidate, in that fit
+    why: str
+    step: int                          # 1-based step at which it was the best or a rival
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Is the gap explained by the named effects, measured against the independent floor?"""
+
+    verdict: str                   # explained | unexplained_structure
+    unexplained_rms_mm: float      # residual RMS above the floor, in quadrature
+    ratio_to_floor: float          # residual RMS / noise floor
+    chi2_p_value: float            # residual consistent with the floor (chi-square test)
+    pattern: str                   # the dominant pattern in words
+    findings: tuple[str, ...]      # further observations

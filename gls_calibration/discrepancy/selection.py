@@ -13,12 +13,16 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from gls_calibration.discrepancy.fitting import Predictor, as_effects, check_inputs, fit
+from gls_calibration.discrepancy.fitting import (
+    Predictor, aligned_residual, as_effects, check_inputs, fit, implausible_values, rigid_correlation)
+from gls_calibration.discrepancy.noise_floor import floor_evidence, independent_noise
+from gls_calibration.discrepancy.outliers import find_outliers
+from gls_calibration.discrepancy.verdict import judge
 from gls_calibration.discrepancy.residual_statistics import (
     estimate_noise_floor, locate_residual, rms, structure_test)
 from gls_calibration.discrepancy.results import (
-    CandidateScore, DiscrepancyResult, EffectsFit, EffectStep, NoiseFloor, StructureTest)
-from gls_calibration.effect_table import EFFECT_TABLE, EFFECTS
+    CandidateScore, DiscrepancyResult, EffectsFit, EffectStep, Implausible, NoiseFloor, Outlier, StructureTest)
+from gls_calibration.effect_table import EFFECTS, UserEffect, check_user_effect
 from gls_calibration.kinematics import HeadGeometry
 from gls_calibration.optics import HeadEffects
 from gls_calibration.registration import align_rigid_2d
@@ -36,7 +40,9 @@ class Selection:
     predict: Predictor
     measured_xy: np.ndarray
     known: HeadEffects
-    noise: NoiseFloor
+    noise: NoiseFloor                 # the residual-roughness estimate (structure test)
+    sigma_axis_mm: object             # sigma of the criterion: a number or one value per point
+    noise_floor_mm: float             # floor the rivals' field differences are compared with
     pool: tuple[str, ...]
     criterion: str
     name_threshold: float
@@ -50,19 +56,24 @@ class Selection:
         return 2 * len(self.measured_xy)
 
     def information(self, model: EffectsFit) -> float:
-        """Information criterion of a fit on the Gaussian likelihood with sigma = noise sigma per axis."""
+        """Information criterion of a fit on the Gaussian likelihood with the selection's sigma per axis."""
         penalty = math.log(self.observations) if self.criterion == "bic" else 2.0
         parameters = RIGID_PARAMETERS + len(model.vector)
-        return model.rss_mm2 / self.noise.sigma_axis_mm ** 2 + penalty * parameters
+        return model.chi2 + penalty * parameters
 
     def fit(self, names: Sequence[str], initial: np.ndarray) -> EffectsFit:
         """Fit ``names`` from ``initial`` on top of the known effects."""
-        return fit(self.predict, self.measured_xy, names, self.known, initial, self.noise.sigma_axis_mm)
+        return fit(self.predict, self.measured_xy, names, self.known, initial, self.sigma_axis_mm)
 
     def extend(self, model: EffectsFit, name: str) -> EffectsFit:
-        """Fit ``model``'s effects plus ``name`` (starting from the known value of ``name``)."""
-        initial = np.concatenate([model.vector, np.asarray(self.known.get(name), dtype=float)])
-        return self.fit(model.names + (name,), initial)
+        """Fit ``model``'s effects plus ``name`` (starting from the known value of ``name``, zero for user effects)."""
+        start = (np.zeros(len(self.predict.spec(name).parameters)) if name in self.predict.user_effects
+                 else np.asarray(self.known.get(name), dtype=float))
+        return self.fit(model.names + (name,), np.concatenate([model.vector, start]))
+
+    def implausible(self, model: EffectsFit) -> list[str]:
+        """Reasons ``model`` is physically implausible (empty when every value is in range)."""
+        return implausible_values(self.predict, model)
 
     def reduce(self, model: EffectsFit, keep: Sequence[str]) -> EffectsFit:
         """Refit only ``keep`` of ``model``'s effects, starting from their values in ``model``."""
@@ -87,12 +98,12 @@ def rivals(selection: Selection, best: str, model: EffectsFit, alternatives: Map
     found = []
     for name, alternative in sorted(alternatives.items(), key=lambda item: selection.information(item[1])):
         gain = base_information - selection.information(alternative)
-        if name == best or gain < selection.name_threshold:
+        if name == best or gain < selection.name_threshold or selection.implausible(alternative):
             continue
         _, moved = align_rigid_2d(alternative.predicted_xy, model.predicted_xy)
         difference = rms(moved - model.predicted_xy)
         if best_gain - gain < selection.indistinguishable_within or (
-                difference < selection.noise.noise_floor_mm and gain >= 0.5 * best_gain):
+                difference < selection.noise_floor_mm and gain >= 0.5 * best_gain):
             found.append(name)
     return found
 
@@ -121,7 +132,10 @@ def prune(selection: Selection, best: str, model: EffectsFit, notes: list[str]) 
         worsening = {}
         for name in model.names[:-1]:
             reduced = selection.reduce(model, [n for n in model.names if n != name])
-            worsening[name] = (selection.information(reduced) - selection.information(model), reduced)
+            if not selection.implausible(reduced):
+                worsening[name] = (selection.information(reduced) - selection.information(model), reduced)
+        if not worsening:
+            break
         weakest = min(worsening, key=lambda name: worsening[name][0])
         if worsening[weakest][0] >= selection.name_threshold:
             break
@@ -139,18 +153,32 @@ def rivals_after_pruning(selection: Selection, best: str, model: EffectsFit) -> 
     return rivals(selection, best, model, alternatives, selection.information(base))
 
 
-def step(selection: Selection, current: EffectsFit, dropped: set[str],
-         notes: list[str]) -> tuple[EffectStep | None, EffectsFit, str]:
-    """One forward step from ``current``: the step named (or None), the new model and, if none, why."""
+def step(selection: Selection, current: EffectsFit, dropped: set[str], notes: list[str],
+         implausible: dict[str, Implausible], number: int) -> tuple[EffectStep | None, EffectsFit, str]:
+    """One forward step from ``current``: the step named (or None), the new model and, if none, why.
+
+    A candidate whose joint fit puts any value outside its plausible range is not named; it is
+    recorded in ``implausible`` (first occurrence per effect) when it would otherwise have counted.
+    """
     remaining = [name for name in selection.pool if name not in current.names and name not in dropped]
     if not remaining:
         return None, current, "no candidate effect left"
     base_information = selection.information(current)
     fits = {name: selection.extend(current, name) for name in remaining}
     improvement = {name: base_information - selection.information(f) for name, f in fits.items()}
-    best = max(improvement, key=improvement.get)
+    plausible = {}
+    for name, candidate in fits.items():
+        reasons = selection.implausible(candidate)
+        if not reasons:
+            plausible[name] = candidate
+        elif improvement[name] >= selection.name_threshold and name not in implausible:
+            implausible[name] = Implausible(name, MappingProxyType(candidate.parameters(name)), "; ".join(reasons),
+                                            number)
+    if not plausible:
+        return None, current, "every candidate's fit is physically implausible"
+    best = max(plausible, key=improvement.get)
     if improvement[best] < selection.name_threshold:
-        return None, current, (f"no candidate improves the {selection.criterion.upper()} by "
+        return None, current, (f"no plausible candidate improves the {selection.criterion.upper()} by "
                                f"{selection.name_threshold:g} or more (best: {best}, {improvement[best]:.1f})")
     scores = score_candidates(selection, fits, improvement, fits[best])
     model, removed = prune(selection, best, fits[best], notes)
@@ -160,7 +188,7 @@ def step(selection: Selection, current: EffectsFit, dropped: set[str],
     if found:
         notes.append(f"{best} is indistinguishable from {', '.join(found)} with these data (criterion within "
                      f"{selection.indistinguishable_within:g} or landing fields within the noise floor).")
-    spec = EFFECT_TABLE[best]
+    spec = selection.predict.spec(best)
     named = EffectStep(best, MappingProxyType(model.parameters(best)), MappingProxyType(model.uncertainty(best)),
                        MappingProxyType(dict(zip(spec.parameter_names, spec.units))), tuple(found),
                        float(improvement[best]), current.rms_mm, model.rms_mm, scores, tuple(removed))
@@ -175,63 +203,107 @@ def time_follows_position(points_xy: np.ndarray, t: np.ndarray, threshold: float
     return variance > 0.0 and 1.0 - float(np.var(t - fitted)) / variance > threshold
 
 
-def candidate_pool(candidates: Sequence[str] | None, t: np.ndarray | None) -> tuple[str, ...]:
-    """The candidate effects (default: the whole table), thermal_drift left out without marking time."""
-    pool = list(EFFECTS) if candidates is None else list(candidates)
+def candidate_pool(candidates: Sequence[str] | None, t: np.ndarray | None,
+                   user_effects: Sequence[UserEffect] = ()) -> tuple[str, ...]:
+    """The candidate effects (default: the whole table and the user effects), thermal_drift left out without time."""
+    user = [effect.name for effect in user_effects]
+    if len(set(user)) != len(user):
+        raise ValueError(f"user effect names must be unique, got {user}")
+    known = list(EFFECTS) + user
+    pool = known if candidates is None else list(candidates)
     for name in pool:
-        if name not in EFFECTS:
-            raise ValueError(f"unknown effect {name!r}; known effects: {', '.join(EFFECTS)}")
+        if name not in known:
+            raise ValueError(f"unknown effect {name!r}; known effects: {', '.join(known)}")
     if t is None and "thermal_drift" in pool:
         pool.remove("thermal_drift")   # invisible without marking time
     return tuple(pool)
 
 
+def _outliers(predict: Predictor, measured_xy: np.ndarray, known: HeadEffects,
+              min_noise_mm: float) -> tuple[Outlier, ...]:
+    """Gross outliers of the residual against the known model (see :mod:`.outliers`)."""
+    _, residual = aligned_residual(predict(known), measured_xy)
+    mask, size = find_outliers(predict.commanded_xy, residual, min_sigma_mm=min_noise_mm)
+    return tuple(Outlier(int(i), float(size[i]), (float(predict.commanded_xy[i, 0]), float(predict.commanded_xy[i, 1])))
+                 for i in np.flatnonzero(mask))
+
+
 def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
             known_effects: HeadEffects | Mapping | None = None, t=None, *,
+            sigma_mm=None, user_effects: Sequence[UserEffect] = (),
             candidates: Sequence[str] | None = None, criterion: str = "bic", name_threshold: float = 10.0,
             indistinguishable_within: float = 6.0, structure_alpha: float = 1e-3, max_steps: int = 4,
-            min_noise_mm: float = 1e-4) -> DiscrepancyResult:
+            min_noise_mm: float = 1e-4, reject_outliers: bool = True) -> DiscrepancyResult:
     """Find and name the effects missing from the model that explain the measured deviations.
 
     ``commanded_xy`` (N, 2): nominal targets in the gls frame (mm); ``measured_xy`` (N, 2): measured
-    mark positions in any frame a rigid motion away (mm); ``t`` (N,): marking time (s), optional
-    (``thermal_drift`` is a candidate only with it). ``known_effects`` are already in the model and
-    stay fixed unless named again (then refitted). ``candidates`` defaults to every effect of
-    :data:`gls_calibration.effect_table.EFFECT_TABLE`. See :mod:`gls_calibration.discrepancy` for the
-    method and thresholds.
+    mark positions in any frame a rigid motion away (mm), or (R, N, 2) for R repeated measurements
+    of the same plate; ``t`` (N,): marking time (s), optional (``thermal_drift`` is a candidate only
+    with it). ``sigma_mm``: the per-axis standard uncertainty of each measured point (mm), a number
+    (stated) or one per point; with repeats it is ignored. Without repeats or ``sigma_mm`` the floor
+    is estimated from the residual and the result says so. ``known_effects`` are already in the
+    model and stay fixed unless named again (then refitted). ``user_effects`` join the candidates.
+    ``candidates`` defaults to every effect of :data:`gls_calibration.effect_table.EFFECT_TABLE` and
+    the user effects. Gross outliers are excluded from every fit and listed (``reject_outliers``).
+    See :mod:`gls_calibration.discrepancy` for the method and thresholds.
     """
-    commanded_xy, measured_xy, t = check_inputs(commanded_xy, measured_xy, t)
+    evidence = independent_noise(measured_xy, sigma_mm)
+    commanded_xy, measured, t = check_inputs(commanded_xy, evidence.measured_xy, t)
     geometry = geometry if geometry is not None else HeadGeometry()
     known = as_effects(known_effects)
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {', '.join(CRITERIA)}, got {criterion!r}")
     if max_steps < 0:
         raise ValueError(f"max_steps must be >= 0, got {max_steps}")
-    pool = candidate_pool(candidates, t)
+    for effect in user_effects:
+        check_user_effect(effect)
+    pool = candidate_pool(candidates, t, user_effects)
 
-    predict = Predictor(geometry, commanded_xy, t)
-    first = fit(predict, measured_xy, (), known, np.zeros(0), 1.0)
-    noise = estimate_noise_floor(commanded_xy, first.residual_xy, t, min_sigma_mm=min_noise_mm)
-    selection = Selection(predict, measured_xy, known, noise, pool, criterion, name_threshold,
-                          indistinguishable_within, structure_alpha, min_noise_mm)
-    structure_before = structure_test(commanded_xy, first.residual_xy, noise, t, alpha=structure_alpha,
+    full = Predictor(geometry, commanded_xy, t, user_effects)
+    outliers = _outliers(full, measured, known, min_noise_mm) if reject_outliers else ()
+    inliers = np.ones(len(commanded_xy), dtype=bool)
+    inliers[[o.index for o in outliers]] = False
+    predict = full.subset(inliers) if outliers else full
+    points, measured = predict.commanded_xy, measured[inliers]
+    t = predict.t
+    sigma_points = None if evidence.sigma_axis_mm is None else evidence.sigma_axis_mm[inliers]
+    evidence = type(evidence)(measured, sigma_points, evidence.source, evidence.repeats)
+
+    first = fit(predict, measured, (), known, np.zeros(0), 1.0)
+    noise = estimate_noise_floor(points, first.residual_xy, t, min_sigma_mm=min_noise_mm)
+    floor = floor_evidence(evidence, noise)
+    # the criterion's sigma: the independent one, never below the residual's roughness, so that structure
+    # finer than a smooth field is not taken as evidence for a library effect
+    if sigma_points is None:
+        sigma = noise.sigma_axis_mm
+    else:
+        sigma = sigma_points * max(1.0, noise.sigma_axis_mm / floor.sigma_axis_mm)
+    first = fit(predict, measured, (), known, np.zeros(0), sigma)    # its chi-square on the criterion's sigma
+    selection = Selection(predict, measured, known, noise, sigma, max(noise.noise_floor_mm, floor.noise_floor_mm),
+                          pool, criterion, name_threshold, indistinguishable_within, structure_alpha, min_noise_mm)
+    structure_before = structure_test(points, first.residual_xy, noise, t, alpha=structure_alpha,
                                       min_sigma_mm=min_noise_mm)
 
     steps: list[EffectStep] = []
     dropped: set[str] = set()
+    implausible: dict[str, Implausible] = {}
     notes = [RIGID_NOTE]
-    if t is not None and time_follows_position(commanded_xy, t):
+    if outliers:
+        notes.append(f"{len(outliers)} gross outlier(s) excluded from every fit: "
+                     + ", ".join(f"#{o.index} ({o.size_mm:.3f} mm at {o.position_mm[0]:.1f}, {o.position_mm[1]:.1f})"
+                                 for o in outliers) + ".")
+    if t is not None and time_follows_position(points, t):
         notes.append("Marking time follows the position (row-wise order): a drift growing with time looks like "
                      "a static field effect here (thermal_drift is confounded with axis_skew, the gains and "
                      "mirror_distance). Mark in a shuffled or repeated order to tell them apart.")
     stop_reason = f"reached max_steps = {max_steps}" if max_steps else "max_steps = 0"
     current, structure = first, structure_before
-    for _ in range(max_steps):
+    for number in range(1, max_steps + 1):
         if not structure.is_structure:
-            stop_reason = (f"the residual is noise (F-test p = {structure.p_value:.3g} >= {structure_alpha:g}, "
-                           f"RMS {current.rms_mm:.4f} mm vs noise floor {noise.noise_floor_mm:.4f} mm)")
+            stop_reason = (f"no smooth structure is left (F-test p = {structure.p_value:.3g} >= {structure_alpha:g}; "
+                           f"RMS {current.rms_mm:.4f} mm, {floor.source} floor {floor.noise_floor_mm:.4f} mm)")
             break
-        named, current, why = step(selection, current, dropped, notes)
+        named, current, why = step(selection, current, dropped, notes, implausible, number)
         if named is None:
             stop_reason = why
             break
@@ -240,14 +312,27 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
     structure_after = selection.structure(current)
     if not steps:
         notes.append("No missing effect named: " + stop_reason + ".")
+    if implausible:
+        notes.append("Not named, physically implausible: " + "; ".join(f"{i.name} ({i.why})" for i in implausible.values())
+                     + ".")
+    if floor.source != "residual" or "disagreement" in floor.cross_check:
+        notes.append(f"Noise floor ({floor.source}): {floor.cross_check}.")
+    else:
+        notes.append(f"Noise floor: {floor.cross_check}.")
+    location_before = locate_residual(points, first.residual_xy, t, noise=floor)
+    location_after = locate_residual(points, current.residual_xy, t, noise=floor)
+    verdict = judge(points, current.residual_xy, floor, structure_after, location_after, len(current.vector),
+                    alpha=structure_alpha)
     uncertainty = {name: tuple(current.uncertainty(name).values()) for name in current.names}
     return DiscrepancyResult(
         geometry=geometry, known_effects=known, model_effects=current.effects,
         model_uncertainty=MappingProxyType(uncertainty), named_effects=current.names, steps=tuple(steps),
         rms_before_mm=first.rms_mm, rms_after_mm=current.rms_mm, noise=noise,
         structure_before=structure_before, structure_after=structure_after,
-        location_before=locate_residual(commanded_xy, first.residual_xy, t, noise=noise),
-        location_after=locate_residual(commanded_xy, current.residual_xy, t, noise=noise),
+        location_before=location_before, location_after=location_after,
         alignment_before=first.alignment, alignment_after=current.alignment,
-        commanded_xy=commanded_xy, residual_before_xy=first.residual_xy, residual_after_xy=current.residual_xy,
-        t=t, criterion=criterion, stop_reason=stop_reason, notes=tuple(notes))
+        commanded_xy=points, residual_before_xy=first.residual_xy, residual_after_xy=current.residual_xy,
+        t=t, criterion=criterion, stop_reason=stop_reason, notes=tuple(notes),
+        floor=floor, outliers=outliers, implausible=tuple(implausible.values()), verdict=verdict,
+        rigid_correlation=MappingProxyType(rigid_correlation(predict, current, sigma)),
+        user_effects=tuple(user_effects), user_values=current.user_values, inliers=inliers)
