@@ -396,7 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="add a user effect: FUNCTION() returns a gls_calibration.effect_table.UserEffect "
                              "(repeatable)")
     parser.add_argument("--criterion", choices=("bic", "aic"), default="bic", help="information criterion (default bic)")
-    parser.add_argument("--max-steps", type=int, default=4, help="most effects to add (default 4)")
+    parser.add_argument("--max-steps", type=int, default=6, help="most effects to add (default 6)")
     return parser
 
 

@@ -6,7 +6,7 @@ that the others now explain (backward pass), and lists the candidates indistingu
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 from types import MappingProxyType
 from typing import Mapping, Sequence
@@ -41,7 +41,8 @@ class Selection:
     measured_xy: np.ndarray
     known: HeadEffects
     noise: NoiseFloor                 # the residual-roughness estimate (structure test)
-    sigma_axis_mm: object             # sigma of the criterion: a number or one value per point
+    sigma_axis_mm: object             # sigma of the fits: a number or one value per point
+    inflation: float                  # the criterion divides chi-square by inflation^2 (>= 1)
     noise_floor_mm: float             # floor the rivals' field differences are compared with
     pool: tuple[str, ...]
     criterion: str
@@ -59,7 +60,7 @@ class Selection:
         """Information criterion of a fit on the Gaussian likelihood with the selection's sigma per axis."""
         penalty = math.log(self.observations) if self.criterion == "bic" else 2.0
         parameters = RIGID_PARAMETERS + len(model.vector)
-        return model.chi2 + penalty * parameters
+        return model.chi2 / self.inflation ** 2 + penalty * parameters
 
     def fit(self, names: Sequence[str], initial: np.ndarray) -> EffectsFit:
         """Fit ``names`` from ``initial`` on top of the known effects."""
@@ -232,7 +233,7 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
             known_effects: HeadEffects | Mapping | None = None, t=None, *,
             sigma_mm=None, user_effects: Sequence[UserEffect] = (),
             candidates: Sequence[str] | None = None, criterion: str = "bic", name_threshold: float = 10.0,
-            indistinguishable_within: float = 6.0, structure_alpha: float = 1e-3, max_steps: int = 4,
+            indistinguishable_within: float = 6.0, structure_alpha: float = 1e-3, max_steps: int = 6,
             min_noise_mm: float = 1e-4, reject_outliers: bool = True) -> DiscrepancyResult:
     """Find and name the effects missing from the model that explain the measured deviations.
 
@@ -272,14 +273,13 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
     first = fit(predict, measured, (), known, np.zeros(0), 1.0)
     noise = estimate_noise_floor(points, first.residual_xy, t, min_sigma_mm=min_noise_mm)
     floor = floor_evidence(evidence, noise)
-    # the criterion's sigma: the independent one, never below the residual's roughness, so that structure
-    # finer than a smooth field is not taken as evidence for a library effect
-    if sigma_points is None:
-        sigma = noise.sigma_axis_mm
-    else:
-        sigma = sigma_points * max(1.0, noise.sigma_axis_mm / floor.sigma_axis_mm)
-    first = fit(predict, measured, (), known, np.zeros(0), sigma)    # its chi-square on the criterion's sigma
-    selection = Selection(predict, measured, known, noise, sigma, max(noise.noise_floor_mm, floor.noise_floor_mm),
+    # the criterion's sigma: the independent one, but never below the roughness of the current residual
+    # (re-estimated at every step), so that structure finer than a smooth field is not taken as evidence
+    # for a library effect; without independent evidence, the roughness of the first residual (fixed)
+    sigma = noise.sigma_axis_mm if sigma_points is None else sigma_points
+    first = fit(predict, measured, (), known, np.zeros(0), sigma)    # its chi-square on that sigma
+    selection = Selection(predict, measured, known, noise, sigma, 1.0,
+                          max(noise.noise_floor_mm, floor.noise_floor_mm),
                           pool, criterion, name_threshold, indistinguishable_within, structure_alpha, min_noise_mm)
     structure_before = structure_test(points, first.residual_xy, noise, t, alpha=structure_alpha,
                                       min_sigma_mm=min_noise_mm)
@@ -303,6 +303,10 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
             stop_reason = (f"no smooth structure is left (F-test p = {structure.p_value:.3g} >= {structure_alpha:g}; "
                            f"RMS {current.rms_mm:.4f} mm, {floor.source} floor {floor.noise_floor_mm:.4f} mm)")
             break
+        if sigma_points is not None:
+            roughness = estimate_noise_floor(points, current.residual_xy, t, fitted_parameters=len(current.vector),
+                                             min_sigma_mm=min_noise_mm).sigma_axis_mm
+            selection = replace(selection, inflation=max(1.0, roughness / floor.sigma_axis_mm))
         named, current, why = step(selection, current, dropped, notes, implausible, number)
         if named is None:
             stop_reason = why

@@ -139,7 +139,9 @@ def verdict_lines(result: DiscrepancyResult) -> list[str]:
         lines = [f"**Verdict: unexplained structure.** With {named} named, {verdict.unexplained_rms_mm:.4f} mm RMS "
                  f"remains above the {floor.source} noise floor (residual {result.rms_after_mm:.4f} mm vs floor "
                  f"{floor.noise_floor_mm:.4f} mm, {verdict.ratio_to_floor:.2f}x) that no effect of the library"
-                 + (" or the user effects" if result.user_effects else "") + " explains.",
+                 + (" or the user effects" if result.user_effects else "")
+                 + (" explains within the steps allowed (the search stopped at max_steps; more steps may explain more)."
+                    if result.stop_reason.startswith("reached max_steps") else " explains."),
                  f"Dominant pattern: {verdict.pattern}."]
     if floor.source == "residual":
         lines.append("The floor was estimated from the residual itself (no repeats, per-point sigma or stated sigma): "
