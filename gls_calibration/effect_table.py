@@ -150,12 +150,15 @@ def load_user_effect(reference: str) -> UserEffect:
         raise ValueError(f"user effect {reference!r} must be given as module:function")
     try:
         module = importlib.import_module(module_name)
-    except ImportError as error:
+    except Exception as error:   # ImportError, or the module's own failure (SyntaxError, ...)
         raise ValueError(f"user effect {reference!r}: cannot import {module_name!r}: {error}") from None
     factory = getattr(module, function_name, None)
     if not callable(factory):
         raise ValueError(f"user effect {reference!r}: {module_name} has no function {function_name!r}")
-    effect = factory()
+    try:
+        effect = factory()
+    except Exception as error:   # the engineer's code: any failure is reported as bad input
+        raise ValueError(f"user effect {reference!r}: {function_name}() failed: {error}") from None
     if not isinstance(effect, UserEffect):
         raise ValueError(f"user effect {reference!r} must return a UserEffect, got {type(effect).__name__}")
     check_user_effect(effect)

@@ -8,6 +8,7 @@ from typing import Optional
 import numpy as np
 
 from gls_calibration.correction import Correction
+from gls_calibration.discrepancy import run_verdict_lines
 from gls_calibration.procedure import CalibrationOutcome
 from gls_calibration.report import ReportData, write_report
 
@@ -63,7 +64,9 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, correction:
         true_metrics_before=first.true_metrics, true_metrics_after=validation.true_metrics if validation else None,
         correction_field=field,
         extra_lines=tuple(f"iteration {index + 1}: measured RMS {_full(run.metrics, 'rms_abs_mm'):.4f} mm"
-                          for index, run in enumerate(outcome.runs)) + (outcome.message,),
+                          for index, run in enumerate(outcome.runs)) + (outcome.message,)
+        + run_verdict_lines(first.paired_targets_xy, first.deviations,
+                            correction.geometry if correction is not None else None),
     )
     write_report(out_dir, data)
     return out_dir

@@ -46,6 +46,7 @@ from gls_calibration.discrepancy.noise_floor import NOISE_SOURCES, average_repea
 from gls_calibration.discrepancy.results import (
     CandidateScore, DiscrepancyResult, EffectsFit, EffectStep, FloorEvidence, Implausible, NoiseFloor, Outlier,
     ResidualLocation, StructureTest, Verdict)
+from gls_calibration.discrepancy.run_verdict import run_verdict_lines
 from gls_calibration.discrepancy.selection import CRITERIA, RIGID_NOTE, explain
 from gls_calibration.discrepancy.verdict import verdict_lines
 from gls_calibration.registration import RigidAlignment2D, align_rigid_2d
@@ -54,6 +55,6 @@ __all__ = [
     "CRITERIA", "MIN_POINTS", "NOISE_SOURCES", "RIGID_NOTE", "CandidateScore", "DiscrepancyResult", "EffectStep",
     "EffectsFit", "FloorEvidence", "Implausible", "NoiseFloor", "ObservabilityReport", "Outlier", "ResidualLocation",
     "RigidAlignment2D", "StructureTest", "Verdict", "align_rigid_2d", "average_repeats", "estimate_noise_floor",
-    "explain", "fit_effects", "locate_residual", "observability_report", "physical_prediction", "structure_test",
-    "verdict_lines",
+    "explain", "fit_effects", "locate_residual", "observability_report", "physical_prediction", "run_verdict_lines",
+    "structure_test", "verdict_lines",
 ]
