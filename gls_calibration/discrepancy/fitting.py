@@ -116,7 +116,7 @@ def fit(predict: Predictor, measured_xy: np.ndarray, names: Sequence[str], known
     if names:
         # unknowns in units of their typical size: one step size suits every parameter
         solution = optimize.least_squares(residuals, np.zeros(len(scales)), method="lm", diff_step=1e-5,
-                                          xtol=1e-10, ftol=1e-10)
+                                          xtol=1e-8, ftol=1e-8)
         vector = initial + scales * solution.x
         # covariance in the scaled unknowns (well conditioned), then back to parameter units
         jacobian = np.atleast_2d(solution.jac)
