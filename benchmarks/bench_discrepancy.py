@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+import resource
 import statistics
 import subprocess
 import sys
@@ -65,12 +66,13 @@ def main() -> None:
     }
     for label, (effects, times, extra, sigma) in cases.items():
         data = measured(geometry, targets, effects, times, seed=1, extra=extra)
-        durations = []
+        durations, cpu = [], []
         for _ in range(REPEATS):
-            start = time.perf_counter()
+            start, start_cpu = time.perf_counter(), time.process_time()
             result = explain(targets, data, geometry, t=times, sigma_mm=sigma)
             durations.append(time.perf_counter() - start)
-        print(f"{label:66s} median {statistics.median(durations):6.3f} s  "
+            cpu.append(time.process_time() - start_cpu)
+        print(f"{label:66s} median {statistics.median(durations):6.3f} s wall, {statistics.median(cpu):6.3f} s CPU  "
               f"named {', '.join(result.named_effects) or 'none'}; "
               f"RMS {result.rms_before_mm:.4f} -> {result.rms_after_mm:.4f} mm ({result.floor.source} floor "
               f"{result.noise_floor_mm:.4f}); {result.verdict.verdict}; {len(result.outliers)} outlier(s)")
@@ -81,17 +83,22 @@ def main() -> None:
         csv_path = Path(folder) / "marks.csv"
         csv_path.write_text("x_cmd,y_cmd,x_meas,y_meas\n" + "\n".join(
             f"{q[0]:.6f},{q[1]:.6f},{m[0]:.6f},{m[1]:.6f}" for q, m in zip(targets, data)) + "\n")
-        durations = []
+        durations, cpu = [], []
         for index in range(CLI_REPEATS):
             start = time.perf_counter()
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
             subprocess.run([str(executable), "--measured", str(csv_path), "--out", str(Path(folder) / f"out{index}"),
                             "--sigma", str(NOISE_MM)], check=True, capture_output=True)
             durations.append(time.perf_counter() - start)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
         start = time.perf_counter()
         subprocess.run([sys.executable, "-c", "import gls_calibration.cli.discrepancy"], check=True)
         startup = time.perf_counter() - start
     print(f"{'gls-discrepancy CLI, realistic case, start-up and plots included':66s} median "
-          f"{statistics.median(durations):6.3f} s (import of the CLI module alone {startup:.3f} s)")
+          f"{statistics.median(durations):6.3f} s wall, {statistics.median(cpu):6.3f} s CPU "
+          f"(import of the CLI module alone {startup:.3f} s wall)")
+    print(f"load average (2 cores shared): {', '.join(f'{v:.1f}' for v in __import__('os').getloadavg())}")
 
 
 if __name__ == "__main__":

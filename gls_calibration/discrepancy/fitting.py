@@ -125,14 +125,68 @@ def fit(predict: Predictor, measured_xy: np.ndarray, names: Sequence[str], known
         success, evaluations = bool(solution.success), int(solution.nfev)
     else:
         vector, covariance, success, evaluations = np.zeros(0), np.zeros((0, 0)), True, 1
+    return evaluate(predict, measured_xy, names, known, vector, sigma_axis_mm, covariance, success, evaluations)
+
+
+def evaluate(predict: Predictor, measured_xy: np.ndarray, names: Sequence[str], known: HeadEffects,
+             vector: np.ndarray, sigma_axis_mm, covariance: np.ndarray, success: bool = True,
+             evaluations: int = 1) -> EffectsFit:
+    """The fit record of ``names`` at ``vector`` (on top of ``known``): landing, aligned residual, chi-square."""
+    names = tuple(names)
+    sigma = np.asarray(sigma_axis_mm, dtype=float)
     effects, user = split_values(predict, names, vector, known)
     predicted = predict(effects, user)
     alignment, residual = aligned_residual(predicted, measured_xy)
     rss = float(np.sum(residual ** 2))
-    chi2 = rss / float(sigma) ** 2 if weights is None else float(np.sum((residual.ravel() * weights) ** 2))
-    layout = MappingProxyType({spec.name: spec.parameter_names for spec in specs})
+    chi2 = rss / float(sigma) ** 2 if sigma.ndim == 0 else float(np.sum((residual / sigma[:, None]) ** 2))
+    layout = MappingProxyType({name: predict.spec(name).parameter_names for name in names})
     return EffectsFit(names, vector, covariance, effects, predicted, residual, alignment, rss, success, evaluations,
                       MappingProxyType(user), layout, chi2)
+
+
+def linearised_extensions(predict: Predictor, measured_xy: np.ndarray, current: EffectsFit,
+                          candidates: Sequence[str], known: HeadEffects, sigma_axis_mm) -> dict[str, EffectsFit]:
+    """One Gauss-Newton step of ``current`` plus each candidate, evaluated exactly (``evaluations`` = 0).
+
+    Cheap screening: the Jacobian columns (finite differences of the aligned, weighted residual in
+    typical units) of the current effects are shared by all candidates. The chi-square at the step
+    is that of a real model, so the gain it shows never overstates what a full fit finds near it.
+    """
+    sigma = np.asarray(sigma_axis_mm, dtype=float)
+    weights = 1.0 / (np.full(len(measured_xy), float(sigma)) if sigma.ndim == 0 else sigma)
+
+    def flat(names: tuple[str, ...], vector: np.ndarray) -> np.ndarray:
+        predicted = predict(*split_values(predict, names, vector, known))
+        return (aligned_residual(predicted, measured_xy)[1] * weights[:, None]).ravel()
+
+    base = (current.residual_xy * weights[:, None]).ravel()
+    names = tuple(current.names)
+    scales = typical_scales([predict.spec(n) for n in names], predict.t)
+    columns = []
+    for i, scale in enumerate(scales):
+        step = np.zeros(len(scales))
+        step[i] = 1e-3 * scale
+        columns.append((flat(names, current.vector + step) - base) / 1e-3)
+    results = {}
+    for name in candidates:
+        extended = names + (name,)
+        start = (np.zeros(len(predict.spec(name).parameters)) if name in predict.user_effects
+                 else np.asarray(known.get(name), dtype=float))
+        vector0 = np.concatenate([current.vector, start])
+        own_scales = typical_scales([predict.spec(name)], predict.t)
+        own = []
+        for i, scale in enumerate(own_scales):
+            step = np.zeros(len(vector0))
+            step[len(scales) + i] = 1e-3 * scale
+            own.append((flat(extended, vector0 + step) - base) / 1e-3)
+        jacobian = np.column_stack(columns + own)
+        # the residual is measured - model: moving the model by J du changes it by J du, so solve J du = -r
+        du = np.linalg.lstsq(jacobian, -base, rcond=None)[0]
+        all_scales = np.concatenate([scales, own_scales])
+        covariance = np.linalg.pinv(jacobian.T @ jacobian) * np.outer(all_scales, all_scales)
+        results[name] = evaluate(predict, measured_xy, extended, known, vector0 + all_scales * du, sigma_axis_mm,
+                                 covariance, success=False, evaluations=0)
+    return results
 
 
 def implausible_values(predict: Predictor, model: EffectsFit) -> list[str]:

@@ -14,7 +14,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from gls_calibration.discrepancy.fitting import (
-    Predictor, aligned_residual, as_effects, check_inputs, fit, implausible_values, rigid_correlation)
+    Predictor, aligned_residual, as_effects, check_inputs, fit, implausible_values, linearised_extensions,
+    rigid_correlation)
 from gls_calibration.discrepancy.noise_floor import floor_evidence, independent_noise
 from gls_calibration.discrepancy.outliers import find_outliers
 from gls_calibration.discrepancy.verdict import judge
@@ -29,6 +30,7 @@ from gls_calibration.registration import align_rigid_2d
 
 CRITERIA = ("bic", "aic")
 RIGID_PARAMETERS = 3     # rotation and translation of the measured frame
+FULL_FITS = 5            # candidates per step fitted fully after the linearised screening
 RIGID_NOTE = ("Rotation and translation between the measured frame and the gls frame are removed by a "
               "rigid alignment: they are not observable from these data and are never named as effects.")
 
@@ -154,6 +156,24 @@ def rivals_after_pruning(selection: Selection, best: str, model: EffectsFit) -> 
     return rivals(selection, best, model, alternatives, selection.information(base))
 
 
+def screen(selection: Selection, current: EffectsFit, remaining: Sequence[str],
+           base_information: float) -> dict[str, EffectsFit]:
+    """Every remaining candidate added to ``current``: one Gauss-Newton step for all, a full fit for the
+    ``FULL_FITS`` whose step drops the chi-square most unless even that cannot pay for its parameters
+    (a drop below half its penalty). For the others the step stands: its chi-square is that of a real
+    model, so it never overstates their gain."""
+    steps = linearised_extensions(selection.predict, selection.measured_xy, current, remaining, selection.known,
+                                  selection.sigma_axis_mm)
+    penalty = math.log(selection.observations) if selection.criterion == "bic" else 2.0
+    drop = {name: (current.chi2 - steps[name].chi2) / selection.inflation ** 2 for name in remaining}
+    leaders = sorted(remaining, key=lambda name: -drop[name])[:FULL_FITS]
+    fits = {}
+    for name in remaining:
+        hopeless = drop[name] < 0.5 * penalty * len(selection.predict.spec(name).parameters)
+        fits[name] = selection.extend(current, name) if name in leaders and not hopeless else steps[name]
+    return fits
+
+
 def step(selection: Selection, current: EffectsFit, dropped: set[str], notes: list[str],
          implausible: dict[str, Implausible], number: int) -> tuple[EffectStep | None, EffectsFit, str]:
     """One forward step from ``current``: the step named (or None), the new model and, if none, why.
@@ -165,7 +185,7 @@ def step(selection: Selection, current: EffectsFit, dropped: set[str], notes: li
     if not remaining:
         return None, current, "no candidate effect left"
     base_information = selection.information(current)
-    fits = {name: selection.extend(current, name) for name in remaining}
+    fits = screen(selection, current, remaining, base_information)
     improvement = {name: base_information - selection.information(f) for name, f in fits.items()}
     plausible = {}
     for name, candidate in fits.items():
