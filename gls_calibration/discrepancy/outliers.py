@@ -4,8 +4,9 @@ A physical effect leaves a smooth residual; a local defect (a plate bump) moves 
 neighbouring points alike; a gross outlier (a mis-detected or damaged fiducial) stands alone. A
 point is an outlier when its residual departs from a robust smooth fit (polynomial of
 :mod:`.residual_statistics`, refitted without the points already flagged) by more than
-``threshold`` robust sigmas AND from the median of its nearest neighbours' departures by as much.
-Both scales are robust (1.4826 x median absolute departure), so the outliers do not set them.
+``threshold`` robust sigmas (1.4826 x median absolute departure, so the outliers do not set it)
+AND no one of its nearest neighbours departs alike (within as much): a stripe or a bump shares
+its departure with some neighbour, an outlier with none.
 """
 from __future__ import annotations
 
@@ -50,9 +51,7 @@ def find_outliers(points_xy: np.ndarray, residual_xy: np.ndarray, *, threshold: 
     size = np.hypot(*departures.T)
     if not np.any(~inliers) or count <= NEIGHBOURS:
         return np.zeros(count, dtype=bool), size
-    # the same departure at the neighbours means a local patch (structure), not an outlier
+    # a neighbour with (nearly) the same departure means structure (a bump, a stripe), not an outlier
     _, nearest = cKDTree(points_xy).query(points_xy, k=NEIGHBOURS + 1)
-    local = departures - np.median(departures[nearest[:, 1:]], axis=1)
-    local_sigma = max(_robust_sigma(local[inliers]), min_sigma_mm)
-    isolated = np.hypot(*local.T) > threshold * local_sigma
-    return ~inliers & isolated, size
+    closest = np.min(np.hypot(*(departures[:, None, :] - departures[nearest[:, 1:]]).transpose(2, 0, 1)), axis=1)
+    return ~inliers & (closest > threshold * sigma), size

@@ -18,7 +18,7 @@ from gls_calibration.discrepancy.fitting import (
     rigid_correlation)
 from gls_calibration.discrepancy.noise_floor import floor_evidence, independent_noise
 from gls_calibration.discrepancy.outliers import find_outliers
-from gls_calibration.discrepancy.verdict import judge
+from gls_calibration.discrepancy.verdict import against_floor, judge
 from gls_calibration.discrepancy.residual_statistics import (
     estimate_noise_floor, locate_residual, rms, structure_test)
 from gls_calibration.discrepancy.results import (
@@ -319,7 +319,10 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
     stop_reason = f"reached max_steps = {max_steps}" if max_steps else "max_steps = 0"
     current, structure = first, structure_before
     for number in range(1, max_steps + 1):
-        if not structure.is_structure:
+        # with independent evidence, structure that is not smooth (above the floor) is still worth a step
+        at_floor = sigma_points is None or against_floor(current.residual_xy, floor, len(current.vector),
+                                                          alpha=structure_alpha)[0]
+        if not structure.is_structure and at_floor:
             stop_reason = (f"no smooth structure is left (F-test p = {structure.p_value:.3g} >= {structure_alpha:g}; "
                            f"RMS {current.rms_mm:.4f} mm, {floor.source} floor {floor.noise_floor_mm:.4f} mm)")
             break

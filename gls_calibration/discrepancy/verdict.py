@@ -109,15 +109,21 @@ def dominant_pattern(points_xy: np.ndarray, residual_xy: np.ndarray, location: R
             "(an unmodelled noise source, or an optimistic uncertainty)")
 
 
+def against_floor(residual_xy: np.ndarray, floor: FloorEvidence, fitted_parameters: int, *,
+                  alpha: float = 1e-3) -> tuple[bool, float, float]:
+    """Is the residual consistent with the floor? (consistent, chi-square p-value, RMS / floor)."""
+    ratio = rms(residual_xy) / floor.noise_floor_mm
+    dof = max(2 * len(residual_xy) - 3 - fitted_parameters, 1)
+    chi2 = float(np.sum(residual_xy ** 2)) / floor.sigma_axis_mm ** 2
+    p_value = float(gammaincc(0.5 * dof, 0.5 * chi2))   # chi-square survival function
+    return p_value >= alpha or ratio <= CLOSE_TO_FLOOR, p_value, ratio
+
+
 def judge(points_xy: np.ndarray, residual_xy: np.ndarray, floor: FloorEvidence, structure: StructureTest,
           location: ResidualLocation, fitted_parameters: int, *, alpha: float = 1e-3) -> Verdict:
     """The verdict on the final residual against the floor."""
     residual_rms = rms(residual_xy)
-    ratio = residual_rms / floor.noise_floor_mm
-    dof = max(2 * len(points_xy) - 3 - fitted_parameters, 1)
-    chi2 = float(np.sum(residual_xy ** 2)) / floor.sigma_axis_mm ** 2
-    p_value = float(gammaincc(0.5 * dof, 0.5 * chi2))   # chi-square survival function
-    consistent = p_value >= alpha or ratio <= CLOSE_TO_FLOOR
+    consistent, p_value, ratio = against_floor(residual_xy, floor, fitted_parameters, alpha=alpha)
     unexplained = math.sqrt(max(residual_rms ** 2 - floor.noise_floor_mm ** 2, 0.0))
     findings = tuple(location.findings)
     if consistent and not structure.is_structure:
