@@ -6,28 +6,39 @@ a rigid motion away from gls, mm), the workflow
 1. predicts the landing points with the current model: the controller commands through the NOMINAL
    kinematics (``alpha = kinematics.inverse(geometry, Q)``), the head lands them as the extended
    model :class:`gls_calibration.optics.PhysicalHead` (nominal geometry plus the effects known so far)
-   says; only the in-plane x, y of the landing point are used;
+   says, plus the deviation of any user effect; only the in-plane x, y of the landing point are used;
 2. aligns the measurement rigidly to the prediction (2-D Kabsch, closed form, no scale) and takes the
    residual field ``aligned M - prediction``. Rotation and translation of the measured frame are not
    observable and are never named as effects; the alignment is re-solved inside every residual
    evaluation of every fit, so no effect can absorb them or be blamed for them;
-3. estimates the measurement noise floor from the data: a smooth polynomial field (degree <= 5 in x, y,
-   plus t, t*x, t*y when marking time is given) is fitted to the residual, and what it leaves is taken
-   as noise (unbiased with the residual degrees of freedom). The same fit gives the structure test:
-   an F-test of the smooth field against the rigid alignment alone;
-4. for every candidate effect of the library fits its parameters together with the effects already
-   named (``scipy.optimize.least_squares`` on the aligned residual) and scores it with an information
-   criterion on the Gaussian likelihood with sigma = noise floor: BIC = RSS / sigma^2 + k ln(n) (or AIC
-   with 2 k), n = 2 N observations. The best candidate is named only if it improves the criterion by at
-   least ``name_threshold`` (default 10, "very strong" on the Kass-Raftery scale). Candidates that are
-   themselves significant and either within ``indistinguishable_within`` (default 6) of the best or whose
-   fitted landing fields differ from the best's by less than the noise floor (RMS after rigid alignment)
-   are reported as indistinguishable from it;
-5. adds the best to the model and repeats until the residual is noise (F-test p >= ``structure_alpha``)
-   or no candidate is significant.
+3. lists gross outliers (a point departing from a robust smooth fit with no neighbour departing
+   alike) and leaves them out of everything that follows;
+4. takes the noise floor from independent evidence: repeated measurements (``measured`` (R, N, 2)),
+   per-point or stated ``sigma_mm``; the residual's roughness (what a smooth polynomial field, degree
+   <= 5 in x, y plus t, t*x, t*y, leaves) is only a cross-check, and the floor itself when there is
+   no evidence (the result says so). The same smooth fit gives the structure test: an F-test of the
+   smooth field against the rigid alignment alone;
+5. for every candidate effect (the table's and the user's) fits its parameters together with the
+   effects already named (one Gauss-Newton step screens them, the five best are fitted fully with
+   ``scipy.optimize.least_squares``) and scores it with an information criterion on the Gaussian
+   likelihood: BIC = chi^2 + k ln(n) (or AIC with 2 k), n = 2 N observations, chi^2 on the floor's
+   sigma, inflated by the current residual's roughness when that is larger (structure finer than a
+   smooth field is not evidence for a library effect). The best PLAUSIBLE candidate (every value of
+   the joint fit inside the table's ranges; others are listed as implausible) is named only if it
+   improves the criterion by at least ``name_threshold`` (default 10, "very strong" on the
+   Kass-Raftery scale). Candidates that are themselves significant and either within
+   ``indistinguishable_within`` (default 6) of the best or whose fitted landing fields differ from
+   the best's by less than the noise floor (RMS after rigid alignment) are reported as
+   indistinguishable from it; a backward pass drops effects named earlier that the others explain;
+6. repeats while smooth structure is left or the residual is above the independent floor, and no
+   more than ``max_steps`` times;
+7. gives the verdict (:mod:`.verdict`): ``explained`` or ``unexplained_structure`` with the RMS above
+   the floor and the dominant pattern in words. Nothing above the floor is called noise.
 
-Files: :mod:`.results` (types), :mod:`.residual_statistics` (noise floor, structure test, location),
-:mod:`.fitting` (prediction, effect fits), :mod:`.selection` (:func:`explain`), :mod:`.observability`.
+Files: :mod:`.results` (types), :mod:`.residual_statistics` (roughness, structure test, location),
+:mod:`.noise_floor` (independent evidence), :mod:`.outliers`, :mod:`.fitting` (prediction, effect
+fits, plausibility, correlation with the rigid motion), :mod:`.selection` (:func:`explain`),
+:mod:`.verdict`, :mod:`.run_verdict` (the lines of a calibration run's report), :mod:`.observability`.
 The effects, their units, typical sizes and plausible ranges come from
 :data:`gls_calibration.effect_table.EFFECT_TABLE`; the rigid alignment is
 :func:`gls_calibration.registration.align_rigid_2d`.
@@ -40,9 +51,9 @@ from __future__ import annotations
 
 from gls_calibration.discrepancy.fitting import fit_effects, physical_prediction
 from gls_calibration.discrepancy.observability import ObservabilityReport, observability_report
+from gls_calibration.discrepancy.noise_floor import NOISE_SOURCES, average_repeats
 from gls_calibration.discrepancy.residual_statistics import (
     MIN_POINTS, estimate_noise_floor, locate_residual, structure_test)
-from gls_calibration.discrepancy.noise_floor import NOISE_SOURCES, average_repeats
 from gls_calibration.discrepancy.results import (
     CandidateScore, DiscrepancyResult, EffectsFit, EffectStep, FloorEvidence, Implausible, NoiseFloor, Outlier,
     ResidualLocation, StructureTest, Verdict)

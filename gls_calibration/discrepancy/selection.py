@@ -288,7 +288,7 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
     points, measured = predict.commanded_xy, measured[inliers]
     t = predict.t
     sigma_points = None if evidence.sigma_axis_mm is None else evidence.sigma_axis_mm[inliers]
-    evidence = type(evidence)(measured, sigma_points, evidence.source, evidence.repeats)
+    evidence = replace(evidence, measured_xy=measured, sigma_axis_mm=sigma_points)
 
     first = fit(predict, measured, (), known, np.zeros(0), 1.0)
     noise = estimate_noise_floor(points, first.residual_xy, t, min_sigma_mm=min_noise_mm)
