@@ -90,7 +90,8 @@ def smooth_share(points_xy: np.ndarray, residual_xy: np.ndarray) -> float:
     return float(np.sum(fitted ** 2)) / total if total > 0.0 else 0.0
 
 
-def dominant_pattern(points_xy: np.ndarray, residual_xy: np.ndarray, location: ResidualLocation) -> str:
+def dominant_pattern(points_xy: np.ndarray, residual_xy: np.ndarray, location: ResidualLocation,
+                     structure: StructureTest) -> str:
     """The pattern that carries most of the residual, in words."""
     share, centre, radius = local_pattern(points_xy, residual_xy)
     if share >= 0.5:
@@ -103,8 +104,10 @@ def dominant_pattern(points_xy: np.ndarray, residual_xy: np.ndarray, location: R
     if location.rms_edge_mm > 1.5 * location.rms_centre_mm:
         return (f"growing with r (edge RMS {location.rms_edge_mm:.4f} mm, centre {location.rms_centre_mm:.4f} mm)")
     smooth = smooth_share(points_xy, residual_xy)
-    if smooth >= 0.5:
-        return f"a smooth field over the whole plate ({smooth:.0%} of it is a polynomial of degree <= 5)"
+    if smooth >= 0.5 or structure.is_structure:
+        return (f"a smooth field over the whole plate ({smooth:.0%} of the residual energy, "
+                f"{math.sqrt(smooth) * rms(residual_xy):.4f} mm RMS, is a polynomial of degree <= 5; "
+                f"F-test p = {structure.p_value:.2g})")
     return ("point-to-point scatter with no spatial pattern: more scatter than the floor says "
             "(an unmodelled noise source, or an optimistic uncertainty)")
 
@@ -131,7 +134,7 @@ def judge(points_xy: np.ndarray, residual_xy: np.ndarray, floor: FloorEvidence, 
                    f"{floor.noise_floor_mm:.4f} mm")
         return Verdict("explained", unexplained, ratio, p_value, pattern, findings)
     return Verdict("unexplained_structure", unexplained, ratio, p_value,
-                   dominant_pattern(points_xy, residual_xy, location), findings)
+                   dominant_pattern(points_xy, residual_xy, location, structure), findings)
 
 
 def verdict_lines(result: DiscrepancyResult) -> list[str]:
