@@ -13,7 +13,7 @@ from gls_calibration.cli.discrepancy import main
 from gls_calibration.discrepancy import run_verdict_lines
 from gls_calibration.kinematics import HeadGeometry, inverse
 from gls_calibration.optics import PhysicalHead
-from gls_calibration.registration import deviation_metrics
+from gls_calibration.outcome import deviation_metrics
 from gls_calibration.report import ReportData, write_report
 
 AXIS = np.linspace(-95.0, 95.0, 15)
@@ -32,8 +32,8 @@ def run_fiducials_csv(tmp_path, measured_xy):
     deviations = TARGETS - measured_xy
     after = 0.1 * deviations
     write_report(tmp_path / "run", ReportData(
-        targets_xy=TARGETS, deviations_before=deviations, metrics_before=deviation_metrics(TARGETS, deviations),
-        targets_after=TARGETS, deviations_after=after, metrics_after=deviation_metrics(TARGETS, after),
+        targets_xy=TARGETS, deviations_before=deviations, metrics_before=deviation_metrics(TARGETS, deviations).to_dict(),
+        targets_after=TARGETS, deviations_after=after, metrics_after=deviation_metrics(TARGETS, after).to_dict(),
         true_before=deviations))
     return tmp_path / "run" / "fiducials.csv"
 
