@@ -1,10 +1,13 @@
 """ament_python package gls_calibration.
 
 Console scripts: `pip install -e .` (make setup) puts them in the venv's bin/; an install by colcon
-puts them in lib/gls_calibration/, where `ros2 run gls_calibration <name>` looks (setup.cfg
-[install] install_scripts). The extra "test" lists pytest, which makes `colcon test` run pytest.
+puts them in lib/gls_calibration/, where `ros2 run gls_calibration <name>` looks. That option is
+given here for `setup.py install` only (what colcon runs): in setup.cfg's [install], pip's editable
+install read it too and put the venv's scripts in lib/. The extra "test" lists pytest, which makes
+`colcon test` run pytest.
 """
 from glob import glob
+import sys
 
 from setuptools import find_packages, setup
 
@@ -30,8 +33,11 @@ TOOLS = {
     "gls-measure": "measure",
 }
 
+ROS_INSTALL = {"install": {"install_scripts": f"$base/lib/{PACKAGE}"}} if "install" in sys.argv[1:] else {}
+
 setup(
     name=PACKAGE,
+    options=ROS_INSTALL,
     version="0.1.0",
     packages=find_packages(exclude=["test", "test.*"]),
     data_files=[
