@@ -298,3 +298,55 @@ def test_custom_and_agreeing_explicit_keys_are_accepted():
     assert name == "custom" and custom == MeasurementChain(lateral_linearity_mm=0.03)
     name, paper = measurement_from_mapping({"preset": "paper_like", "lateral_linearity_mm": 0.065})
     assert paper == PRESET_CHAINS["paper_like"]
+
+
+# ---------------------------------------------------------------- sweep plans: direction, orientation, reported pose
+def plan_centres(scanner_chain: MeasurementChain, direction: int, orientation: float, placement: str) -> np.ndarray:
+    scanner = LaserLineScanner(replace(QUIET, line_length_mm=LENGTH), chain=scanner_chain)
+    data = scanner.sweep_data(marked_plate(), LENGTH, seed=3, direction=direction, orientation_deg=orientation)
+    xyz = data.placed_by_pose() if placement == "pose" else data.placed_by_time()
+    pose = estimate_plate_pose(xyz, head_direction=(0.0, 0.0, -1.0))
+    found = measure_fiducials(xyz, data.intensity, pose, expected_count=9).centres[:, :2]
+    assert len(found) == 9
+    return found[np.argmin(np.linalg.norm(found[:, None, :] - CENTRES_B[None, :, :], axis=2), axis=0)]
+
+
+@pytest.mark.parametrize("direction, orientation", [(1, 0.0), (-1, 0.0), (1, 90.0), (-1, 90.0)])
+def test_every_direction_and_orientation_measures_the_plate_in_the_base_frame(direction, orientation):
+    measured = plan_centres(MeasurementChain(), direction, orientation, "time")
+    assert np.abs(measured - CENTRES_B).max() < 0.005
+
+
+def test_scanner_frame_errors_change_sign_or_axis_with_the_sweep():
+    scale = chain(speed_scale_error=2e-3)
+    forward = plan_centres(scale, 1, 0.0, "time") - CENTRES_B
+    backward = plan_centres(scale, -1, 0.0, "time") - CENTRES_B
+    # the along-sweep scale acts about each sweep's start: opposite ends for opposite directions
+    assert np.allclose(forward[:, 1], -2e-3 * CENTRES_B[:, 1], atol=0.004)
+    assert np.allclose(backward[:, 1], 2e-3 * (LENGTH - CENTRES_B[:, 1]), atol=0.004)
+    linear = chain(lateral_linearity_mm=0.065)
+    turned = plan_centres(linear, 1, 90.0, "time") - CENTRES_B
+    # turned by 90 deg, the line runs along base y: the lateral error moves y, not x
+    assert np.abs(turned[:, 0]).max() < 0.004 and np.abs(turned[:, 1]).max() > 0.02
+    for direction, orientation in ((1, 0.0), (-1, 0.0), (1, 90.0), (-1, 90.0)):
+        assert np.abs(plan_centres(scale, direction, orientation, "pose") - CENTRES_B).max() < 0.005
+
+
+def test_reported_poses_follow_the_true_travel_and_profiles_carry_them():
+    measured_chain = chain(speed_scale_error=1e-3, speed_ripple_mm=0.05, speed_ripple_correlation_mm=10.0,
+                           path_wander_mm=0.05, path_wander_correlation_mm=10.0)
+    scanner = LaserLineScanner(QUIET, chain=measured_chain)
+    data = scanner.sweep_data(Plate(FLAT), 20.0, seed=7, direction=-1, orientation_deg=90.0)
+    travel, _, _ = scanner._placement(7, 201, 0.1)
+    start = scanner.start_pose(20.0, -1, 90.0)
+    assert np.allclose(start[:3, 3], [0.0, 0.0, 0.0] + np.array([0.0, 10.0, 0.0]) + np.array([-10.0, 0.0, 0.0]))
+    # sensor y is base -x at 90 deg; moving along sensor -y means base +x
+    assert np.allclose(data.reported_poses[:, :3, 3] - start[:3, 3], np.column_stack(
+        [travel, np.zeros(201), np.zeros(201)]), atol=1e-9)
+    profiles = list(scanner.sweep(Plate(FLAT), 20.0, seed=7, direction=-1, orientation_deg=90.0))
+    assert np.allclose(profiles[50].reported_pose, data.reported_poses[50])
+    assert np.allclose(profiles[50].points["y"], -50 * 0.1, atol=1e-5)
+    with pytest.raises(ValueError, match="orientation_deg must be 0 or 90"):
+        scanner.sweep_data(Plate(FLAT), 20.0, orientation_deg=45.0)
+    with pytest.raises(ValueError, match="direction must be"):
+        scanner.sweep_data(Plate(FLAT), 20.0, direction=2)
