@@ -164,5 +164,7 @@ class Correction:
         delta_x, delta_y, inside = self.deviation(x, y)
         commanded_x, commanded_y = x + delta_x, y + delta_y
         joints = inverse(self.geometry, commanded_x, commanded_y, z)
+        # The height itself must lie in the focus range too, not only the focus shift it needs.
+        within = joints.within_limits & (np.abs(z) <= self.geometry.focus_range_mm)
         return CorrectedSetpoints(commanded_x, commanded_y, joints.alpha_x, joints.alpha_y, joints.focus_shift,
-                                  inside, joints.within_limits)
+                                  inside, within)

@@ -28,6 +28,7 @@ import math
 import os
 from pathlib import Path
 import re
+import stat
 import tempfile
 from typing import Any
 
@@ -298,18 +299,91 @@ def head_geometry(record: Mapping) -> HeadGeometry:
 
 def dump_record(record: Mapping) -> str:
     """YAML text of a record: keys in insertion order, short lists inline, floats at full precision."""
-    return yaml.safe_dump(to_plain(record), sort_keys=False, default_flow_style=None, allow_unicode=True)
+    return yaml.dump(to_plain(record), Dumper=_NoAliasDumper, sort_keys=False, default_flow_style=None,
+                     allow_unicode=True)
+
+
+class _NoAliasDumper(yaml.SafeDumper):
+    """Writes a repeated object in full: the loader refuses aliases (see _BoundedYamlLoader)."""
+
+    def ignore_aliases(self, data):  # noqa: D102 (PyYAML's hook)
+        return True
+
+
+MAX_FILE_BYTES = 4 * 1024 * 1024   # a 19x19 calibration is ~0.1 MB; bounds memory and parsing time
+MAX_YAML_DEPTH = 32                # a calibration file nests 5 levels deep
+
+
+class _BoundedYamlLoader(yaml.SafeLoader):
+    """SafeLoader that refuses aliases (an alias bomb expands exponentially) and deep nesting
+    (the composer recurses once per level)."""
+
+    # The scanner looks ahead over every open flow level and block indent (quadratic), so nesting
+    # is bounded there already, before the composer's recursion.
+    def fetch_flow_collection_start(self, token_class):  # noqa: D102 (PyYAML's hook)
+        if self.flow_level >= MAX_YAML_DEPTH:
+            raise yaml.scanner.ScannerError(None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", self.get_mark())
+        super().fetch_flow_collection_start(token_class)
+
+    def add_indent(self, column):  # noqa: D102 (PyYAML's hook)
+        if len(self.indents) >= MAX_YAML_DEPTH:
+            raise yaml.scanner.ScannerError(None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", self.get_mark())
+        return super().add_indent(column)
+
+    def compose_node(self, parent, index):  # noqa: D102 (PyYAML's hook)
+        if self.check_event(yaml.AliasEvent):
+            raise yaml.composer.ComposerError(None, None, "aliases are not allowed", self.peek_event().start_mark)
+        depth = getattr(self, "_depth", 0) + 1
+        if depth > MAX_YAML_DEPTH:
+            raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_YAML_DEPTH} levels",
+                                              self.peek_event().start_mark)
+        self._depth = depth
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self._depth = depth - 1
+
+
+def read_bounded_text(path: str | os.PathLike, limit_bytes: int = MAX_FILE_BYTES) -> str:
+    """The text of the regular file ``path``, read with a bound; CalibrationFileError otherwise.
+
+    Devices, FIFOs and directories are refused without blocking (opened non-blocking, checked with
+    fstat on the open descriptor), and so is a file over ``limit_bytes``.
+    """
+    path = Path(path)
+    try:
+        descriptor = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except OSError as error:
+        raise CalibrationFileError(path, f"cannot read file: {error.strerror or error}") from None
+    try:
+        status = os.fstat(descriptor)
+        if not stat.S_ISREG(status.st_mode):
+            raise CalibrationFileError(path, "not a regular file")
+        if status.st_size > limit_bytes:
+            raise CalibrationFileError(path, f"file of {status.st_size} bytes is over the limit of {limit_bytes}")
+        with os.fdopen(descriptor, "rb", closefd=False) as handle:
+            data = handle.read(limit_bytes + 1)
+    except OSError as error:
+        raise CalibrationFileError(path, f"cannot read file: {error.strerror or error}") from None
+    finally:
+        os.close(descriptor)
+    if len(data) > limit_bytes:
+        raise CalibrationFileError(path, f"file grew over the limit of {limit_bytes} bytes while read")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise CalibrationFileError(path, f"cannot read file: {error}") from None
 
 
 def _read_yaml(path: Path) -> Any:
-    """Parse a YAML file, turning read and syntax errors into CalibrationFileError."""
+    """Parse a YAML file, turning read and syntax errors into CalibrationFileError.
+
+    The one place where calibration files and pointers are read: bounded size, regular files only,
+    no aliases, bounded nesting (see read_bounded_text and _BoundedYamlLoader).
+    """
+    text = read_bounded_text(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        reason = error.strerror if isinstance(error, OSError) and error.strerror else str(error)
-        raise CalibrationFileError(path, f"cannot read file: {reason}") from None
-    try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_BoundedYamlLoader)  # noqa: S506 (a SafeLoader subclass)
     except yaml.YAMLError as error:
         where = getattr(error, "problem_mark", None)
         location = f" at line {where.line + 1}, column {where.column + 1}" if where is not None else ""
@@ -403,8 +477,20 @@ class CalibrationStore:
         return sorted(entries, key=lambda path: (int(_HISTORY_NAME.match(path.name).group(2)), path.name))
 
     def load(self, path: str | os.PathLike) -> dict:
-        """Read and validate one calibration file (relative paths are taken inside the history)."""
+        """Read and validate one calibration file of this store (relative paths are taken inside the
+        history); a path that leads outside the store's directory, even through a symlink, is refused."""
+        return load_record(self.confined(path))
+
+    def confined(self, path: str | os.PathLike) -> Path:
+        """``path`` (relative: inside the history) once resolved inside the store's directory;
+        CalibrationFileError when it leads outside (``..``, absolute paths elsewhere, symlinks)."""
         path = Path(path)
-        if not path.is_absolute() and not path.exists():
+        if not path.is_absolute():
             path = self.history_directory / path
-        return load_record(path)
+        try:
+            resolved = path.resolve(strict=True)
+        except (OSError, RuntimeError) as error:  # missing, or a symlink loop
+            raise CalibrationFileError(path, f"cannot read file: {getattr(error, 'strerror', None) or error}") from None
+        if not resolved.is_relative_to(self.directory.resolve()):
+            raise CalibrationFileError(path, f"outside the calibration directory {self.directory}: refused")
+        return resolved

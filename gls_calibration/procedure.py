@@ -72,7 +72,24 @@ class ProcedureSettings:
     tolerance_rms_mm: float = 0.05
     min_found_fraction: float = 0.9
     default_iterations: int = 1
+    max_iterations: int = 3             # each iteration marks and measures a fresh plate
     validation_offset_half_pitch: bool = True
+
+    def __post_init__(self) -> None:
+        radii = np.asarray(self.ring_radii_mm, dtype=float)
+        if radii.ndim != 1 or radii.size == 0 or not np.all(np.isfinite(radii)) or np.any(radii <= 0.0) \
+                or np.any(np.diff(radii) <= 0.0):
+            raise ValueError(f"ring_radii_mm must be one or more positive finite radii in increasing order, "
+                             f"got {list(self.ring_radii_mm)}")
+        if not 1 <= self.default_iterations <= self.max_iterations:
+            raise ValueError(f"default_iterations must be between 1 and max_iterations ({self.max_iterations}), "
+                             f"got {self.default_iterations}")
+
+    def iterations_problem(self, iterations: int) -> str:
+        """Why a requested iteration count (0: the default) is refused; empty string when it is fine."""
+        if iterations == 0 or 1 <= iterations <= self.max_iterations:
+            return ""
+        return f"iterations must be 0 (the default, {self.default_iterations}) or 1 to {self.max_iterations}, got {iterations}"
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,32 @@ class SweepMotion:
             raise ValueError(f"sweep speed must be positive, got {self.speed_mm_s} mm/s")
 
 
+def profile_problem(stamp_s: float, profile: np.ndarray) -> str:
+    """Why one profile cannot be part of a sweep (empty string when it can).
+
+    Each of x, y, z, intensity must be one number per point (count 1); the stamp must be finite and
+    not negative; the coordinates must not be infinite, and at least one point must be finite (a
+    missing return is a NaN point, a profile of NaN points carries nothing).
+    """
+    if not np.isfinite(stamp_s) or stamp_s < 0.0:
+        return f"profile stamp {stamp_s!r} s is not a finite non-negative time"
+    names = profile.dtype.names or ()
+    missing = [name for name in XYZI_FIELDS if name not in names]
+    if missing:
+        return f"profile has no field {', '.join(missing)} (fields: {', '.join(names) or 'none'})"
+    for name in XYZI_FIELDS:
+        if profile.dtype[name].shape != ():
+            return f"profile field {name} has count {int(np.prod(profile.dtype[name].shape))}; 1 is expected"
+    if profile.size == 0:
+        return "profile has no points"
+    coordinates = np.stack([np.asarray(profile[name], dtype=np.float64).reshape(-1) for name in ("x", "y", "z")])
+    if np.isinf(coordinates).any():
+        return "profile has infinite coordinates"
+    if not np.isfinite(coordinates).all(axis=0).any():
+        return "profile has no finite point"
+    return ""
+
+
 class SweepCollector:
     """Collects the profiles of one sweep with a bound on their number (bounded memory)."""
 
@@ -45,7 +71,13 @@ class SweepCollector:
         return len(self._profiles)
 
     def add(self, stamp_s: float, profile: np.ndarray) -> bool:
-        """Keep a copy of one profile (structured x, y, z, intensity); False when over a bound."""
+        """Keep a copy of one profile (structured x, y, z, intensity); False when over a bound.
+
+        ValueError (nothing kept) for a profile that cannot be placed: see :func:`profile_problem`.
+        """
+        problem = profile_problem(stamp_s, profile)
+        if problem:
+            raise ValueError(problem)
         if len(self._profiles) >= self.max_profiles or profile.size > self.max_points:
             self.dropped += 1
             return False

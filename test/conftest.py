@@ -28,6 +28,8 @@ if "ROS_DOMAIN_ID" not in os.environ:
     # Not a data draw: isolation only, so deliberately unseeded (different for concurrent sessions).
     os.environ["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 100))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+from gls_calibration.nodes.base import use_fast_liveliness  # noqa: E402
+use_fast_liveliness()  # as every node process does: a killed node leaves the graph within 1.5 s
 
 import rclpy  # noqa: E402  (after the environment is set)
 from rclpy.context import Context  # noqa: E402

@@ -18,7 +18,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
 from gls_calibration.config_files import config_path
-from gls_calibration.nodes.base import NodeThreads
+from gls_calibration.nodes.base import NodeThreads, use_fast_liveliness
 from gls_calibration.persistence import atomic_write_text
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
@@ -97,6 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     # Every run is a new simulated cell, so it starts with an empty calibration store; --serve keeps
     # its store in the output folder so that successive external calibrations compose.
     store = args.out / "calibrations" if args.serve else Path(tempfile.mkdtemp(prefix="gls-sim-store-"))
+    use_fast_liveliness()
     context = rclpy.Context()
     rclpy.init(args=ros_arguments(args, store, args.out), context=context)
     namespace = args.namespace or ("gls" if args.serve else f"gls_sim_{os.getpid()}")

@@ -14,9 +14,10 @@ from typing import Optional
 import numpy as np
 from std_srvs.srv import Trigger
 
-from gls_calibration import conversions, discrepancy, procedure
+from gls_calibration import conversions, discrepancy, kinematics, procedure
+from gls_calibration.nodes.deadlines import declare_deadlines
 from gls_calibration.calibration_record import build_record, correction_from_record, record_fiducials, record_models
-from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
+from gls_calibration.nodes.base import SERVER_WAIT_S, GlsNode, ServiceCallError, run_node
 from gls_calibration.nodes.head_parameters import declare_head_geometry, declare_scanner_to_gls
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.report import json_safe
@@ -27,13 +28,16 @@ from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints,
                                       MarkPolylines, MeasureFiducials, TrainCorrection)
 
 
+RESTORE_SERVER_WAIT_S = 1.0
+
+
 class ServiceCell:
     """The procedure's Cell, reached through the services of the other nodes."""
 
     def __init__(self, node: "CalibrationManager") -> None:
         self.node = node
         self.timeout_s = node.service_timeout_s
-        self.sweep_timeout_s = node.sweep_timeout_s
+        self.deadlines = node.deadlines
         self.acquire = node.client(AcquireSweep, "scan/acquire")
         self.pose = node.client(EstimatePlatePose, "plate_pose/estimate")
         self.fiducials = node.client(MeasureFiducials, "fiducials/measure")
@@ -44,15 +48,22 @@ class ServiceCell:
         self.exchange = node.client(Trigger, node.plate_exchange_service) if node.plate_exchange_service else None
         self.truth = node.client(GetMarkedPaths, node.ground_truth_service) if node.ground_truth_service else None
 
-    async def _checked(self, client, request, timeout_s: Optional[float] = None):
-        response = await self.node.call(client, request, timeout_s or self.timeout_s)
+    async def _checked(self, client, request, timeout_s: Optional[float] = None, *, idempotent: bool = True):
+        # Only a request that may safely be served twice is sent again (not a sweep, a marking job
+        # or a plate exchange).
+        response = await self.node.call(client, request, timeout_s or self.timeout_s,
+                                        resend_after_s=self.node.resend_after_s if idempotent else None)
         if not response.success:
             raise procedure.CalibrationError(f"{client.srv_name}: {response.message}")
         return response
 
     async def acquire_sweep(self, step_mm: float):
-        request = AcquireSweep.Request(timeout_s=self.sweep_timeout_s, step_mm=step_mm)
-        response = await self._checked(self.acquire, request, self.sweep_timeout_s + self.timeout_s)
+        deadlines = self.deadlines
+        sweep_s = deadlines.sweep_s()
+        request = AcquireSweep.Request(timeout_s=sweep_s, length_mm=deadlines.sweep_length_mm,
+                                       speed_mm_s=deadlines.sweep_speed_mm_s, step_mm=step_mm)
+        # scan_acquisition gives up at sweep_s and answers; the margin is for that answer.
+        response = await self._checked(self.acquire, request, sweep_s + deadlines.margin_s, idempotent=False)
         return response.cloud  # forwarded as it came: the processing nodes convert it themselves
 
     async def estimate_plate_pose(self, cloud):
@@ -73,7 +84,9 @@ class ServiceCell:
     async def mark(self, alpha_x, alpha_y, focus_shift, polyline_starts):
         request = MarkPolylines.Request(alpha_x=alpha_x, alpha_y=alpha_y, focus_shift=focus_shift,
                                         polyline_starts=np.asarray(polyline_starts, dtype=np.uint32))
-        response = await self._checked(self.galvo, request, self.node.marking_timeout_s)
+        xy = np.column_stack(kinematics.forward(self.node.geometry, request.alpha_x, request.alpha_y))
+        response = await self._checked(self.galvo, request, self.deadlines.marking_s(xy, polyline_starts),
+                                       idempotent=False)
         return response.duration_s
 
     async def train(self, measured_xy, corrections):
@@ -83,15 +96,18 @@ class ServiceCell:
         response = await self._checked(self.trainer, request)
         return conversions.trained_model_from_response(response)
 
-    async def load_calibration(self, path: str) -> None:
-        await self._checked(self.loader, LoadCalibration.Request(file=path))
+    async def load_calibration(self, path: str, server_wait_s: float = SERVER_WAIT_S) -> None:
+        response = await self.node.call(self.loader, LoadCalibration.Request(file=path), self.timeout_s,
+                                        server_wait_s=server_wait_s, resend_after_s=self.node.resend_after_s)
+        if not response.success:
+            raise procedure.CalibrationError(f"{self.loader.srv_name}: {response.message}")
 
     async def exchange_plate(self) -> None:
         if self.exchange is None:
             raise procedure.CalibrationError(
                 "a fresh plate is needed (second iteration or validation) but no plate_exchange_service "
                 "is configured")
-        await self._checked(self.exchange, Trigger.Request())
+        await self._checked(self.exchange, Trigger.Request(), idempotent=False)
 
     async def true_marks(self):
         if self.truth is None:
@@ -135,14 +151,19 @@ class CalibrationManager(GlsNode):
                                             "fail when fewer fiducials than this fraction are found",
                                             minimum=0.0, maximum=1.0),
             default_iterations=self.declare("default_iterations", defaults.default_iterations,
-                                            "iterations when a request says 0", minimum=1, maximum=5),
+                                            "iterations when a request says 0", minimum=1, maximum=10),
+            max_iterations=self.declare("max_iterations", defaults.max_iterations,
+                                        "most iterations a request may ask for (each marks a fresh plate)",
+                                        minimum=1, maximum=10),
         )
-        self.service_timeout_s = self.declare("service_timeout_s", 60.0, "timeout of one service call (s)",
-                                              minimum=0.1)
-        self.sweep_timeout_s = self.declare("sweep_timeout_s", 120.0,
-                                            "give up on a sweep after this long (s)", minimum=0.1)
-        self.marking_timeout_s = self.declare("marking_timeout_s", 600.0,
-                                              "give up on a marking job after this long (s)", minimum=0.1)
+        self.service_timeout_s = self.declare(
+            "service_timeout_s", 60.0, "time limit of one call to a processing node (plate pose, fiducials, "
+            "training, correction) (s)", minimum=0.1, maximum=3600.0)
+        self.deadlines = declare_deadlines(self)
+        self.resend_after_s = self.declare(
+            "resend_after_s", 15.0, "send an idempotent request (correction, plate pose, fiducials, training) "
+            "again when unanswered this long: a server that has just started may drop its first answers (s)",
+            minimum=1.0, maximum=3600.0)
         self.plate_exchange_service = self.declare(
             "plate_exchange_service", "", "Trigger service that loads a fresh plate (empty: none)")
         self.ground_truth_service = self.declare(
@@ -171,6 +192,10 @@ class CalibrationManager(GlsNode):
         if self._running:
             response.success = False
             response.message = "a calibration is already running; request refused"
+            return response
+        problem = self.settings.iterations_problem(request.iterations)
+        if problem:
+            response.success, response.message = False, f"request refused: {problem}"
             return response
         self._running = True
         began = time.monotonic()
@@ -229,8 +254,10 @@ class CalibrationManager(GlsNode):
         response.message = outcome.message
 
     async def _restore_active(self) -> None:
+        # A correction node that is not there loads the active calibration itself when it starts:
+        # waiting long for it would only keep the failed run's caller waiting.
         try:
-            await self.cell.load_calibration("")
+            await self.cell.load_calibration("", server_wait_s=RESTORE_SERVER_WAIT_S)
         except (procedure.CalibrationError, ServiceCallError) as error:
             self.get_logger().error(f"could not restore the active calibration in the correction node: {error}")
 

@@ -33,6 +33,8 @@ class RbfTrainerNode(GlsNode):
             "physics_first", False,
             "fit the named physical effects first and the RBF on what they leave (needs deviations of a "
             "plate marked through the nominal model)")
+        self.max_points = self.declare("max_points", 5000, "most training points of one request",
+                                       minimum=3, maximum=100_000)
         self.geometry = declare_head_geometry(self)
         self.create_service(TrainCorrection, "rbf/train", self.on_train)
 
@@ -41,6 +43,9 @@ class RbfTrainerNode(GlsNode):
         try:
             if len(request.x) != len(request.y) or len(request.dx) != len(request.dy):
                 raise ValueError("x and y, and dx and dy, must have the same lengths")
+            if len(request.x) > self.max_points:
+                raise ValueError(f"{len(request.x)} points refused: at most {self.max_points} (parameter "
+                                 "max_points; the model selection needs memory growing with its square)")
             landed, corrections = as_matching_points(
                 np.column_stack([request.x, request.y]), np.column_stack([request.dx, request.dy]),
                 "landed points (x, y)", "corrections (dx, dy)", 2)

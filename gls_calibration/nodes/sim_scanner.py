@@ -7,6 +7,7 @@ profile was taken), then ``scan/sweep_done``. The plate's marks come from the si
 """
 from __future__ import annotations
 
+import math
 from typing import Iterator, Optional
 
 import numpy as np
@@ -31,6 +32,8 @@ class SimScannerNode(GlsNode):
         super().__init__("sim_scanner", **kwargs)
         self.config = declare_sim_config(self)
         self.batch = self.declare("profiles_per_tick", 50, "profiles published per timer tick", minimum=1)
+        self.max_profiles = self.declare("max_profiles", 20000, "most profiles of one sweep", minimum=1,
+                                         maximum=1_000_000)
         depth = self.declare("queue_depth", 4000, "profiles the reliable publisher keeps for slow subscribers",
                              minimum=1)
         self.scanner = LaserLineScanner(self.config.scanner, self.config.scanner_to_gls, self.config.mounting_error)
@@ -57,8 +60,11 @@ class SimScannerNode(GlsNode):
         try:
             profiles, speed, step = self.scanner.sweep_parameters(length, request.speed_mm_s or None,
                                                                   request.step_mm or None)
-        except ValueError as error:
-            response.success, response.message = False, str(error)
+            if profiles > self.max_profiles or not math.isfinite(speed):
+                raise ValueError(f"a sweep of {length:g} mm at {speed:g} mm/s every {step:g} mm is refused: "
+                                 f"at most {self.max_profiles} profiles (parameter max_profiles) at a finite speed")
+        except (ValueError, OverflowError) as error:
+            response.success, response.message = False, f"request refused: {error}"
             return response
         try:
             await self._load_marks()
