@@ -275,7 +275,7 @@ def test_sim_galvo_refuses_bad_commands_and_then_marks(ros_context, add_node, cl
 # --- the manager: calibrate and explain_deviations ------------------------------------------------------------
 
 def test_manager_refuses_bad_requests_and_hostile_files_and_then_serves(start_cell, tmp_path):
-    cell = start_cell(grid=3, parameters={"sweep.plain_repeats": 1})
+    cell = start_cell(grid=4, parameters={"sweep.plain_repeats": 1})   # explain needs >= 10 fiducials
     for iterations in (255, 4):
         refused = cell.call(Calibrate, "calibrate", Calibrate.Request(iterations=iterations), TIMEOUT_S)
         assert not refused.success
