@@ -69,6 +69,7 @@ def atomic_write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8
     A new file gets mode 0644; an existing target keeps its mode.
     """
     path = Path(path)
+    require_regular_output(path)
     directory = path.parent
     mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
     handle = tempfile.NamedTemporaryFile(
@@ -86,6 +87,17 @@ def atomic_write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8
             os.unlink(handle.name)
         raise
     _fsync_directory(directory)
+
+
+def require_regular_output(path: str | os.PathLike) -> None:
+    """ValueError unless ``path`` may be written as a regular file: absent, or a regular file
+    (a device, FIFO, directory or a symlink to one is refused: renaming onto it would replace it)."""
+    path = Path(path)
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        kind = "a symlink" if path.is_symlink() else "not a regular file"
+        raise ValueError(f"output {path} is {kind}: refused (outputs are written as regular files only)")
+    if not path.parent.is_dir():
+        raise ValueError(f"output {path}: folder {path.parent} does not exist")
 
 
 def _fsync_directory(directory: Path) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
+from pathlib import Path
 import time
 from typing import Any, Callable, Optional, Protocol
 
@@ -17,7 +18,9 @@ import numpy as np
 from gls_calibration import targets as grid
 from gls_calibration.correction import CorrectedSetpoints
 from gls_calibration.fiducials import FiducialMeasurement
+from gls_calibration.plate_marks import existing_marks
 from gls_calibration.plate_pose import PlatePose, mean_plate_pose
+from gls_calibration.validation import as_positive_number
 from gls_calibration.registration import RigidTransform, deviation_metrics, fit_rigid, pair_with_targets
 
 
@@ -56,6 +59,8 @@ class Cell(Protocol):
     async def exchange_plate(self) -> None: ...
     async def true_marks(self) -> Optional[list[np.ndarray]]:
         """Simulation only: the polylines really marked on the current plate (gls, mm), in order."""
+    def intensities(self, cloud: Any) -> np.ndarray:
+        """The intensity of every point of a cloud from ``acquire_sweep`` (NaN: no return)."""
 
 
 @dataclass(frozen=True)
@@ -74,6 +79,11 @@ class ProcedureSettings:
     default_iterations: int = 1
     max_iterations: int = 3             # each iteration marks and measures a fresh plate
     validation_offset_half_pitch: bool = True
+    mark_check_sigmas: float = 6.0      # plain-plate points this far outside the texture look like marks...
+    max_outlying_points: int = 10       # ...and more of them than this mean the plate is not clean
+    measurement_uncertainty_mm: float = 0.005   # of one fiducial centre (3-4 um RMS measured against the truth)
+    max_cv_factor: float = 20.0         # a CV RMS above this many uncertainties...
+    max_cv_fraction: float = 0.5        # ...and above this fraction of the deviations' RMS: the model explains little
 
     def __post_init__(self) -> None:
         radii = np.asarray(self.ring_radii_mm, dtype=float)
@@ -81,6 +91,10 @@ class ProcedureSettings:
                 or np.any(np.diff(radii) <= 0.0):
             raise ValueError(f"ring_radii_mm must be one or more positive finite radii in increasing order, "
                              f"got {list(self.ring_radii_mm)}")
+        for name in ("mark_check_sigmas", "measurement_uncertainty_mm", "max_cv_factor", "max_cv_fraction"):
+            as_positive_number(getattr(self, name), name)
+        if self.max_outlying_points < 0:
+            raise ValueError(f"max_outlying_points must not be negative, got {self.max_outlying_points}")
         if not 1 <= self.default_iterations <= self.max_iterations:
             raise ValueError(f"default_iterations must be between 1 and max_iterations ({self.max_iterations}), "
                              f"got {self.default_iterations}")
@@ -149,9 +163,55 @@ def true_fiducial_centres(ring_marks: list[np.ndarray], rings_per_fiducial: int)
 Progress = Callable[[str, float, str], None]
 
 
+def check_clean_plate(intensity: np.ndarray, settings: ProcedureSettings) -> None:
+    """CalibrationError when the plain-plate sweep shows marks beyond the plate's texture."""
+    evidence = existing_marks(intensity, settings.mark_check_sigmas)
+    if evidence.marked(settings.max_outlying_points):
+        raise CalibrationError(
+            f"the plate already carries marks: {evidence.outlying_points} of {evidence.finite_points} points of "
+            f"the plain-plate sweep lie beyond {evidence.sigmas:g} sigma of its texture (at most "
+            f"{settings.max_outlying_points} allowed); exchange the plate, or give a plate region that avoids "
+            "the old marks (force marks over them anyway)")
+
+
+def check_model_explains(model: "TrainedModel", deviation_rms_mm: float, settings: ProcedureSettings) -> None:
+    """CalibrationError when the model cannot explain the measurement: its cross-validated error is
+    far above the measurement's uncertainty and a large part of the deviations it was trained on.
+
+    Both, because a sparse grid (3x3) leaves a CV error of ~0.6 mm on a 1.5 mm field and still
+    helps, while new marks measured among old ones (the issue's case) leave 0.25 mm of 0.34 mm.
+    """
+    limit = max(settings.max_cv_factor * settings.measurement_uncertainty_mm,
+                settings.max_cv_fraction * deviation_rms_mm)
+    if not model.cv_rms_mm <= limit:
+        raise CalibrationError(
+            f"the model cannot explain the measurement: CV RMS {model.cv_rms_mm:.4f} mm is over "
+            f"{settings.max_cv_factor:g} x the per-fiducial uncertainty ({settings.measurement_uncertainty_mm:g} mm) "
+            f"and over {settings.max_cv_fraction:g} x the deviations' RMS ({deviation_rms_mm:.4f} mm); old marks "
+            "or ambiguous pairings? Nothing activated")
+
+
+def acceptance_problem(before_rms_mm: float, after_rms_mm: float, settings: ProcedureSettings) -> str:
+    """Why a validated candidate must not replace the calibration in use (empty string: accept it).
+
+    ``before_rms_mm``: the first plate of the run, marked through the calibration in use; ``after``:
+    the validation plate, marked through the candidate; both measured the same way.
+    """
+    margin = settings.measurement_uncertainty_mm
+    if after_rms_mm + margin < before_rms_mm:
+        return ""
+    return (f"candidate rejected: validation {after_rms_mm:.4f} mm RMS is not better than the calibration in use "
+            f"({before_rms_mm:.4f} mm RMS on this run's first plate) by more than the measurement uncertainty "
+            f"{margin:g} mm")
+
+
 async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray, progress: Progress,
-                    span: tuple[float, float], want_truth: bool) -> PlateRun:
-    """Scan the plain plate, mark ``grid_xy`` through the active correction, scan, measure, pair."""
+                    span: tuple[float, float], want_truth: bool, allow_marked: bool = False) -> PlateRun:
+    """Scan the plain plate, mark ``grid_xy`` through the active correction, scan, measure, pair.
+
+    The plain plate must be clean (see ``plate_marks``) unless ``allow_marked``: measuring new
+    marks among old ones pairs the wrong rings.
+    """
     start, width = span
 
     def report(stage: str, part: float, text: str) -> None:
@@ -161,7 +221,10 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
     for repeat in range(settings.plain_sweeps):
         report("sweep_plain", 0.1 * repeat / settings.plain_sweeps,
                f"scanning the plain plate ({repeat + 1} of {settings.plain_sweeps})")
-        poses.append(await cell.estimate_plate_pose(await cell.acquire_sweep(settings.plain_sweep_step_mm)))
+        cloud = await cell.acquire_sweep(settings.plain_sweep_step_mm)
+        if repeat == 0 and not allow_marked:
+            check_clean_plate(cell.intensities(cloud), settings)
+        poses.append(await cell.estimate_plate_pose(cloud))
     pose_scanner = mean_plate_pose(poses)
     pose_gls = pose_in_frame(pose_scanner, settings.scanner_to_gls)
     report("plate_pose", 0.15, f"plate flatness {pose_scanner.flatness_rms_mm:.4f} mm RMS")
@@ -252,6 +315,9 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
 
     The correction node is switched to the candidate for later iterations and validation; the
     caller activates it only when this returns successfully, so a failure keeps the active one.
+    The plain plate must be clean, the model must explain the measurement, and with validation
+    the candidate must beat the calibration in use (``acceptance_problem``); ``force`` allows a
+    marked plate and training within the tolerance.
     """
     began = time.monotonic()
     iterations = iterations or settings.default_iterations
@@ -265,7 +331,7 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
         if iteration > 0:
             await cell.exchange_plate()
         run = await run_plate(cell, settings, training_grid, progress, (iteration * span, span * 0.9),
-                              want_truth)
+                              want_truth, allow_marked=force)
         runs.append(run)
         rms = run.metrics["full"]["rms_abs_mm"]
         if iteration == 0 and rms <= settings.tolerance_rms_mm and not force:
@@ -275,6 +341,7 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
                                       duration_s=time.monotonic() - began)
         progress("training", (iteration + 0.9) * span, f"training on {len(run.deviations)} deviations")
         models.append(await cell.train(run.measured_gls[:, :2], run.corrections))
+        check_model_explains(models[-1], rms, settings)
         candidate = save_candidate(runs, models)
         await cell.load_calibration(candidate)
 
@@ -282,7 +349,14 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
     if validate:
         await cell.exchange_plate()
         validation = await run_plate(cell, settings, validation_grid(settings), progress,
-                                     (iterations * span, span), want_truth)
+                                     (iterations * span, span), want_truth, allow_marked=force)
+        rejected = acceptance_problem(runs[0].metrics["full"]["rms_abs_mm"],
+                                      validation.metrics["full"]["rms_abs_mm"], settings)
+        if rejected:
+            progress("done", 1.0, rejected)
+            return CalibrationOutcome(False, f"{rejected}; {Path(candidate).name} stays in the history, inactive",
+                                      runs, validation, models, trained=True, duration_s=time.monotonic() - began,
+                                      calibration_file=candidate)
     progress("done", 1.0, "calibration finished")
     return CalibrationOutcome(True, "calibrated", runs, validation, models, trained=True,
                               duration_s=time.monotonic() - began, calibration_file=candidate)

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 from gls_calibration.cli.client import call_and_wait, client_node
 from gls_calibration.conversions import float64_sequence
-from gls_calibration.persistence import atomic_write_text
+from gls_calibration.persistence import atomic_write_text, require_regular_output
 from gls_calibration_msgs.srv import CorrectSetpoints
 
 OUTPUT_COLUMNS = ("x", "y", "z", "k_x", "k_y", "alpha_x_rad", "alpha_y_rad", "focus_shift_mm",
@@ -46,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timeout", type=float, default=30.0)
     args = parser.parse_args(argv)
     try:
+        require_regular_output(args.out)   # checked before anything is asked of the cell
         x, y, z = read_targets(args.targets)
     except (OSError, ValueError) as error:
         print(error, file=sys.stderr)

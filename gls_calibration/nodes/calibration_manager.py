@@ -109,6 +109,9 @@ class ServiceCell:
                 "is configured")
         await self._checked(self.exchange, Trigger.Request(), idempotent=False)
 
+    def intensities(self, cloud):
+        return conversions.cloud_arrays_from_msg(cloud)[1]
+
     async def true_marks(self):
         if self.truth is None:
             return None
@@ -150,6 +153,22 @@ class CalibrationManager(GlsNode):
             min_found_fraction=self.declare("min_found_fraction", defaults.min_found_fraction,
                                             "fail when fewer fiducials than this fraction are found",
                                             minimum=0.0, maximum=1.0),
+            max_outlying_points=self.declare(
+                "max_outlying_points", defaults.max_outlying_points, "a plain plate with more points than this "
+                "beyond mark_check_sigmas of its texture carries old marks: refused unless forced", minimum=0),
+            mark_check_sigmas=self.declare("mark_check_sigmas", defaults.mark_check_sigmas,
+                                           "robust standard deviations of the plate texture beyond which a "
+                                           "point looks like a mark", minimum=1.0, maximum=100.0),
+            measurement_uncertainty_mm=self.declare(
+                "measurement_uncertainty_mm", defaults.measurement_uncertainty_mm,
+                "uncertainty of one measured fiducial centre (mm): the margin a candidate must beat the "
+                "calibration in use by", minimum=1e-6, maximum=10.0),
+            max_cv_factor=self.declare("max_cv_factor", defaults.max_cv_factor,
+                                       "fail when the model's CV RMS exceeds this many measurement uncertainties",
+                                       minimum=1.0, maximum=1e6),
+            max_cv_fraction=self.declare("max_cv_fraction", defaults.max_cv_fraction,
+                                         "...and this fraction of the RMS deviation it was trained on",
+                                         minimum=0.01, maximum=100.0),
             default_iterations=self.declare("default_iterations", defaults.default_iterations,
                                             "iterations when a request says 0", minimum=1, maximum=10),
             max_iterations=self.declare("max_iterations", defaults.max_iterations,
@@ -238,18 +257,22 @@ class CalibrationManager(GlsNode):
         response.pre_max_mm = first.metrics["full"]["max_abs_mm"]
         response.fiducials_expected = len(first.targets)
         response.fiducials_found = first.fiducials_found
-        correction = None
+        correction = candidate = None
         if outcome.models:
             response.neurons = int(outcome.models[-1].neurons)
             response.cv_rms_mm = float(outcome.models[-1].cv_rms_mm)
             candidate = Path(outcome.calibration_file)
             correction = correction_from_record(self.store.load(candidate), self.geometry)
-            self.store.activate(candidate)
             response.calibration_file = str(candidate)
         if outcome.validation is not None:
             response.post_rms_mm = outcome.validation.metrics["full"]["rms_abs_mm"]
             response.post_max_mm = outcome.validation.metrics["full"]["max_abs_mm"]
+        # Every file first, activation last: a failure before it leaves the old calibration in force.
         response.report_dir = str(write_outcome_report(report_dir, outcome, correction))
+        if candidate is not None and outcome.success:
+            self.store.activate(candidate)
+        elif candidate is not None:
+            await self._restore_active()   # a rejected candidate was loaded for the validation
         response.success = outcome.success
         response.message = outcome.message
 

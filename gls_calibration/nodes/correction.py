@@ -14,7 +14,9 @@ from gls_calibration.nodes.base import GlsNode, run_node
 from gls_calibration.nodes.head_parameters import declare_head_geometry
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.validation import as_coordinate_arrays
-from gls_calibration_msgs.srv import CorrectSetpoints, LoadCalibration
+from gls_calibration_msgs.srv import Calibrate, CorrectSetpoints, LoadCalibration
+
+MANAGER_CHECK_PERIOD_S = 0.5
 
 
 class CorrectionNode(GlsNode):
@@ -41,6 +43,22 @@ class CorrectionNode(GlsNode):
         self.create_service(CorrectSetpoints, "correct_setpoints", self.on_correct,
                             callback_group=self.reentrant_group)
         self.create_service(LoadCalibration, "correction/load", self.on_load)
+        # A file other than the active one is served only for the run that loaded it (a candidate under
+        # validation): when no calibration manager is left in the graph, the active one is served again.
+        self.manager = self.create_client(Calibrate, "calibrate")
+        self.create_timer(MANAGER_CHECK_PERIOD_S, self._check_candidate)
+
+    def _check_candidate(self) -> None:
+        if self.correction is None or self.manager.service_is_ready():
+            return
+        try:
+            active = self.store.active_path()
+        except CalibrationFileError:  # an unusable pointer: nothing better to serve (logged at load)
+            return
+        if self.file and (active is None or Path(self.file).resolve() != active.resolve()):
+            self.get_logger().warning(f"no calibration manager any more: {self.file} was a candidate; "
+                                      "serving the active calibration again")
+            self._load("", keep_serving=True)
 
     def _load(self, file: str, *, keep_serving: bool) -> tuple[bool, str]:
         """Load ``file`` of the store (empty: the active calibration); (loaded, message).
