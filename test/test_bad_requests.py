@@ -17,6 +17,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 
 from gls_calibration import kinematics
 from gls_calibration.conversions import array_to_pointcloud2, plate_pose_to_msg, xyzi_array
+from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
 from gls_calibration.nodes.plate_pose import PlatePoseNode
@@ -295,3 +296,27 @@ def test_manager_refuses_bad_requests_and_hostile_files_and_then_serves(start_ce
         assert not explained.success and problem in explained.message, explained.message
     explained = cell.call(ExplainDeviations, "explain_deviations", ExplainDeviations.Request(), 120.0)
     assert explained.success, explained.message
+
+
+# --- parameters ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("node_type, name, value, match", [
+    (FiducialMeasurementNode, "ring_radii_mm", [-2.5, 2.7], "parameter ring_radii_mm"),
+    (RbfTrainerNode, "spreads_mm", [35.0, NAN], "parameter spreads_mm"),
+    (RbfTrainerNode, "mse_goals_mm2", [0.0], "parameter mse_goals_mm2"),
+    (RbfTrainerNode, "tps_smoothings", [-1.0], "parameter tps_smoothings"),
+    (CalibrationManager, "grid.ring_radii_mm", [2.7, 2.5], "ring_radii_mm must be one or more positive finite"),
+    (CalibrationManager, "grid.ring_radii_mm", [-2.5, 2.7], "ring_radii_mm must be one or more positive finite"),
+])
+def test_bad_list_parameters_stop_a_node_at_start_with_the_reason(ros_context, tmp_path, node_type, name, value,
+                                                                  match):
+    with pytest.raises(ValueError, match=match):
+        node_type(context=ros_context, parameter_overrides=[Parameter(name, value=value)])
+
+
+@pytest.mark.parametrize("name, value", [("max_iterations", 0), ("service_timeout_s", 1e308),
+                                         ("deadline_margin_s", -1.0), ("sweep.speed_mm_s", 0.0)])
+def test_out_of_range_manager_parameters_are_refused_at_start(ros_context, name, value):
+    from rclpy.exceptions import InvalidParameterValueException
+    with pytest.raises(InvalidParameterValueException):
+        CalibrationManager(context=ros_context, parameter_overrides=[Parameter(name, value=value)])

@@ -78,6 +78,21 @@ class GlsNode(Node):
                     to_value=float(maximum if maximum is not None else 1e308), step=0.0)]
         return self.declare_parameter(name, default, descriptor).value
 
+    def declare_numbers(self, name: str, default: list, description: str, *, positive: bool = True,
+                        allow_empty: bool = False, length: int | None = None) -> list[float]:
+        """Declare a list-of-numbers parameter and check it at start (ROS ranges do not apply to lists):
+        finite, positive (or not negative), not empty unless allowed, of ``length`` when given.
+        ValueError naming the parameter otherwise, so a bad value stops the node at start with the reason."""
+        values = self.declare(name, default, description)
+        numbers = [float(value) for value in values] if isinstance(values, (list, tuple)) else None
+        bound_ok = numbers is not None and all(
+            math.isfinite(value) and (value > 0.0 if positive else value >= 0.0) for value in numbers)
+        if not bound_ok or (not numbers and not allow_empty) or (length is not None and len(numbers) != length):
+            size = f"{length} " if length is not None else ("" if allow_empty else "one or more ")
+            raise ValueError(f"parameter {name}: {size}finite {'positive' if positive else 'non-negative'} "
+                             f"numbers are needed, got {values!r}")
+        return numbers
+
     def client(self, srv_type: type, name: str):
         """A client in the reentrant group, so that coroutine callbacks can await it."""
         return self.create_client(srv_type, name, callback_group=self.reentrant_group)

@@ -21,12 +21,13 @@ class RbfTrainerNode(GlsNode):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("rbf_trainer", **kwargs)
-        self.spreads_mm = self.declare("spreads_mm", [25.0, 35.0, 45.0, 60.0],
+        self.spreads_mm = self.declare_numbers("spreads_mm", [25.0, 35.0, 45.0, 60.0],
                                        "Gaussian spreads tried by the grid search (mm)")
-        self.mse_goals_mm2 = self.declare("mse_goals_mm2", [0.0002, 0.0005],
+        self.mse_goals_mm2 = self.declare_numbers("mse_goals_mm2", [0.0002, 0.0005],
                                           "training MSE goals tried by the grid search (mm^2)")
-        self.tps_smoothings = self.declare("tps_smoothings", [0.0, 10.0, 100.0, 300.0, 1000.0, 3000.0],
-                                           "thin-plate-spline smoothings tried ([] disables the TPS)")
+        self.tps_smoothings = self.declare_numbers("tps_smoothings", [0.0, 10.0, 100.0, 300.0, 1000.0, 3000.0],
+                                                   "thin-plate-spline smoothings tried ([] disables the TPS)",
+                                                   positive=False, allow_empty=True)
         self.folds = self.declare("folds", 5, "folds of the cross-validation", minimum=2, maximum=50)
         self.seed = self.declare("seed", 0, "seed of the fold assignment", minimum=0)
         self.physics_first = self.declare(
