@@ -11,7 +11,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.signals import SignalHandlerOptions
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -219,7 +219,11 @@ class NodeThreads:
 
     def __init__(self, nodes: list[Node]) -> None:
         self.nodes = nodes
-        self.executors = [SingleThreadedExecutor(context=node.context) for node in nodes]
+        # A node that serves long requests next to short ones asks for threads (``executor_threads``):
+        # the taking, converting and answering of a large request then no longer blocks the others.
+        self.executors = [MultiThreadedExecutor(num_threads=node.executor_threads, context=node.context)
+                          if getattr(node, "executor_threads", 1) > 1 else SingleThreadedExecutor(context=node.context)
+                          for node in nodes]
         self.threads = []
         for node, executor in zip(nodes, self.executors):
             executor.add_node(node)

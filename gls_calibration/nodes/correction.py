@@ -22,8 +22,8 @@ MANAGER_CHECK_PERIOD_S = 0.5
 class CorrectionNode(GlsNode):
     """Corrects setpoints with the loaded calibration; the nominal model when there is none.
 
-    Large requests are computed in chunks, yielding to the executor between chunks, so that
-    single-target requests of other clients are answered meanwhile.
+    Requests are served by several executor threads and large ones are computed in chunks,
+    yielding between chunks, so that single-target requests of other clients are answered meanwhile.
     """
 
     def __init__(self, **kwargs) -> None:
@@ -34,6 +34,10 @@ class CorrectionNode(GlsNode):
         self.max_targets = self.declare(
             "max_targets", 1_000_000, "most targets in one correct_setpoints request (about 300 bytes of "
             "memory each while served)", minimum=1, maximum=10_000_000, read_only=True)
+        # See NodeThreads: with more than one thread, taking and answering a large batch does not hold up
+        # single-target requests (bench_concurrency.py).
+        self.executor_threads = self.declare("executor_threads", 4, "threads of the node's executor",
+                                             minimum=1, maximum=16, read_only=True)
         self.chunk_targets = self.declare("chunk_targets", 20_000, "targets computed between two chances for "
                                           "other requests to be served", minimum=100, maximum=10_000_000)
         self.correction: Optional[Correction] = Correction(self.geometry)
