@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -27,14 +28,14 @@ from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import SimScannerNode
 from gls_calibration.persistence import CalibrationStore
 from gls_calibration.plate_pose import estimate_plate_pose
-from gls_calibration_msgs.msg import PlatePose
+from gls_calibration_msgs.msg import PlatePose, SweepDone
 from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints, EstimatePlatePose,
                                       ExplainDeviations, LandingPositions, LoadCalibration, MarkPolylines,
                                       MeasureFiducials, StartSweep, TrainCorrection)
 
 from rendering import render_plate_scan
 from ros_helpers import call_service
-from test_nodes import FakeScanner, trained_record
+from test_nodes import PROFILES, FakeScanner, trained_record
 from test_persistence import make_record
 
 NAMESPACE = "gls"
@@ -320,3 +321,33 @@ def test_out_of_range_manager_parameters_are_refused_at_start(ros_context, name,
     from rclpy.exceptions import InvalidParameterValueException
     with pytest.raises(InvalidParameterValueException):
         CalibrationManager(context=ros_context, parameter_overrides=[Parameter(name, value=value)])
+
+
+# --- hostile topics: malformed profiles, spoofed ends of sweep -------------------------------------------------
+
+class HostileScanner(FakeScanner):
+    """Streams malformed profiles and a foreign end of sweep before the real sweep."""
+
+    def stream(self) -> None:
+        for cloud in malformed_clouds().values():
+            self.points.publish(cloud)
+        negative = array_to_pointcloud2(self.profiles[0], "scanner")
+        negative.header.stamp.sec = -5
+        self.points.publish(negative)
+        self.done.publish(SweepDone(sweep_id=99, profiles=3, step_mm=1.0, speed_mm_s=15.0,
+                                    direction=[0.0, 1.0, 0.0], complete=True))
+        time.sleep(0.2)
+        super().stream()
+
+
+def test_malformed_profiles_and_foreign_ends_of_sweep_are_dropped_counted_and_survived(ros_context, add_node,
+                                                                                      client):
+    add_node(ScanAcquisitionNode(context=ros_context))
+    HostileScanner(add_node(Node("fake_scanner", namespace=NAMESPACE, context=ros_context)), "complete")
+    acquire = client(AcquireSweep, "scan/acquire")
+    response = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))
+    assert response.success, response.message
+    assert response.cloud.height == PROFILES                      # all good profiles, none of the others
+    assert response.message.endswith(f"; {len(malformed_clouds()) + 1} malformed profile(s) dropped")
+    again = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))   # the node still serves
+    assert again.success, again.message
