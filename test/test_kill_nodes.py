@@ -48,8 +48,8 @@ class Victim:
     script: str              # console script of the node
     service: tuple           # (type, name) of a service it serves: up when this answers
     freeze_at: str           # progress stage at which it is frozen (None: never)
-    kill_at: str             # stage at which it is killed (None: kill_after_s after freezing)
-    kill_after_s: float
+    kill_at: str             # stage at which it is killed...
+    kill_after_s: float      # ...this long after the stage began
     named: str               # what the failure message must name
 
 
@@ -62,8 +62,9 @@ VICTIMS = {
                           "measurement", 0.2, "fiducials/measure"),
     "trainer": Victim("gls-rbf-trainer", (TrainCorrection, "rbf/train"), "measurement", "training", 0.2,
                       "rbf/train"),
-    "correction": Victim("gls-correction", (CorrectSetpoints, "correct_setpoints"), "plate_pose", None, 1.0,
-                         "correct_setpoints"),
+    # Its first use (the ring points) follows the plate_pose stage at once and is quick: frozen earlier.
+    "correction": Victim("gls-correction", (CorrectSetpoints, "correct_setpoints"), "sweep_plain", "plate_pose",
+                         0.0, "correct_setpoints"),
 }
 
 
@@ -164,9 +165,8 @@ def test_a_killed_node_fails_the_run_fast_and_keeps_the_active_calibration(cell,
         wait_for(lambda: cell.seen(victim.freeze_at) or future.done(), CALIBRATE_TIMEOUT_S,
                  what=f"stage {victim.freeze_at}")
         os.kill(process.pid, signal.SIGSTOP)
-    if victim.kill_at:
-        wait_for(lambda: cell.seen(victim.kill_at) or future.done(), CALIBRATE_TIMEOUT_S,
-                 what=f"stage {victim.kill_at}")
+    wait_for(lambda: cell.seen(victim.kill_at) or future.done(), CALIBRATE_TIMEOUT_S,
+             what=f"stage {victim.kill_at}")
     assert not future.done(), f"the run ended before {name} was killed: {future.result().message}"
     time.sleep(victim.kill_after_s)
     process.kill()

@@ -19,7 +19,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 DEFAULT_NAMESPACE = "gls"
 POLL_PERIOD_S = 0.05          # how often a pending call checks its deadline and its server
 SERVER_GONE_CONFIRM_S = 0.3   # a server absent from the graph this long is gone (not a discovery blip)
-SERVER_WAIT_S = 5.0           # how long a call waits for its server to appear before failing
+SERVER_WAIT_S = 2.0           # how long a call waits for its server to appear before failing
 
 
 FAST_DDS_PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
