@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from gls_calibration.conversions import float64_sequence
+from gls_calibration.nodes.conversions import float64_sequence
 from gls_calibration_msgs.srv import CorrectSetpoints
 
 from correction_peer import call, correction_peer

@@ -19,12 +19,14 @@ from std_srvs.srv import Trigger
 
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.persistence import CalibrationStore
-from gls_calibration.procedure import (CalibrationError, ProcedureSettings, TrainedModel, acceptance_problem,
+from gls_calibration.training import TrainedModel
+from gls_calibration.procedure import (CalibrationError, ProcedureSettings, acceptance_problem,
                                        check_clean_plate, check_model_explains)
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 from gls_calibration_msgs.srv import Calibrate, CorrectSetpoints, LoadCalibration
 
 from ros_helpers import call_service, wait_for
+from test_procedure import FAST, new_cell, run_calibrate
 from test_persistence import make_record
 
 SETTINGS = ProcedureSettings()
@@ -71,6 +73,29 @@ def test_a_candidate_must_beat_the_calibration_in_use_by_the_uncertainty():
     assert problem == ("candidate rejected: validation 0.2300 mm RMS is not better than the calibration in use "
                        "(0.0040 mm RMS on this run's first plate) by more than the measurement uncertainty 0.005 mm")
     assert acceptance_problem(0.0060, 0.0040, SETTINGS).startswith("candidate rejected")   # within the noise
+
+
+def test_the_flow_refuses_an_old_plate_and_never_activates_a_candidate_measured_over_old_marks(tmp_path):
+    """The issue's case through the ROS-free cell: a validated calibration, then the same plate again
+    (it carries the validation grid). TRUE figures from the simulation decide what "worse" means."""
+    cell = new_cell(tmp_path)
+    settings = cell.settings(**FAST)
+    first = run_calibrate(cell, settings, validate=True)
+    cell.store.activate(first.candidate.path)
+    cell.reload_active_now()
+    with pytest.raises(CalibrationError, match="the plate already carries marks"):
+        run_calibrate(cell, settings)
+    try:
+        forced = run_calibrate(cell, settings, force=True, validate=True)
+    except CalibrationError as error:
+        assert "cannot explain the measurement" in str(error)
+    else:
+        true_before = first.validation.true_metrics.full.rms_abs_mm
+        true_after = forced.validation.true_metrics.full.rms_abs_mm
+        # Seed 1 of this cell: the candidate validates at 0.22 mm against 0.0074 mm before (TRUE 0.22 mm).
+        assert forced.rejection.startswith("candidate rejected") or true_after <= true_before + 0.005, \
+            (forced.message, true_before, true_after)
+    assert cell.store.active_path() == Path(first.candidate.path)
 
 
 def store_bytes(store_dir: Path) -> tuple[bytes, list[str]]:

@@ -17,7 +17,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2, PointField
 
 from gls_calibration import kinematics
-from gls_calibration.conversions import array_to_pointcloud2, plate_pose_to_msg, xyzi_array
+from gls_calibration.nodes.conversions import array_to_pointcloud2, plate_pose_to_msg, xyzi_array
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode

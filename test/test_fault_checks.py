@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gls_calibration import kinematics
-from gls_calibration.conversions import xyzi_array
+from gls_calibration.nodes.conversions import xyzi_array
 from gls_calibration.correction import Correction
 from gls_calibration.nodes.deadlines import Deadlines
 from gls_calibration.procedure import ProcedureSettings

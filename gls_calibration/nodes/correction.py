@@ -7,10 +7,10 @@ from typing import Optional
 
 import numpy as np
 
-from gls_calibration import conversions
+from gls_calibration.nodes import conversions
 from gls_calibration.calibration_record import correction_from_record
 from gls_calibration.correction import CorrectedSetpoints, Correction
-from gls_calibration.nodes.base import GlsNode, run_node
+from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
 from gls_calibration.nodes.head_parameters import declare_head_geometry
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.validation import as_coordinate_arrays
@@ -96,6 +96,7 @@ class CorrectionNode(GlsNode):
         response.file = self.file
         return response
 
+    @answers_errors(ValueError)
     async def on_correct(self, request, response):
         """Correct the targets; ``success=false`` and a message naming the problem on bad input."""
         correction = self.correction
@@ -109,18 +110,13 @@ class CorrectionNode(GlsNode):
             response.message = (f"{count} targets refused: at most {self.max_targets} per request "
                                 "(parameter max_targets); split the request")
             return response
-        try:
-            x, y, z = as_coordinate_arrays(request.x, request.y, request.z if len(request.z) else None)
-            parts = []
-            for start in range(0, max(count, 1), self.chunk_targets):
-                if start:
-                    await self.yield_to_executor()
-                end = start + self.chunk_targets
-                parts.append(correction.correct(x[start:end], y[start:end], z[start:end]))
-        except ValueError as error:
-            response.success = False
-            response.message = str(error)
-            return response
+        x, y, z = as_coordinate_arrays(request.x, request.y, request.z if len(request.z) else None)
+        parts = []
+        for start in range(0, max(count, 1), self.chunk_targets):
+            if start:
+                await self.yield_to_executor()
+            end = start + self.chunk_targets
+            parts.append(correction.correct(x[start:end], y[start:end], z[start:end]))
         result = parts[0] if len(parts) == 1 else CorrectedSetpoints(
             *(np.concatenate([getattr(part, field.name) for part in parts]) for field in fields(CorrectedSetpoints)))
         conversions.setpoints_to_response(result, response)

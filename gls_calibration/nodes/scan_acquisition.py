@@ -9,7 +9,7 @@ from typing import Optional
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from gls_calibration import conversions
+from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
 from gls_calibration.sweep import SweepCollector, SweepMotion
 from gls_calibration_msgs.msg import SweepDone

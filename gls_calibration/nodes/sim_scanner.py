@@ -15,8 +15,8 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.duration import Duration
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from gls_calibration import conversions
-from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
+from gls_calibration.nodes import conversions
+from gls_calibration.nodes.base import GlsNode, ServiceCallError, answers_errors, run_node
 from gls_calibration.nodes.sim_parameters import declare_sim_config
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.simulation.scanner import LaserLineScanner, Profile
@@ -51,6 +51,7 @@ class SimScannerNode(GlsNode):
         self.timer = self.create_timer(0.001, self.publish_batch, callback_group=MutuallyExclusiveCallbackGroup())
         self.timer.cancel()
 
+    @answers_errors(ValueError)
     async def on_start_sweep(self, request, response):
         """Load the plate's marks, then start publishing the sweep."""
         if self.job is not None:
