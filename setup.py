@@ -23,6 +23,8 @@ TOOLS = {
     "gls-sim-cell": "sim_cell",
     "gls-calibrate": "calibrate",
     "gls-correct": "correct",
+    "gls-export": "export",
+    "gls-train": "train",
     "gls-discrepancy": "discrepancy",
 }
 
