@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import time
 from pathlib import Path
 
@@ -118,8 +119,9 @@ def test_correction_load_refuses_hostile_files_and_keeps_the_serving_calibration
     fifo = store.history_directory / "pipe.yaml"
     os.mkfifo(fifo)
     (store.history_directory / "bomb.yaml").write_text("a: &a [1, 1]\nb: [*a, *a]\n")
-    (store.history_directory / "nan.yaml").write_text(good.read_text().replace("format_version: 1",
-                                                                                "format_version: .nan"))
+    nan_text = re.sub(r"format_version: \d+", "format_version: .nan", good.read_text())
+    assert nan_text != good.read_text()
+    (store.history_directory / "nan.yaml").write_text(nan_text)
     for path, problem in [(str(outside), "outside the calibration directory"),
                           ("../../outside.yaml", "outside the calibration directory"),
                           ("/dev/zero", "outside the calibration directory"),
