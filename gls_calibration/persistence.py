@@ -123,7 +123,9 @@ def _fsync_directory(directory: Path) -> None:
 
 
 def to_plain(value: Any) -> Any:
-    """Convert numpy arrays/scalars, tuples and paths inside ``value`` to YAML-safe Python types."""
+    """Convert dataclass records, numpy arrays/scalars, tuples and paths inside ``value`` to YAML-safe Python types."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, Mapping):
         return {str(key): to_plain(item) for key, item in value.items()}
     if isinstance(value, np.ndarray):

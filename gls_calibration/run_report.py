@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gls_calibration.discrepancy import run_verdict_lines
 from gls_calibration.outcome import CalibrationOutcome, RunSummary
 from gls_calibration.report import ReportData, write_report
 
@@ -32,7 +33,9 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: Ru
         true_metrics_after=plain(validation.true_metrics) if validation else None,
         correction_field=field,
         extra_lines=tuple(f"iteration {index + 1}: measured RMS {rms:.4f} mm"
-                          for index, rms in enumerate(summary.iteration_rms_mm)) + (outcome.message,),
+                          for index, rms in enumerate(summary.iteration_rms_mm)) + (outcome.message,)
+        + run_verdict_lines(first.paired_targets_xy, first.deviations,
+                            correction.geometry if correction is not None else None),
     )
     write_report(out_dir, data)
     (out_dir / "training.csv").write_text(training_csv_text(first), encoding="utf-8")

@@ -23,7 +23,7 @@ from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.correction import CalibratedRegion
 from gls_calibration.head_config import default_head_config_path, load_head_config
 from gls_calibration.persistence import atomic_write_text, dump_record, new_record
-from gls_calibration.procedure import align_in_plane
+from gls_calibration.registration import align_rigid_2d
 from gls_calibration.training import TrainingOptions, train_correction
 
 COLUMNS = ("x_cmd", "y_cmd", "x_meas", "y_meas")
@@ -71,7 +71,7 @@ def train_file(measured_csv: Path, head_file: Path, config: Path, physics_first:
     if plane_z_mm is None:
         plane_z_mm = commanded_height if commanded_height is not None else 0.0
     geometry, _known = load_head_config(head_file)
-    aligned = align_in_plane(measured, commanded)
+    aligned = align_rigid_2d(measured, commanded)[1]
     # Commanding Q through the nominal model landed at P: Q - P is the correction to add at P.
     corrections = commanded - aligned
     trained = train_correction(aligned, corrections, geometry, physics_first=physics_first,
