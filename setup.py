@@ -26,6 +26,7 @@ TOOLS = {
     "gls-export": "export",
     "gls-train": "train",
     "gls-discrepancy": "discrepancy",
+    "gls-measure": "measure",
 }
 
 setup(
