@@ -40,7 +40,10 @@ START_TIMEOUT_S = 90.0           # a node process on a busy machine: interpreter
 CALIBRATE_TIMEOUT_S = 300.0
 CALL_TIMEOUT_S = 20.0
 GRID = 3
-PARAMETERS = {"sweep.plain_repeats": 1}   # one plain sweep per run: the test is about faults, not accuracy
+# One plain sweep per run: the test is about faults, not accuracy. A 3x3 grid recalibrated on the
+# paper_like measurement chain leaves a CV error above half its deviations: the "model cannot
+# explain the measurement" check is made inert here (it has its own tests).
+PARAMETERS = {"sweep.plain_repeats": 1, "max_cv_fraction": 100.0}
 
 
 @dataclass(frozen=True)
