@@ -20,6 +20,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
+from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import PointCloud2
 
 from gls_calibration import kinematics
@@ -258,6 +259,7 @@ class FakeScanner:
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self.points = node.create_publisher(PointCloud2, "scan/points", qos)
         self.done = node.create_publisher(SweepDone, "scan/sweep_done", qos)
+        self.poses = node.create_publisher(PoseStamped, "scan/pose", qos)
         node.create_service(StartSweep, "scanner/start_sweep", self.on_start)
         self.rng = np.random.default_rng(4)
         self.profiles = [self.profile(index) for index in range(PROFILES)]
@@ -277,14 +279,24 @@ class FakeScanner:
             threading.Timer(0.05, self.stream).start()
         return response
 
+    def reported_y_mm(self, index: int) -> float:
+        """Where the robot reports the sensor at a profile: a 2 % fast robot with a ripple."""
+        return 1.02 * SPEED_MM_S * PROFILE_PERIOD_S * index + 0.05 * math.sin(index)
+
     def stream(self) -> None:
-        count = PROFILES if self.script == "complete" else 5
+        count = PROFILES if self.script in ("complete", "posed") else 5
         for index in range(count):
             stamp = Time(nanoseconds=int(round((FIRST_STAMP_S + index * PROFILE_PERIOD_S) * 1e9)))
+            if self.script == "posed":
+                pose = PoseStamped()
+                pose.header.stamp, pose.header.frame_id = stamp.to_msg(), "scanner_base"
+                pose.pose.position.y = self.reported_y_mm(index) * 1e-3         # metres on the wire
+                pose.pose.orientation.w = 1.0
+                self.poses.publish(pose)
             self.points.publish(array_to_pointcloud2(self.profiles[index], "scanner", stamp))
         self.done.publish(SweepDone(sweep_id=7, profiles=count, step_mm=SPEED_MM_S * PROFILE_PERIOD_S,
                                     speed_mm_s=SPEED_MM_S, direction=[0.0, 1.0, 0.0],
-                                    complete=self.script == "complete"))
+                                    complete=self.script in ("complete", "posed")))
 
 
 def acquire(ros_context, add_node, script: str, timeout_s: float) -> tuple[AcquireSweep.Response, float, FakeScanner]:
@@ -317,7 +329,8 @@ def test_scan_acquisition_fails_on_a_sweep_cut_short(ros_context, add_node):
 def test_scan_acquisition_assembles_an_organized_cloud(ros_context, add_node):
     response, _, scanner = acquire(ros_context, add_node, "complete", timeout_s=TIMEOUT_S)
     assert response.success, response.message
-    assert response.message == f"{PROFILES} profiles of {POINTS} points"
+    assert response.message == f"{PROFILES} profiles of {POINTS} points, placed by time at the nominal speed"
+    assert not response.placed_by_pose
     cloud = pointcloud2_to_array(response.cloud)
     assert cloud.shape == (PROFILES, POINTS)
     assert response.cloud.header.frame_id == "scanner"
@@ -327,6 +340,15 @@ def test_scan_acquisition_assembles_an_organized_cloud(ros_context, add_node):
         np.testing.assert_array_equal(cloud["x"][row], profile["x"])
         np.testing.assert_array_equal(cloud["z"][row], profile["z"])
         np.testing.assert_array_equal(cloud["intensity"][row], profile["intensity"])
+
+
+def test_scan_acquisition_places_profiles_by_the_reported_pose(ros_context, add_node):
+    response, _, scanner = acquire(ros_context, add_node, "posed", timeout_s=TIMEOUT_S)
+    assert response.success, response.message
+    assert response.placed_by_pose and response.message.endswith("placed by the reported pose")
+    cloud = pointcloud2_to_array(response.cloud)
+    reported = np.array([scanner.reported_y_mm(index) for index in range(PROFILES)])
+    np.testing.assert_allclose(cloud["y"], np.repeat(reported[:, None], POINTS, axis=1), rtol=0, atol=1e-4)
 
 
 # --- calibration manager -------------------------------------------------------------------------
