@@ -6,24 +6,12 @@ Goal: message -> structured array (zero copy) well under 50 ms. Run:
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
-from collections.abc import Callable
 
 import numpy as np
 
-from gls_calibration.conversions import (
+from gls_calibration.nodes.conversions import (
     array_to_pointcloud2, pointcloud2_to_array, xyz_intensity_arrays, xyzi_array)
-
-
-def median_ms(action: Callable[[], object], repeats: int) -> float:
-    """Median wall time of ``action`` in milliseconds."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        action()
-        times.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(times)
+from timing import median_seconds
 
 
 def main() -> None:
@@ -52,7 +40,7 @@ def main() -> None:
     print(f"{args.points:,} points x, y, z, intensity (float32, {points.nbytes / 1e6:.0f} MB), "
           f"median of {args.repeats}:")
     for label, action in figures.items():
-        print(f"  {label:<55s} {median_ms(action, args.repeats):9.3f} ms")
+        print(f"  {label:<55s} {1e3 * median_seconds(action, args.repeats):9.3f} ms")
 
 
 if __name__ == "__main__":

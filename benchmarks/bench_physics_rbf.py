@@ -2,25 +2,26 @@
 
 Target (issue): physics + RBF with 7x7 fiducials at least as accurate as RBF-only with 19x19.
 
-Per grid over 190 mm: a clean plate is scanned (plane), the double rings are marked through the
-nominal model on the measured plate plane (z from the plain sweep, as the calibration
-procedure commands), the plate is scanned at 0.1 mm and the fiducials measured, paired and turned
-into deviations ``Q - P`` -- once, and the SAME measurements train both (a) RBF-only
-(``rbf.select_model``) and (b) physics + RBF (``physical_model.train_physics_then_rbf``). RBF-only
-is trained twice: at the targets Q (the published way, ``K = Q + delta(Q)`` to first order) and at
-the landed points P (what the calibration procedure does: commanding Q landed at P, so Q - P is
-exactly the correction for a target at P). Each
-correction then marks a dense validation grid (18x18 over 180 mm, half a pitch off the 19x19 one)
-on a fresh plate, and the error is taken from the TRUTH: landed ring polylines -> centres -> best
-rigid 2-D alignment to the targets -> ``deviation_metrics`` over the field and the central 150x150 mm.
-The first row of each grid is the cell without correction; the last uses the same physics to first
-order only (``inverse=False``: ``K = Q + measured deviation``, like the RBF), which shows how much
-of the gain is the exact inverse of the physical model. Seeds are fixed (config/sim.yaml).
+Every plate goes through the calibrate flow's own ``procedure.run_plate`` on a ``DirectCell`` (the
+simulated cell without ROS): plain sweeps -> plate pose -> rings marked through the cell's active
+correction on the measured plate plane -> marked sweep -> fiducials measured, paired, deviations
+``Q - P``. Per grid over 190 mm one plate is run through the nominal model, and the SAME
+measurements train every method: RBF at the landed points P (``training.train_correction``, as the
+calibration trains), physics + RBF (``train_correction(physics_first=True)``), and for comparison
+RBF at the targets Q (the published way) and the physics used to first order only
+(``inverse=False``: ``K = Q + measured deviation``, like the RBF). Each correction then runs the
+18x18 validation grid over 180 mm (half a pitch off the 19x19 one) on a fresh plate; the error is
+the TRUE one (landed ring polylines -> centres -> rigid 2-D alignment onto the targets), over the
+field and the central 150x150 mm, with the MEASURED RMS beside it. The first row of each grid is the
+cell without correction. Seeds are fixed (config/sim.yaml); training uses the trainer node's
+defaults (``training.TrainingOptions``).
 
-Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_physics_rbf.py   (about a minute)
+Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_physics_rbf.py   (several minutes)
 """
 from __future__ import annotations
 
+import asyncio
+import tempfile
 import time
 
 import numpy as np
@@ -28,121 +29,84 @@ import numpy as np
 from gls_calibration import rbf
 from gls_calibration.calibration_record import calibrated_region
 from gls_calibration.correction import Correction
-from gls_calibration.fiducials import measure_fiducials
-from gls_calibration.kinematics import inverse
+from gls_calibration.deviation_models import model_from_dict
+from gls_calibration.persistence import CalibrationStore
 from gls_calibration.physical_model import train_physics_then_rbf
-from gls_calibration.plate_pose import estimate_plate_pose
-from gls_calibration.procedure import ProcedureSettings, align_in_plane, true_fiducial_centres
-from gls_calibration.registration import deviation_metrics, pair_with_targets
+from gls_calibration.procedure import run_plate
+from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
-from gls_calibration.targets import grid_targets, rings_polylines
+from gls_calibration.targets import grid_targets
+from gls_calibration.training import TrainingOptions, train_correction
 
 GRIDS = (7, 11, 19)
 SIZE_MM = 190.0
-RADII_MM = (2.5, 2.7)
 VALIDATION = grid_targets(18, 180.0)
-
-
-class PlatePlane:
-    """Height z(x, y) (gls frame) of the plate plane measured on the plain sweep, CAD mounting."""
-
-    def __init__(self, cell: SimulatedCell) -> None:
-        xyz, _ = cell.sweep_cloud(step_mm=1.0)
-        self.pose = estimate_plate_pose(xyz.reshape(-1, 3), head_direction=(0.0, 0.0, -1.0))
-        self.centre = cell.scanner.to_gls(self.pose.centre)
-        self.normal = cell.scanner.to_gls(self.pose.centre + self.pose.normal) - self.centre
-
-    def z(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        n, c = self.normal, self.centre
-        return c[2] - (n[0] * (x - c[0]) + n[1] * (y - c[1])) / n[2]
-
-
-def measure_deviations(cell: SimulatedCell, grid_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, PlatePlane]:
-    """Mark ``grid_xy`` nominally on a clean plate, scan and measure: paired targets, landed points, true deviations, plane.
-
-    As the calibration procedure does, every target is commanded on the measured plate plane.
-    """
-    cell.exchange_plate()
-    plane = PlatePlane(cell)
-    targets = np.column_stack([grid_xy, plane.z(grid_xy[:, 0], grid_xy[:, 1])])
-    landed = []
-    for ring in rings_polylines(grid_xy, RADII_MM):
-        joints = inverse(cell.config.geometry, ring[:, 0], ring[:, 1], plane.z(ring[:, 0], ring[:, 1]))
-        landed.append(cell.head.mark(joints.alpha_x, joints.alpha_y))
-    xyz, intensity = cell.sweep_cloud()
-    found = measure_fiducials(xyz, intensity, plane.pose, ring_radii_mm=RADII_MM, expected_count=len(grid_xy))
-    centres_gls = cell.scanner.to_gls(found.centres)
-    pairing = pair_with_targets(centres_gls, targets)
-    measured = pairing.transform.apply(centres_gls[pairing.measured_index])
-    paired = grid_xy[pairing.target_index]
-    true_centres = true_fiducial_centres(landed, len(RADII_MM))[:, :2]
-    true_deviations = grid_xy - align_in_plane(true_centres, grid_xy)
-    return paired, measured[:, :2], true_deviations[pairing.target_index], plane
-
-
-def true_validation(cell: SimulatedCell, correction: Correction, plane: PlatePlane) -> dict:
-    """Mark the validation rings through ``correction`` on a fresh plate; metrics of the true deviations."""
-    cell.exchange_plate()
-    landed = []
-    for ring in rings_polylines(VALIDATION, RADII_MM):
-        setpoints = correction.correct(ring[:, 0], ring[:, 1], plane.z(ring[:, 0], ring[:, 1]))
-        landed.append(cell.head.mark(setpoints.alpha_x, setpoints.alpha_y))
-    centres = true_fiducial_centres(landed, len(RADII_MM))[:, :2]
-    return deviation_metrics(VALIDATION, VALIDATION - align_in_plane(centres, VALIDATION), (None, 150.0))
 
 
 def rms(vectors: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(vectors ** 2, axis=1))))
 
 
+def plate(cell: DirectCell, settings, grid_xy: np.ndarray, correction: Correction):
+    """One plate of the calibrate flow marked through ``correction`` on a fresh plate."""
+    cell.sim.exchange_plate()
+    cell.marks.clear()
+    cell.correction = correction
+    return asyncio.run(run_plate(cell, settings, grid_xy, lambda *_: None, (0.0, 1.0), True))
+
+
 def main() -> None:
     """Print the comparison table."""
     config = load_sim_config()
-    cell = SimulatedCell(config)
     geometry = config.geometry
+    options = TrainingOptions()
+    cell = DirectCell(SimulatedCell(config), CalibrationStore(tempfile.mkdtemp(prefix="gls-bench-store-")))
     header = (f"{'grid':6s} {'method':26s} {'named effects':58s} {'RMS 180':>8s} {'max 180':>8s} "
-              f"{'RMS 150':>8s} {'max 150':>8s} {'train s':>8s}")
-    print("True error on the 18x18 validation grid over 180 mm (mm, after rigid 2-D alignment); "
-          "paper-like cell (config/sim.yaml)")
+              f"{'RMS 150':>8s} {'max 150':>8s} {'meas RMS':>8s} {'train s':>8s}")
+    print("TRUE error on the 18x18 validation grid over 180 mm (mm, after rigid 2-D alignment; 'meas RMS' "
+          "is the MEASURED RMS of the same plate); paper-like cell (config/sim.yaml), procedure.run_plate "
+          "on a DirectCell")
     print(header)
     print("-" * len(header))
     for per_side in GRIDS:
-        grid_xy = grid_targets(per_side, SIZE_MM)
+        settings = cell.settings(grid_per_side=per_side, grid_size_mm=SIZE_MM)
+        region = calibrated_region(settings)
         began = time.perf_counter()
-        targets, landed, true_deviations, plane = measure_deviations(cell, grid_xy)
-        deviations = targets - landed
+        run = plate(cell, settings, grid_targets(per_side, SIZE_MM), Correction(geometry))
         measuring = time.perf_counter() - began
-        noise = rms(deviations - true_deviations)
-        region = calibrated_region(ProcedureSettings(grid_per_side=per_side, grid_size_mm=SIZE_MM,
-                                                     ring_radii_mm=RADII_MM))
+        targets, landed, deviations = run.paired_targets_xy, run.measured_gls[:, :2], run.deviations
+
+        def timed(train):
+            began = time.perf_counter()
+            result = train()
+            return result, time.perf_counter() - began
+
         rows = [("none (nominal model)", "", Correction(geometry), 0.0)]
-        began = time.perf_counter()
-        model, selection = rbf.select_model(targets, deviations)
+        (model, selection), seconds = timed(lambda: rbf.select_model(targets, deviations, **options.select_kwargs()))
         rows.append((f"RBF at Q ({selection.method})", "published way", Correction(geometry, [model], region),
-                     time.perf_counter() - began))
-        # as the calibration procedure trains: at the landed points P, the correction Q - P
-        began = time.perf_counter()
-        model, selection = rbf.select_model(landed, deviations)
-        rows.append((f"RBF at P ({selection.method})", "this package, RBF only",
-                     Correction(geometry, [model], region), time.perf_counter() - began))
-        began = time.perf_counter()
-        model, report = train_physics_then_rbf(targets, deviations, geometry)
-        rows.append((report.method, ", ".join(report.named_effects) or "none",
-                     Correction(geometry, [model], region), time.perf_counter() - began))
+                     seconds))
+        trained, seconds = timed(lambda: train_correction(landed, run.corrections, geometry, options=options))
+        rows.append((f"RBF at P ({trained.method})", "this package, RBF only",
+                     Correction(geometry, [model_from_dict(trained.model)], region), seconds))
+        trained, seconds = timed(lambda: train_correction(landed, run.corrections, geometry, physics_first=True,
+                                                          options=options))
+        named = trained.description[trained.description.find("(") + 1:trained.description.find(")")]
+        rows.append((trained.method, named, Correction(geometry, [model_from_dict(trained.model)], region), seconds))
         # where the gain comes from: the same physics used to first order only (as the RBF is)
-        began = time.perf_counter()
-        first_order, _ = train_physics_then_rbf(targets, deviations, geometry, inverse=False)
-        rows.append(("  same, physics 1st order", "(same)", Correction(geometry, [first_order], region),
-                     time.perf_counter() - began))
+        (first_order, report), seconds = timed(lambda: train_physics_then_rbf(
+            landed + run.corrections, run.corrections, geometry, inverse=False, **options.select_kwargs()))
+        rows.append(("  same, physics 1st order", "(same)", Correction(geometry, [first_order], region), seconds))
         label = f"{per_side}x{per_side}"
         for method, named, correction, training in rows:
-            metrics = true_validation(cell, correction, plane)
-            full, central = metrics["full"], metrics["150x150"]
-            print(f"{label:6s} {method:26s} {named:58s} {full['rms_abs_mm']:8.4f} {full['max_abs_mm']:8.4f} "
-                  f"{central['rms_abs_mm']:8.4f} {central['max_abs_mm']:8.4f} {training:8.2f}", flush=True)
-        print(f"{'':6s} ({len(targets)}/{len(grid_xy)} fiducials paired; measurement error vs truth "
-              f"{noise:.4f} mm RMS; physics left {report.residual_rms_mm:.4f} mm RMS for the RBF, "
-              f"residual CV RMS {report.cv_rms_mm:.4f} mm; measuring {measuring:.1f} s)", flush=True)
+            validation = plate(cell, settings, VALIDATION, correction)
+            full = validation.true_metrics.full
+            central = validation.true_metrics.field(150.0)
+            print(f"{label:6s} {method:26s} {named:58s} {full.rms_abs_mm:8.4f} {full.max_abs_mm:8.4f} "
+                  f"{central.rms_abs_mm:8.4f} {central.max_abs_mm:8.4f} {validation.metrics.full.rms_abs_mm:8.4f} "
+                  f"{training:8.2f}", flush=True)
+        print(f"{'':6s} ({len(targets)}/{per_side ** 2} fiducials paired; measurement error vs truth "
+              f"{rms(deviations - run.true_deviations):.4f} mm RMS; physics left {report.residual_rms_mm:.4f} mm "
+              f"RMS for the RBF, residual CV RMS {report.cv_rms_mm:.4f} mm; measuring {measuring:.1f} s)", flush=True)
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ import numpy as np
 
 from gls_calibration.rbf import OLSRBFNetwork, select_model
 from gls_calibration.targets import grid_targets
+from timing import median_seconds
 
 
 def synthetic_samples(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -27,16 +28,6 @@ def synthetic_samples(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
                              0.30 * t - 0.20 * s * s + 0.15 * t ** 3 + 0.18 * t * r2])
     field *= 0.85 / math.sqrt(np.mean(np.sum(field ** 2, axis=1)))
     return grid, field + np.random.default_rng(seed).normal(0.0, 0.02, grid.shape)
-
-
-def median_seconds(action, repeats: int) -> float:
-    """Median wall time of ``repeats`` calls."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        action()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def per_call_seconds(action, calls: int, batches: int) -> float:

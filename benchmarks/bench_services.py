@@ -22,7 +22,7 @@ import numpy as np
 import rclpy
 
 from gls_calibration.calibration_record import calibrated_region
-from gls_calibration.conversions import float64_sequence
+from gls_calibration.nodes.conversions import float64_sequence
 from gls_calibration.kinematics import HeadGeometry
 from gls_calibration.nodes.base import NodeThreads
 from gls_calibration.persistence import CalibrationStore, new_record

@@ -5,24 +5,13 @@ in at most 5 s; 1e5 ray traces well under 50 ms.
 """
 from __future__ import annotations
 
-import statistics
-import time
 import tracemalloc
 
 import numpy as np
 
 from gls_calibration.optics import PhysicalHead
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
-
-
-def median_time(function, repeats: int) -> float:
-    """Median wall time (s) of ``repeats`` calls."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+from timing import median_seconds
 
 
 def main() -> None:
@@ -31,7 +20,7 @@ def main() -> None:
     limit = config.geometry.mirror_limit_rad
     alpha_x, alpha_y = rng.uniform(-limit, limit, (2, 100_000))
     head = PhysicalHead(config.geometry, config.effects)
-    print(f"ray trace, 1e5 points, all effects: {1e3 * median_time(lambda: head.land(alpha_x, alpha_y, 1.0), 9):.1f} ms")
+    print(f"ray trace, 1e5 points, all effects: {1e3 * median_seconds(lambda: head.land(alpha_x, alpha_y, 1.0), 9):.1f} ms")
 
     offsets = np.linspace(-95.0, 95.0, 19)
     angles = np.linspace(0.0, 2.0 * np.pi, 721)
@@ -43,9 +32,9 @@ def main() -> None:
         cell.mark_cartesian(rings)
         return cell
 
-    print(f"mark 19x19 double rings (722 polylines, 721 vertices): {median_time(mark_grid, 3):.2f} s")
+    print(f"mark 19x19 double rings (722 polylines, 721 vertices): {median_seconds(mark_grid, 3):.2f} s")
     cell = mark_grid()
-    sweep = median_time(lambda: cell.sweep_cloud(seed=1), 3)
+    sweep = median_seconds(lambda: cell.sweep_cloud(seed=1), 3)
     tracemalloc.start()
     xyz, intensity = cell.sweep_cloud(seed=1)
     _, peak = tracemalloc.get_traced_memory()

@@ -12,9 +12,11 @@ import numpy as np
 
 from gls_calibration.correction import CalibratedRegion, Correction
 from gls_calibration.kinematics import HeadGeometry
-from gls_calibration.persistence import new_record
-from gls_calibration.procedure import PlateRun, ProcedureSettings, TrainedModel
-from gls_calibration.rbf import model_from_dict
+from gls_calibration.outcome import Candidate
+from gls_calibration.persistence import CalibrationStore, new_record
+from gls_calibration.procedure import PlateRun, ProcedureSettings
+from gls_calibration.training import TrainedModel
+from gls_calibration.deviation_models import model_from_dict
 
 
 def calibrated_region(settings: ProcedureSettings) -> CalibratedRegion:
@@ -43,8 +45,14 @@ def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequ
         hyper_parameters={"trained_models": [
             {"method": model.method, "neurons": model.neurons, "spread_mm": model.spread_mm,
              "cv_rms_mm": model.cv_rms_mm} for model in models]},
-        metrics={"iterations": [run.metrics for run in runs]},
+        metrics={"iterations": [run.metrics.to_dict() for run in runs]},
         fiducials=fiducials)
+
+
+def save_candidate(store: CalibrationStore, record: Mapping, geometry: HeadGeometry) -> Candidate:
+    """Store ``record`` without activating it; the candidate's file and the correction it describes."""
+    correction = correction_from_record(record, geometry)   # refuses an unusable record before saving
+    return Candidate(str(store.save(record, activate=False)), correction)
 
 
 def record_models(record: Mapping) -> list[dict]:

@@ -27,6 +27,7 @@ import yaml
 from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.kinematics import HeadGeometry
 from gls_calibration.optics import HeadEffects
+from gls_calibration.validation import as_config_number
 
 _NOMINAL = HeadGeometry()
 #: Geometry keys of the ``head`` block and their defaults (HeadGeometry's: the published set-up).
@@ -79,12 +80,6 @@ def parameters_block(document: Any) -> dict[str, Any]:
     return _undot(document)
 
 
-def _number(value: Any, key: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"head parameter {key!r} must be a finite number, got {value!r}")
-    return float(value)
-
-
 def head_config_from_dict(document: Any) -> tuple[HeadGeometry, HeadEffects]:
     """Geometry and known effects from a parsed head configuration (see the module docstring)."""
     parameters = parameters_block(document)
@@ -96,7 +91,7 @@ def head_config_from_dict(document: Any) -> tuple[HeadGeometry, HeadEffects]:
     if unknown:
         raise ValueError(f"unknown head parameter(s) {', '.join(map(repr, unknown))}; "
                          f"known: {', '.join(sorted(known))}")
-    values = {key: _number(head.get(key, default), key) for key, default in HEAD_DEFAULTS.items()}
+    values = {key: as_config_number(head.get(key, default), key, "head parameter") for key, default in HEAD_DEFAULTS.items()}
     geometry = HeadGeometry(
         working_distance_mm=values["working_distance_mm"],
         mirror_distance_mm=values["mirror_distance_mm"],
@@ -115,7 +110,7 @@ def effects_from_mapping(effects: Any, what: str) -> HeadEffects:
     cleaned = {}
     for name, parameters_of_effect in effects.items():
         listed = parameters_of_effect if isinstance(parameters_of_effect, (list, tuple)) else [parameters_of_effect]
-        cleaned[str(name)] = tuple(_number(value, f"effects.{name}") for value in listed)
+        cleaned[str(name)] = tuple(as_config_number(value, f"effects.{name}", "head parameter") for value in listed)
     return HeadEffects(cleaned)
 
 

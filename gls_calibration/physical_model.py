@@ -32,7 +32,7 @@ RBF alone then.
 """
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields
 import math
 import time
@@ -45,7 +45,7 @@ from gls_calibration import rbf
 from gls_calibration.discrepancy import MIN_POINTS, DiscrepancyResult, align_rigid_2d, explain
 from gls_calibration.kinematics import HeadGeometry, inverse
 from gls_calibration.optics import HeadEffects, PhysicalHead
-from gls_calibration.validation import as_finite_array, as_matching_points, as_points
+from gls_calibration.validation import as_finite_array, as_matching_points, as_points, require_key, require_type
 
 _INVERSE_TOLERANCE_MM = 1e-9
 _INVERSE_MAX_ITERATIONS = 30
@@ -59,19 +59,6 @@ def _geometry_from_dict(data: Any) -> HeadGeometry:
     if unknown:
         raise ValueError(f"physical model geometry has unknown key(s) {', '.join(unknown)}")
     return HeadGeometry(**{key: float(value) for key, value in data.items()})
-
-
-def _require(data: Mapping[str, Any], key: str) -> Any:
-    if key not in data:
-        raise ValueError(f"model description lacks key '{key}'")
-    return data[key]
-
-
-def _require_type(data: Any, expected: str) -> None:
-    if not isinstance(data, Mapping):
-        raise ValueError(f"model description must be a mapping, got {type(data).__name__}")
-    if data.get("type") != expected:
-        raise ValueError(f"model type must be '{expected}', got {data.get('type')!r}")
 
 
 class PhysicalDeviationModel:
@@ -161,15 +148,15 @@ class PhysicalDeviationModel:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "PhysicalDeviationModel":
         """Rebuild a model written by :meth:`to_dict`."""
-        _require_type(data, "physical")
-        effects = _require(data, "effects")
+        require_type(data, "physical")
+        effects = require_key(data, "effects")
         if not isinstance(effects, Mapping):
             raise ValueError(f"physical model effects must be a mapping, got {type(effects).__name__}")
-        alignment = _require(data, "alignment")
+        alignment = require_key(data, "alignment")
         if not isinstance(alignment, Mapping):
             raise ValueError(f"physical model alignment must be a mapping, got {type(alignment).__name__}")
-        return cls(_geometry_from_dict(_require(data, "geometry")), HeadEffects(dict(effects)),
-                   _require(alignment, "rotation_rad"), _require(alignment, "translation_mm"),
+        return cls(_geometry_from_dict(require_key(data, "geometry")), HeadEffects(dict(effects)),
+                   require_key(alignment, "rotation_rad"), require_key(alignment, "translation_mm"),
                    inverse=data.get("inverse", True))
 
     def __repr__(self) -> str:
@@ -202,13 +189,15 @@ class SumModel:
         return {"type": "sum", "models": [model.to_dict() for model in self.models]}
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "SumModel":
-        """Rebuild a sum written by :meth:`to_dict` (each part through :func:`rbf.model_from_dict`)."""
-        _require_type(data, "sum")
-        parts = _require(data, "models")
+    def from_dict(cls, data: Mapping[str, Any],
+                  part_from_dict: Callable[[Mapping[str, Any]], rbf.DeviationModel]) -> "SumModel":
+        """Rebuild a sum written by :meth:`to_dict`, each part through ``part_from_dict`` (the registry's
+        :func:`gls_calibration.deviation_models.model_from_dict`: a part may be of any stored type)."""
+        require_type(data, "sum")
+        parts = require_key(data, "models")
         if not isinstance(parts, Sequence) or isinstance(parts, (str, bytes)):
             raise ValueError(f"sum model 'models' must be a list, got {type(parts).__name__}")
-        return cls([rbf.model_from_dict(part) for part in parts])
+        return cls([part_from_dict(part) for part in parts])
 
     def __repr__(self) -> str:
         return f"SumModel({', '.join(repr(model) for model in self.models)})"

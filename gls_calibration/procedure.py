@@ -2,8 +2,9 @@
 
 The procedure does not know ROS. It awaits a ``Cell``: an object whose coroutine methods reach the
 scanner, the galvo and the processing nodes (the calibration manager implements them with service
-calls; tests may implement them directly). Everything it decides -- where to mark, how to pair,
-what to train, when to stop -- lives here, so the node stays thin.
+calls; ``simulation.direct_cell.DirectCell`` calls the simulated cell and the core directly).
+Everything it decides -- where to mark, how to pair, what to train, when to stop -- lives here, so
+the node stays thin.
 """
 from __future__ import annotations
 
@@ -17,45 +18,65 @@ import numpy as np
 from gls_calibration import targets as grid
 from gls_calibration.correction import CorrectedSetpoints
 from gls_calibration.fiducials import FiducialMeasurement
+from gls_calibration.outcome import CalibrationOutcome, Candidate, DeviationMetrics, deviation_metrics
 from gls_calibration.plate_pose import PlatePose, mean_plate_pose
-from gls_calibration.registration import RigidTransform, deviation_metrics, fit_rigid, pair_with_targets
+from gls_calibration.registration import RigidTransform, fit_rigid, pair_with_targets
+from gls_calibration.training import TrainedModel
 
 
 class CalibrationError(RuntimeError):
     """The calibration cannot go on; the message says why. Nothing has been replaced."""
 
 
-@dataclass(frozen=True)
-class TrainedModel:
-    """A trained deviation model as plain numbers, with what training reported."""
-
-    model: dict
-    method: str
-    neurons: int
-    spread_mm: float
-    cv_rms_mm: float
-
-
 class Cell(Protocol):
-    """What the procedure needs from the cell.
+    """What the procedure needs from the cell: the contract a cell integrator implements.
 
-    A cloud is whatever ``acquire_sweep`` returns; the procedure only hands it back to
-    ``estimate_plate_pose`` and ``measure_fiducials``, so a cell can keep it in its own form (the
-    manager keeps the PointCloud2 message and forwards it without converting it).
+    Every method is a coroutine; a failure raises ``CalibrationError`` with a message saying what
+    went wrong (the procedure lets it through, and the caller keeps the active calibration).
+    Lengths in mm, angles in rad. Frames: ``scanner`` is the line scanner's frame in which clouds
+    and plate poses are expressed; ``gls`` is the galvo head's frame (z towards the head) in which
+    targets and corrections are expressed. A cloud is whatever ``acquire_sweep`` returns; the
+    procedure only hands it back to ``estimate_plate_pose`` and ``measure_fiducials``, so a cell can
+    keep it in its own form (the manager keeps the PointCloud2 message and forwards it untouched).
     """
 
-    async def acquire_sweep(self, step_mm: float) -> Any: ...
-    async def estimate_plate_pose(self, cloud: Any) -> PlatePose: ...
-    async def measure_fiducials(self, cloud: Any, pose: PlatePose, expected_count: int) -> FiducialMeasurement: ...
-    async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> CorrectedSetpoints: ...
+    async def acquire_sweep(self, step_mm: float) -> Any:
+        """Sweep the scanner over the plate with ``step_mm`` between profiles; the cloud (scanner frame)."""
+
+    async def estimate_plate_pose(self, cloud: Any) -> PlatePose:
+        """The plate plane fitted to ``cloud`` (scanner frame, normal towards the head)."""
+
+    async def measure_fiducials(self, cloud: Any, pose: PlatePose, expected_count: int) -> FiducialMeasurement:
+        """Centres (scanner frame, mm) of the ring fiducials found in ``cloud`` on the plate ``pose``;
+        ``expected_count`` fiducials were marked (a hint, not a promise)."""
+
+    async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> CorrectedSetpoints:
+        """Setpoints that land on the targets (x, y, z) (gls frame, mm) through the calibration loaded
+        in the cell (the nominal model when none is); ``within_limits`` flags the reachable ones."""
+
     async def mark(self, alpha_x: np.ndarray, alpha_y: np.ndarray, focus_shift: np.ndarray,
-                   polyline_starts: np.ndarray) -> float: ...
-    async def train(self, measured_xy: np.ndarray, corrections: np.ndarray) -> TrainedModel:
-        """A model of the correction to add at a target: trained on landed points P and K(Q) - K(P)."""
-    async def load_calibration(self, path: str) -> None: ...
-    async def exchange_plate(self) -> None: ...
+                   polyline_starts: np.ndarray) -> float:
+        """Mark polylines: mirror angles (rad) and focus shift (mm) per point, ``polyline_starts`` the
+        index of each polyline's first point (starts with 0). Returns the marking time in seconds."""
+
+    async def train(self, landed_xy: np.ndarray, corrections: np.ndarray) -> TrainedModel:
+        """A model of the correction to add at a target, trained on the landed points P (N, 2) and the
+        corrections K(Q) - K(P) (N, 2) (gls frame, mm); see ``training.train_correction``."""
+
+    async def load_calibration(self, path: str) -> None:
+        """Make the cell correct through the calibration file ``path`` (a saved candidate) from now on."""
+
+    async def reload_active(self) -> None:
+        """Make the cell correct through the store's active calibration again (the nominal model when
+        there is none): what a failed run calls to drop a candidate it loaded."""
+
+    async def exchange_plate(self) -> None:
+        """Put a clean plate in the cell (second iteration, validation); CalibrationError when the cell
+        cannot."""
+
     async def true_marks(self) -> Optional[list[np.ndarray]]:
-        """Simulation only: the polylines really marked on the current plate (gls, mm), in order."""
+        """Simulation only: the polylines really marked on the current plate ((M, 3) each, gls frame,
+        mm), in marking order; None on a real cell."""
 
 
 @dataclass(frozen=True)
@@ -88,8 +109,8 @@ class PlateRun:
     plate_pose_gls: PlatePose
     fiducials_found: int
     alignment: RigidTransform
-    metrics: dict
-    true_metrics: Optional[dict]           # over every target, from the ground truth
+    metrics: DeviationMetrics              # of ``deviations``
+    true_metrics: Optional[DeviationMetrics]  # over every target, from the ground truth
 
 
 def plane_height(pose: PlatePose, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -214,27 +235,13 @@ def validation_grid(settings: ProcedureSettings) -> np.ndarray:
     return grid.grid_targets(settings.grid_per_side - 1, settings.grid_size_mm - pitch)
 
 
-@dataclass
-class CalibrationOutcome:
-    """What one calibrate request produced (the node turns it into the service response)."""
-
-    success: bool
-    message: str
-    runs: list[PlateRun]
-    validation: Optional[PlateRun]
-    models: list[TrainedModel]
-    trained: bool
-    duration_s: float = float("nan")
-    calibration_file: str = ""
-
-
 async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int, validate: bool, force: bool,
                     want_truth: bool, progress: Progress,
-                    save_candidate: Callable[[list[PlateRun], list[TrainedModel]], str]) -> CalibrationOutcome:
+                    save_candidate: Callable[[list[PlateRun], list[TrainedModel]], Candidate]) -> CalibrationOutcome:
     """Run the calibrate flow. ``save_candidate`` stores a calibration without activating it.
 
-    The correction node is switched to the candidate for later iterations and validation; the
-    caller activates it only when this returns successfully, so a failure keeps the active one.
+    The cell is switched to the candidate for later iterations and validation; the caller activates
+    it only when this returns, so a failure (``CalibrationError``) keeps the active one.
     """
     began = time.monotonic()
     iterations = iterations or settings.default_iterations
@@ -243,23 +250,22 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
     span = 1.0 / passes
     runs: list[PlateRun] = []
     models: list[TrainedModel] = []
-    candidate = ""
+    candidate: Optional[Candidate] = None
     for iteration in range(iterations):
         if iteration > 0:
             await cell.exchange_plate()
         run = await run_plate(cell, settings, training_grid, progress, (iteration * span, span * 0.9),
                               want_truth)
         runs.append(run)
-        rms = run.metrics["full"]["rms_abs_mm"]
+        rms = run.metrics.full.rms_abs_mm
         if iteration == 0 and rms <= settings.tolerance_rms_mm and not force:
-            return CalibrationOutcome(True, f"deviation RMS {rms:.4f} mm is within the tolerance of "
+            return CalibrationOutcome(f"deviation RMS {rms:.4f} mm is within the tolerance of "
                                       f"{settings.tolerance_rms_mm} mm: nothing trained (use force to train)",
-                                      runs, None, models, trained=False,
-                                      duration_s=time.monotonic() - began)
+                                      tuple(runs), None, tuple(models), None, time.monotonic() - began)
         progress("training", (iteration + 0.9) * span, f"training on {len(run.deviations)} deviations")
         models.append(await cell.train(run.measured_gls[:, :2], run.corrections))
         candidate = save_candidate(runs, models)
-        await cell.load_calibration(candidate)
+        await cell.load_calibration(candidate.path)
 
     validation = None
     if validate:
@@ -267,5 +273,5 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
         validation = await run_plate(cell, settings, validation_grid(settings), progress,
                                      (iterations * span, span), want_truth)
     progress("done", 1.0, "calibration finished")
-    return CalibrationOutcome(True, "calibrated", runs, validation, models, trained=True,
-                              duration_s=time.monotonic() - began, calibration_file=candidate)
+    return CalibrationOutcome("calibrated", tuple(runs), validation, tuple(models), candidate,
+                              time.monotonic() - began)

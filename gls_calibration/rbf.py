@@ -2,7 +2,8 @@
 
 A deviation model maps target positions ``Q`` (M, 2) in mm to deviations ``delta`` (M, 2) in mm:
 it is built from training data in its constructor (like ``scipy.interpolate.RBFInterpolator``),
-evaluated with ``model(points)`` and stored with ``to_dict()`` / :func:`model_from_dict`.
+evaluated with ``model(points)`` and stored with ``to_dict()`` / ``from_dict`` (every stored type:
+:mod:`gls_calibration.deviation_models`).
 
 Spread convention (the one of MATLAB's ``newrb``, in which the published spread of 35 mm is
 given): a unit's output is ``exp(-(sqrt(ln 2) r / spread)^2)``, i.e. 0.5 at ``r = spread``
@@ -13,17 +14,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-import importlib
 import math
-import os
 from typing import Any, Optional, Protocol
 
 import numpy as np
 from scipy.interpolate import RBFInterpolator
-import yaml
 
 from gls_calibration.validation import (as_integer_at_least, as_matching_points, as_non_negative_number,
-                                        as_points, as_positive_number)
+                                        as_points, as_positive_number, require_key, require_type)
 
 LN2 = math.log(2.0)
 _CHUNK_ROWS = 2048           # rows per block when evaluating many points: bounds memory, stays in cache
@@ -248,15 +246,15 @@ class OLSRBFNetwork:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "OLSRBFNetwork":
         """Rebuild a network written by :meth:`to_dict`."""
-        _require_type(data, "ols_rbf")
-        centres = _rows_of_two(_require(data, "centres"), "centres")
-        weights = _rows_of_two(_require(data, "weights"), "weights")
+        require_type(data, "ols_rbf")
+        centres = _rows_of_two(require_key(data, "centres"), "centres")
+        weights = _rows_of_two(require_key(data, "weights"), "weights")
         if centres.shape != weights.shape:
             raise ValueError(f"centres and weights must have the same shape, got {centres.shape} and {weights.shape}")
-        bias = as_points([_require(data, "bias")], "bias", 2)[0]
+        bias = as_points([require_key(data, "bias")], "bias", 2)[0]
         max_neurons = data.get("max_neurons")
         model = cls.__new__(cls)
-        model._set(centres, weights, bias, as_positive_number(_require(data, "spread_mm"), "spread_mm"),
+        model._set(centres, weights, bias, as_positive_number(require_key(data, "spread_mm"), "spread_mm"),
                    as_non_negative_number(data.get("mse_goal_mm2", 0.0), "mse_goal_mm2"),
                    None if max_neurons is None else as_integer_at_least(max_neurons, "max_neurons", 1),
                    float(data.get("training_mse_mm2", math.nan)))
@@ -296,17 +294,11 @@ class ThinPlateSplineModel:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "ThinPlateSplineModel":
         """Rebuild (refit) a spline written by :meth:`to_dict`."""
-        _require_type(data, "thin_plate_spline")
-        return cls(_require(data, "points"), _require(data, "values"), smoothing=_require(data, "smoothing"))
+        require_type(data, "thin_plate_spline")
+        return cls(require_key(data, "points"), require_key(data, "values"), smoothing=require_key(data, "smoothing"))
 
     def __repr__(self) -> str:
         return f"ThinPlateSplineModel(points={self.points.shape[0]}, smoothing={self.smoothing:g})"
-
-
-_MODEL_TYPES = {"ols_rbf": OLSRBFNetwork, "thin_plate_spline": ThinPlateSplineModel}
-# Types defined in modules that import this one: (module, class), imported on first use (no cycle).
-_LAZY_MODEL_TYPES = {"physical": ("gls_calibration.physical_model", "PhysicalDeviationModel"),
-                     "sum": ("gls_calibration.physical_model", "SumModel")}
 
 
 def _rows_of_two(values: Any, name: str) -> np.ndarray:
@@ -314,45 +306,6 @@ def _rows_of_two(values: Any, name: str) -> np.ndarray:
     if isinstance(values, (list, tuple)) and len(values) == 0:
         return np.empty((0, 2))
     return as_points(values, name, 2, min_length=0)
-
-
-def _require(data: Mapping[str, Any], key: str) -> Any:
-    if key not in data:
-        raise ValueError(f"model description lacks key '{key}'")
-    return data[key]
-
-
-def _require_type(data: Mapping[str, Any], expected: str) -> None:
-    if not isinstance(data, Mapping):
-        raise ValueError(f"model description must be a mapping, got {type(data).__name__}")
-    if data.get("type") != expected:
-        raise ValueError(f"model type must be '{expected}', got {data.get('type')!r}")
-
-
-def model_from_dict(data: Mapping[str, Any]) -> DeviationModel:
-    """Rebuild any deviation model from its ``to_dict()`` form, dispatching on ``type``."""
-    if not isinstance(data, Mapping):
-        raise ValueError(f"model description must be a mapping, got {type(data).__name__}")
-    kind = data.get("type")
-    if kind in _LAZY_MODEL_TYPES:
-        module, name = _LAZY_MODEL_TYPES[kind]
-        return getattr(importlib.import_module(module), name).from_dict(data)
-    if kind not in _MODEL_TYPES:
-        known = sorted([*_MODEL_TYPES, *_LAZY_MODEL_TYPES])
-        raise ValueError(f"unknown model type {kind!r}; known types: {', '.join(known)}")
-    return _MODEL_TYPES[kind].from_dict(data)
-
-
-def save_model_yaml(path: str | os.PathLike, model: DeviationModel) -> None:
-    """Write ``model.to_dict()`` as YAML (plain write; atomic saving is persistence's job)."""
-    with open(path, "w", encoding="utf-8") as stream:
-        yaml.safe_dump(model.to_dict(), stream, sort_keys=False)
-
-
-def load_model_yaml(path: str | os.PathLike) -> DeviationModel:
-    """Read a model written by :func:`save_model_yaml`."""
-    with open(path, encoding="utf-8") as stream:
-        return model_from_dict(yaml.safe_load(stream))
 
 
 @dataclass(frozen=True)

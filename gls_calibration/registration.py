@@ -1,9 +1,9 @@
-"""Registration of measured fiducial centres onto the nominal targets, deviations and their metrics.
+"""Registration of measured fiducial centres onto the nominal targets, and the deviations.
 
 The measured centres come in the scanner's frame; the targets in the ``gls`` frame. Both lie on a
 plane. :func:`pair_with_targets` finds which measured point belongs to which target and the rigid
-transform measured -> gls; :func:`deviations` and :func:`deviation_metrics` turn the registered
-points into the error field and its summary (max/RMS over the full field and centred sub-fields).
+transform measured -> gls; :func:`deviations` turns the registered points into the error field
+(its metrics: :func:`gls_calibration.outcome.deviation_metrics`).
 
 In-plane rotation convention: each plane gets 2-D axes ``u`` = its frame's x axis projected onto
 the plane, ``v = n x u`` (the convention of :class:`gls_calibration.plate_pose.PlatePose`). The
@@ -12,7 +12,6 @@ plane and the target ``u``. This prior is what tells a square grid from its 90 d
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 import math
 from typing import Optional
@@ -314,40 +313,3 @@ def deviations(targets, measured_in_gls) -> np.ndarray:
         raise ValueError(f"targets and measured_in_gls must have the same shape, "
                          f"got {targets.shape} and {measured_in_gls.shape}")
     return targets - measured_in_gls
-
-
-def _field_name(size_mm: Optional[float]) -> str:
-    return "full" if size_mm is None else f"{size_mm:g}x{size_mm:g}"
-
-
-def deviation_metrics(targets_xy, deviations_xy,
-                      subfields_mm: Sequence[Optional[float]] = (None, 150.0, 50.0)) -> dict:
-    """Max and RMS of ``u_x``, ``u_y`` and ``|delta|`` (mm) over the full field and centred square sub-fields.
-
-    Sub-fields are centred on the centre of the targets' bounding box and keep points with
-    ``|x - cx|, |y - cy| <= size / 2 + 1e-9``; ``None`` means the full field. "max" is the maximum
-    absolute value. A sub-field with no point has count 0 and NaN values (stored as null).
-    """
-    targets_xy = as_points(targets_xy, "targets_xy", 2)
-    deviations_xy = as_points(deviations_xy, "deviations", 2)
-    if targets_xy.shape[0] != deviations_xy.shape[0]:
-        raise ValueError(f"targets_xy and deviations must have the same number of points, "
-                         f"got {targets_xy.shape[0]} and {deviations_xy.shape[0]}")
-    centre = 0.5 * (targets_xy.min(axis=0) + targets_xy.max(axis=0))
-    offsets = np.abs(targets_xy - centre)
-    magnitude = np.hypot(deviations_xy[:, 0], deviations_xy[:, 1])
-    metrics: dict = {}
-    for size in subfields_mm:
-        if size is None:
-            selected = np.ones(targets_xy.shape[0], dtype=bool)
-        else:
-            half = 0.5 * as_positive_number(size, "subfields_mm") + 1e-9
-            selected = np.all(offsets <= half, axis=1)
-        columns = {"ux": deviations_xy[selected, 0], "uy": deviations_xy[selected, 1], "abs": magnitude[selected]}
-        entry: dict = {"count": int(np.count_nonzero(selected))}
-        for label, values in columns.items():
-            empty = values.size == 0
-            entry[f"max_{label}_mm"] = math.nan if empty else float(np.max(np.abs(values)))
-            entry[f"rms_{label}_mm"] = math.nan if empty else float(np.sqrt(np.mean(values ** 2)))
-        metrics[_field_name(size)] = entry
-    return metrics

@@ -1,6 +1,10 @@
 """Input validation shared by the core modules: one place for the exact error messages."""
 from __future__ import annotations
 
+from collections.abc import Mapping
+import math
+from typing import Any
+
 import numpy as np
 
 
@@ -84,3 +88,32 @@ def _as_scalar(value, name: str) -> float:
         return float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be a number, got {value!r}") from None
+
+
+def require_mapping(value, what: str) -> Mapping:
+    """Return ``value`` if it is a mapping, else raise ValueError naming ``what`` and the type found."""
+    if not isinstance(value, Mapping):
+        raise ValueError(f"{what} must be a mapping, got {type(value).__name__}")
+    return value
+
+
+def require_key(data: Mapping, key: str, what: str = "model description") -> Any:
+    """``data[key]``, or ValueError saying that ``what`` lacks ``key``."""
+    if key not in data:
+        raise ValueError(f"{what} lacks key '{key}'")
+    return data[key]
+
+
+def require_type(data: Any, expected: str) -> Mapping:
+    """A stored model description: a mapping whose ``type`` is ``expected`` (ValueError otherwise)."""
+    require_mapping(data, "model description")
+    if data.get("type") != expected:
+        raise ValueError(f"model type must be '{expected}', got {data.get('type')!r}")
+    return data
+
+
+def as_config_number(value: Any, key: str, what: str) -> float:
+    """A finite number read from a configuration file (bools refused); ValueError names ``what`` ``key``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{what} {key!r} must be a finite number, got {value!r}")
+    return float(value)

@@ -10,7 +10,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.time import Time as RclpyTime
 from sensor_msgs.msg import PointCloud2, PointField
 
-from gls_calibration.conversions import (
+from gls_calibration.nodes.conversions import (
     array_to_pointcloud2, pointcloud2_to_array, unstructured_xyz, xyz_intensity_arrays, xyzi_array,
     xyzi_dtype)
 

@@ -25,7 +25,7 @@ from sensor_msgs.msg import PointCloud2
 
 from gls_calibration import kinematics
 from gls_calibration.config_files import config_path
-from gls_calibration.conversions import array_to_pointcloud2, pointcloud2_to_array, xyzi_array
+from gls_calibration.nodes.conversions import array_to_pointcloud2, pointcloud2_to_array, xyzi_array
 from gls_calibration.correction import CalibratedRegion, Correction
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode

@@ -9,6 +9,7 @@ import yaml
 
 from gls_calibration import rbf
 from gls_calibration.correction import CalibratedRegion, Correction
+from gls_calibration.deviation_models import model_from_dict
 from gls_calibration.discrepancy import align_rigid_2d
 from gls_calibration.kinematics import HeadGeometry, inverse
 from gls_calibration.optics import PhysicalHead
@@ -63,7 +64,7 @@ def sample_points(seed: int = 3) -> np.ndarray:
 
 def test_physical_model_round_trip_gives_equal_predictions(trained_7x7):
     physical = trained_7x7[3].physical_model
-    copy = rbf.model_from_dict(yaml.safe_load(yaml.safe_dump(physical.to_dict())))
+    copy = model_from_dict(yaml.safe_load(yaml.safe_dump(physical.to_dict())))
     assert isinstance(copy, PhysicalDeviationModel)
     np.testing.assert_allclose(copy(sample_points()), physical(sample_points()), rtol=0.0, atol=1e-12)
     first_order = PhysicalDeviationModel.from_dict({**physical.to_dict(), "inverse": False})
@@ -77,7 +78,7 @@ def test_sum_model_round_trip_and_equals_the_sum_of_its_parts(trained_7x7):
     points = sample_points()
     np.testing.assert_allclose(model(points), model.models[0](points) + model.models[1](points),
                                rtol=0.0, atol=1e-12)
-    copy = rbf.model_from_dict(yaml.safe_load(yaml.safe_dump(model.to_dict())))
+    copy = model_from_dict(yaml.safe_load(yaml.safe_dump(model.to_dict())))
     assert [part.to_dict()["type"] for part in copy.models] == [part.to_dict()["type"] for part in model.models]
     np.testing.assert_allclose(copy(points), model(points), rtol=0.0, atol=1e-9)
     assert model(np.empty((0, 2))).shape == (0, 2)
@@ -152,7 +153,7 @@ def test_without_a_named_effect_it_is_rbf_only():
 ])
 def test_bad_descriptions_are_refused(data, message):
     with pytest.raises(ValueError, match=message):
-        rbf.model_from_dict(data)
+        model_from_dict(data)
 
 
 def test_bad_training_input_is_refused():

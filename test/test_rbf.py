@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from gls_calibration.rbf import (CrossValidation, OLSRBFNetwork, ThinPlateSplineModel, cross_validate,
-                                 load_model_yaml, model_from_dict, save_model_yaml, select_model)
+from gls_calibration.deviation_models import load_model_yaml, model_from_dict, save_model_yaml
+from gls_calibration.rbf import CrossValidation, OLSRBFNetwork, ThinPlateSplineModel, cross_validate, select_model
 from gls_calibration.targets import grid_targets
 
 GRID = grid_targets()

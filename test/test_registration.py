@@ -1,11 +1,11 @@
-"""Tests of rigid fitting, measured-to-target pairing and deviation metrics."""
+"""Tests of rigid fitting, measured-to-target pairing and deviations."""
 import math
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gls_calibration.registration import (RigidTransform, deviation_metrics, deviations, fit_rigid,
+from gls_calibration.registration import (RigidTransform, deviations, fit_rigid,
                                           pair_with_targets)
 from gls_calibration.targets import grid_targets
 
@@ -168,38 +168,3 @@ def test_deviations_are_target_minus_measured():
     np.testing.assert_allclose(deviations(targets, measured), np.tile([-0.1, 0.2, 0.0], (9, 1)))
     with pytest.raises(ValueError, match="targets and measured_in_gls must have the same shape"):
         deviations(targets, measured[:5])
-
-
-def test_metrics_of_a_constant_field_and_sub_field_counts():
-    targets = grid_targets()
-    metrics = deviation_metrics(targets, np.tile([0.3, -0.4], (361, 1)))
-    assert [metrics[key]["count"] for key in ("full", "150x150", "50x50")] == [361, 225, 25]
-    for entry in metrics.values():
-        assert entry["max_ux_mm"] == pytest.approx(0.3)
-        assert entry["rms_uy_mm"] == pytest.approx(0.4)
-        assert entry["max_abs_mm"] == pytest.approx(0.5)
-        assert entry["rms_abs_mm"] == pytest.approx(0.5)
-
-
-def test_metrics_of_a_linear_field():
-    targets = grid_targets(per_side=5, size_mm=100.0, centre_xy=(20.0, 30.0))
-    field = np.column_stack([(targets[:, 0] - 20.0) * 0.01, -(targets[:, 1] - 30.0) * 0.002])
-    metrics = deviation_metrics(targets, field, subfields_mm=(None, 50.0, 1.0))
-    full = metrics["full"]
-    assert full["max_ux_mm"] == pytest.approx(0.5)
-    assert full["max_uy_mm"] == pytest.approx(0.1)
-    assert full["rms_ux_mm"] == pytest.approx(math.sqrt(np.mean(field[:, 0] ** 2)))
-    assert full["max_abs_mm"] == pytest.approx(math.hypot(0.5, 0.1))
-    assert metrics["50x50"]["count"] == 9 and metrics["50x50"]["max_ux_mm"] == pytest.approx(0.25)
-    assert metrics["1x1"]["count"] == 1 and metrics["1x1"]["max_abs_mm"] == 0.0
-
-
-def test_metrics_of_an_empty_sub_field_are_nan():
-    targets = grid_targets(per_side=2, size_mm=10.0)
-    entry = deviation_metrics(targets, np.zeros((4, 2)), subfields_mm=(1.0,))["1x1"]
-    assert entry["count"] == 0 and math.isnan(entry["rms_abs_mm"])
-
-
-def test_metrics_reject_mismatched_lengths():
-    with pytest.raises(ValueError, match="targets_xy and deviations must have the same number of points"):
-        deviation_metrics(np.zeros((3, 2)), np.zeros((2, 2)))

@@ -19,7 +19,7 @@ from sensor_msgs.msg import PointCloud2
 from rclpy.parameter import Parameter
 
 from gls_calibration import kinematics
-from gls_calibration.conversions import pointcloud2_to_array
+from gls_calibration.nodes.conversions import pointcloud2_to_array
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration_msgs.srv import CorrectSetpoints
 

@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 from gls_calibration.cli.client import call_and_wait, client_node
-from gls_calibration.conversions import float64_sequence
+from gls_calibration.nodes.conversions import float64_sequence
 from gls_calibration.persistence import atomic_write_text
 from gls_calibration_msgs.srv import CorrectSetpoints
 

@@ -11,7 +11,6 @@ import os
 from pathlib import Path
 import shutil
 import sys
-import tempfile
 import time
 
 import rclpy
@@ -19,7 +18,6 @@ from rclpy.executors import SingleThreadedExecutor
 
 from gls_calibration.config_files import config_path
 from gls_calibration.nodes.base import NodeThreads
-from gls_calibration.persistence import atomic_write_text
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
@@ -40,7 +38,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     """Command line of gls-sim-cell."""
     parser = argparse.ArgumentParser(prog="gls-sim-cell", description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("reports/sim-cell"),
-                        help="folder for the report, summary.json and the calibration file")
+                        help="folder for the report, summary.json and the calibration store (OUT/calibrations; "
+                             "a one-shot run is a new cell and starts that store afresh)")
     parser.add_argument("--seed", type=int, default=1, help="seed of the simulated cell's random draws")
     parser.add_argument("--grid", type=int, default=19, help="fiducials per side of the grid")
     parser.add_argument("--iterations", type=int, default=1, help="calibration iterations (1 or 2)")
@@ -94,9 +93,12 @@ def main(argv: list[str] | None = None) -> int:
     """Run the simulated cell; exit 0 when the calibration succeeded."""
     args = parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    # Every run is a new simulated cell, so it starts with an empty calibration store; --serve keeps
-    # its store in the output folder so that successive external calibrations compose.
-    store = args.out / "calibrations" if args.serve else Path(tempfile.mkdtemp(prefix="gls-sim-store-"))
+    # The store lives beside the report, so the summary names the calibration file where it stays.
+    # Every one-shot run is a new simulated cell and starts with an empty store; --serve keeps the
+    # store so that successive external calibrations compose.
+    store = args.out / "calibrations"
+    if not args.serve:
+        shutil.rmtree(store, ignore_errors=True)
     context = rclpy.Context()
     rclpy.init(args=ros_arguments(args, store, args.out), context=context)
     namespace = args.namespace or ("gls" if args.serve else f"gls_sim_{os.getpid()}")
@@ -108,17 +110,15 @@ def main(argv: list[str] | None = None) -> int:
             print(f"serving the simulated cell ({names}); Ctrl-C to stop", flush=True)
             while True:
                 time.sleep(1.0)
-        return run_calibration(args, nodes[-1], store)
+        return run_calibration(args, nodes[-1])
     except KeyboardInterrupt:
         return 130
     finally:
         threads.stop()
         rclpy.shutdown(context=context)
-        if not args.serve:
-            shutil.rmtree(store, ignore_errors=True)
 
 
-def run_calibration(args: argparse.Namespace, manager: CalibrationManager, store: Path) -> int:
+def run_calibration(args: argparse.Namespace, manager: CalibrationManager) -> int:
     """Call ``calibrate`` from a client node of the cell, with a progress bar; print the summary."""
     client_node = rclpy.create_node("sim_cell_client", namespace=manager.get_namespace(), context=manager.context)
     bar = ProgressBar(sys.stderr)
@@ -136,15 +136,6 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager, store
     if response is None:
         print(f"calibrate did not answer within {args.timeout:g} s", file=sys.stderr)
         return 1
-    if response.calibration_file:
-        # The store of a one-shot cell is temporary: keep its calibration beside the report.
-        kept = args.out / "calibration.yaml"
-        shutil.copyfile(response.calibration_file, kept)
-        response.calibration_file = str(kept)
-        summary_path = Path(response.report_dir) / "summary.json"
-        summary = json.loads(summary_path.read_text())
-        summary["calibration_file"] = str(kept)
-        atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
     print(summary_table(response))
     if response.report_dir:
         truth = json.loads((Path(response.report_dir) / "summary.json").read_text())

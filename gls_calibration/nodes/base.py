@@ -1,6 +1,8 @@
 """What every node of the package shares: parameter declaration, async service calls, main()."""
 from __future__ import annotations
 
+import functools
+import inspect
 import threading
 import time
 from typing import Any, Callable
@@ -19,6 +21,39 @@ DEFAULT_NAMESPACE = "gls"
 
 class ServiceCallError(RuntimeError):
     """A service another node serves did not answer in time, or answered with a failure."""
+
+
+def answers_errors(*errors: type[BaseException]) -> Callable:
+    """Decorate a service handler ``(self, request, response)``: when it raises one of ``errors``
+    (default ValueError), answer ``success=false`` with the error's text instead of failing the call.
+
+    Works on plain and coroutine handlers. Only expected, explained errors belong in ``errors``; a
+    bug still surfaces as an exception in the executor's log.
+    """
+    caught = errors or (ValueError,)
+
+    def refuse(response: Any, error: BaseException) -> Any:
+        response.success, response.message = False, str(error)
+        return response
+
+    def decorate(handler: Callable) -> Callable:
+        if inspect.iscoroutinefunction(handler):
+            @functools.wraps(handler)
+            async def answer_async(self, request, response):
+                try:
+                    return await handler(self, request, response)
+                except caught as error:
+                    return refuse(response, error)
+            return answer_async
+
+        @functools.wraps(handler)
+        def answer(self, request, response):
+            try:
+                return handler(self, request, response)
+            except caught as error:
+                return refuse(response, error)
+        return answer
+    return decorate
 
 
 class GlsNode(Node):

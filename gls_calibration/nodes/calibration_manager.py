@@ -9,15 +9,18 @@ import json
 import math
 from pathlib import Path
 import time
+import traceback
 from typing import Optional
 
 import numpy as np
 from std_srvs.srv import Trigger
 
-from gls_calibration import conversions, discrepancy, procedure
-from gls_calibration.calibration_record import build_record, correction_from_record, record_fiducials, record_models
-from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
+from gls_calibration import discrepancy, procedure
+from gls_calibration.nodes import conversions
+from gls_calibration.calibration_record import build_record, record_fiducials, record_models, save_candidate
+from gls_calibration.nodes.base import GlsNode, ServiceCallError, answers_errors, run_node
 from gls_calibration.nodes.head_parameters import declare_head_geometry, declare_scanner_to_gls
+from gls_calibration.outcome import RunSummary, summarise
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.report import json_safe
 from gls_calibration.run_report import write_outcome_report
@@ -76,15 +79,18 @@ class ServiceCell:
         response = await self._checked(self.galvo, request, self.node.marking_timeout_s)
         return response.duration_s
 
-    async def train(self, measured_xy, corrections):
+    async def train(self, landed_xy, corrections):
         request = TrainCorrection.Request(
-            x=conversions.float64_sequence(measured_xy[:, 0]), y=conversions.float64_sequence(measured_xy[:, 1]),
+            x=conversions.float64_sequence(landed_xy[:, 0]), y=conversions.float64_sequence(landed_xy[:, 1]),
             dx=conversions.float64_sequence(corrections[:, 0]), dy=conversions.float64_sequence(corrections[:, 1]))
         response = await self._checked(self.trainer, request)
         return conversions.trained_model_from_response(response)
 
     async def load_calibration(self, path: str) -> None:
         await self._checked(self.loader, LoadCalibration.Request(file=path))
+
+    async def reload_active(self) -> None:
+        await self._checked(self.loader, LoadCalibration.Request(file=""))  # empty: the store's active one
 
     async def exchange_plate(self) -> None:
         if self.exchange is None:
@@ -174,6 +180,8 @@ class CalibrationManager(GlsNode):
             return response
         self._running = True
         began = time.monotonic()
+        for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "cv_rms_mm"):
+            setattr(response, name, math.nan)   # what a failed run answers
         try:
             await self._calibrate(request, response)
         except (procedure.CalibrationError, ServiceCallError, ValueError, CalibrationFileError) as error:
@@ -184,7 +192,7 @@ class CalibrationManager(GlsNode):
         except Exception as error:  # a bug must not kill the node nor leave the candidate loaded
             response.success = False
             response.message = f"calibration failed on an internal error: {type(error).__name__}: {error}"
-            self.get_logger().error(response.message)
+            self.get_logger().error(f"{response.message}\n{traceback.format_exc()}")
             await self._restore_active()
         finally:
             self._running = False
@@ -192,63 +200,44 @@ class CalibrationManager(GlsNode):
         return response
 
     async def _calibrate(self, request, response) -> None:
-        for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "cv_rms_mm"):
-            setattr(response, name, math.nan)
         active = self.store.active_path()
         existing_models = record_models(self.store.load(active)) if active else []
         report_dir = self.report_root
         if self.report_per_run:
             report_dir = report_dir / time.strftime("calibration_%Y%m%dT%H%M%SZ", time.gmtime())
 
-        def save_candidate(runs, models) -> str:
+        def save(runs, models):
             record = build_record(self.geometry, self.settings, runs, models, existing_models)
-            return str(self.store.save(record, activate=False))
+            return save_candidate(self.store, record, self.geometry)
 
         outcome = await procedure.calibrate(
             self.cell, self.settings, iterations=request.iterations, validate=request.validate,
             force=request.force, want_truth=bool(self.ground_truth_service),
-            progress=self.publish_progress, save_candidate=save_candidate)
-        first = outcome.runs[0]
-        response.pre_rms_mm = first.metrics["full"]["rms_abs_mm"]
-        response.pre_max_mm = first.metrics["full"]["max_abs_mm"]
-        response.fiducials_expected = len(first.targets)
-        response.fiducials_found = first.fiducials_found
-        correction = None
-        if outcome.models:
-            response.neurons = int(outcome.models[-1].neurons)
-            response.cv_rms_mm = float(outcome.models[-1].cv_rms_mm)
-            candidate = Path(outcome.calibration_file)
-            correction = correction_from_record(self.store.load(candidate), self.geometry)
-            self.store.activate(candidate)
-            response.calibration_file = str(candidate)
-        if outcome.validation is not None:
-            response.post_rms_mm = outcome.validation.metrics["full"]["rms_abs_mm"]
-            response.post_max_mm = outcome.validation.metrics["full"]["max_abs_mm"]
-        response.report_dir = str(write_outcome_report(report_dir, outcome, correction))
-        response.success = outcome.success
-        response.message = outcome.message
+            progress=self.publish_progress, save_candidate=save)
+        if outcome.candidate is not None:
+            self.store.activate(outcome.candidate.path)
+        summary = summarise(outcome)
+        response.report_dir = str(write_outcome_report(report_dir, outcome, summary))
+        _fill_response(response, summary)
 
     async def _restore_active(self) -> None:
         try:
-            await self.cell.load_calibration("")
+            await self.cell.reload_active()
         except (procedure.CalibrationError, ServiceCallError) as error:
             self.get_logger().error(f"could not restore the active calibration in the correction node: {error}")
 
+    @answers_errors(CalibrationFileError, ValueError)
     def on_explain(self, request, response):
         """Serve ``explain_deviations``: the discrepancy workflow on a calibration's measured fiducials."""
-        try:
-            path = Path(request.calibration_file) if request.calibration_file else self.store.active_path()
-            if path is None:
-                raise CalibrationFileError(self.store.pointer_path, "no active calibration (nothing saved yet)")
-            record = self.store.load(path)
-            if not record["fiducials"].get("commanded_through_nominal_model", True):
-                self.get_logger().warning(f"{path}: the first plate was marked through an earlier calibration; "
-                                          "the named effects describe what that calibration left")
-            commanded, measured = record_fiducials(record)
-            result = discrepancy.explain(commanded, measured, self.geometry)
-        except (CalibrationFileError, ValueError) as error:
-            response.success, response.message = False, str(error)
-            return response
+        path = Path(request.calibration_file) if request.calibration_file else self.store.active_path()
+        if path is None:
+            raise CalibrationFileError(self.store.pointer_path, "no active calibration (nothing saved yet)")
+        record = self.store.load(path)
+        if not record["fiducials"].get("commanded_through_nominal_model", True):
+            self.get_logger().warning(f"{path}: the first plate was marked through an earlier calibration; "
+                                      "the named effects describe what that calibration left")
+        commanded, measured = record_fiducials(record)
+        result = discrepancy.explain(commanded, measured, self.geometry)
         response.success = True
         response.named_effects = list(result.named_effects)
         response.rms_before_mm = float(result.rms_before_mm)
@@ -259,6 +248,15 @@ class CalibrationManager(GlsNode):
         response.message = (f"{path.name}: {named}; residual {result.rms_before_mm:.4f} -> "
                             f"{result.rms_after_mm:.4f} mm RMS (noise floor {result.noise_floor_mm:.4f} mm)")
         return response
+
+
+def _fill_response(response, summary: RunSummary) -> None:
+    """The ``calibrate`` answer: the run summary's figures."""
+    response.success = True
+    response.message = summary.message
+    for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "fiducials_expected",
+                 "fiducials_found", "neurons", "cv_rms_mm", "calibration_file"):
+        setattr(response, name, getattr(summary, name))
 
 
 def main(args=None) -> None:

@@ -4,10 +4,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
-from gls_calibration import conversions
+from gls_calibration.nodes import conversions
 from gls_calibration.calibration_record import correction_from_record
 from gls_calibration.correction import Correction
-from gls_calibration.nodes.base import GlsNode, run_node
+from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
 from gls_calibration.nodes.head_parameters import declare_head_geometry
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration_msgs.srv import CorrectSetpoints, LoadCalibration
@@ -60,18 +60,14 @@ class CorrectionNode(GlsNode):
         response.file = self.file
         return response
 
+    @answers_errors(ValueError)
     def on_correct(self, request, response):
         """Correct the targets; ``success=false`` and a message naming the problem on bad input."""
         if self.correction is None:
             response.success = False
             response.message = f"corrections refused: {self.problem}"
             return response
-        try:
-            result = self.correction.correct(request.x, request.y, request.z if len(request.z) else None)
-        except ValueError as error:
-            response.success = False
-            response.message = str(error)
-            return response
+        result = self.correction.correct(request.x, request.y, request.z if len(request.z) else None)
         conversions.setpoints_to_response(result, response)
         unreachable = int((~result.within_limits).sum())
         if unreachable:

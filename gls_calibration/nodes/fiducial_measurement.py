@@ -1,9 +1,9 @@
 """fiducial_measurement: serves ``fiducials/measure``, ring fiducial centres in a marked-plate scan."""
 from __future__ import annotations
 
-from gls_calibration import conversions
+from gls_calibration.nodes import conversions
 from gls_calibration.fiducials import measure_fiducials
-from gls_calibration.nodes.base import GlsNode, run_node
+from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
 from gls_calibration_msgs.srv import MeasureFiducials
 
 
@@ -19,18 +19,14 @@ class FiducialMeasurementNode(GlsNode):
         self.marks_darker = self.declare("marks_darker", True, "marks are darker than the plain plate")
         self.create_service(MeasureFiducials, "fiducials/measure", self.on_measure)
 
+    @answers_errors(ValueError)
     def on_measure(self, request, response):
         """Measure; ``success=false`` with the reason when nothing usable is found."""
-        try:
-            xyz, intensity = conversions.cloud_arrays_from_msg(request.cloud)
-            pose = conversions.plate_pose_from_msg(request.pose)
-            measurement = measure_fiducials(
-                xyz, intensity, pose, ring_radii_mm=self.ring_radii_mm, pixel_size_mm=self.pixel_size_mm,
-                expected_count=request.expected_count or None, marks_darker=self.marks_darker)
-        except ValueError as error:
-            response.success = False
-            response.message = str(error)
-            return response
+        xyz, intensity = conversions.cloud_arrays_from_msg(request.cloud)
+        pose = conversions.plate_pose_from_msg(request.pose)
+        measurement = measure_fiducials(
+            xyz, intensity, pose, ring_radii_mm=self.ring_radii_mm, pixel_size_mm=self.pixel_size_mm,
+            expected_count=request.expected_count or None, marks_darker=self.marks_darker)
         conversions.fiducials_to_response(measurement, response)
         response.success = True
         response.message = f"{len(measurement.centres)} fiducials found"

@@ -1,8 +1,8 @@
 """plate_pose: serves ``plate_pose/estimate``, the plate plane fitted to a cloud."""
 from __future__ import annotations
 
-from gls_calibration import conversions
-from gls_calibration.nodes.base import GlsNode, run_node
+from gls_calibration.nodes import conversions
+from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
 from gls_calibration.plate_pose import estimate_plate_pose
 from gls_calibration_msgs.srv import EstimatePlatePose
 
@@ -20,16 +20,12 @@ class PlatePoseNode(GlsNode):
         self.seed = self.declare("seed", 0, "seed of the RANSAC sampling", minimum=0)
         self.create_service(EstimatePlatePose, "plate_pose/estimate", self.on_estimate)
 
+    @answers_errors(ValueError)
     def on_estimate(self, request, response):
         """Fit the plane; ``success=false`` with the reason on bad clouds."""
-        try:
-            xyz, _ = conversions.cloud_arrays_from_msg(request.cloud)
-            pose = estimate_plate_pose(xyz, distance_threshold_mm=self.distance_threshold_mm,
-                                       head_direction=tuple(self.head_direction), seed=self.seed)
-        except ValueError as error:
-            response.success = False
-            response.message = str(error)
-            return response
+        xyz, _ = conversions.cloud_arrays_from_msg(request.cloud)
+        pose = estimate_plate_pose(xyz, distance_threshold_mm=self.distance_threshold_mm,
+                                   head_direction=tuple(self.head_direction), seed=self.seed)
         response.success = True
         response.message = f"plane fitted to {pose.inlier_count} points, flatness {pose.flatness_rms_mm:.4f} mm RMS"
         response.pose = conversions.plate_pose_to_msg(pose)

@@ -11,7 +11,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
 
-from gls_calibration import conversions
+from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
 from gls_calibration.sweep import PoseTrack, SweepCollector, SweepMotion, nominal_start_pose
 from gls_calibration_msgs.msg import SweepDone

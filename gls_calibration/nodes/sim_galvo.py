@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 from std_srvs.srv import Trigger
 
-from gls_calibration import conversions
-from gls_calibration.nodes.base import GlsNode, run_node
+from gls_calibration.nodes import conversions
+from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
 from gls_calibration.nodes.sim_parameters import declare_sim_config
 from gls_calibration.simulation.head import TruthHead
 from gls_calibration.simulation.plate import Plate
@@ -54,6 +54,7 @@ class SimGalvoNode(GlsNode):
         response.message = f"{len(starts)} polylines marked in {response.duration_s:.2f} s"
         return response
 
+    @answers_errors(ValueError)
     def on_landing_positions(self, request, response):
         """Where the commands land on the plate with the true head (gls frame, mm)."""
         alpha_x = conversions.float64_array(request.alpha_x)
@@ -63,11 +64,7 @@ class SimGalvoNode(GlsNode):
             response.success = False
             response.message = "alpha_x, alpha_y (and t when given) must have the same length"
             return response
-        try:
-            landed = self.head.physical.land(alpha_x, alpha_y, t if len(t) else None)
-        except ValueError as error:
-            response.success, response.message = False, str(error)
-            return response
+        landed = self.head.physical.land(alpha_x, alpha_y, t if len(t) else None)
         response.x, response.y, response.z = (conversions.float64_sequence(landed[:, i]) for i in range(3))
         response.success, response.message = True, f"{len(landed)} landing positions"
         return response

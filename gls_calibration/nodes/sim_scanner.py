@@ -14,8 +14,8 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.duration import Duration
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from gls_calibration import conversions
-from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
+from gls_calibration.nodes import conversions
+from gls_calibration.nodes.base import GlsNode, ServiceCallError, answers_errors, run_node
 from gls_calibration.nodes.sim_parameters import declare_sim_config
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.simulation.scanner import LaserLineScanner, Profile
@@ -48,18 +48,15 @@ class SimScannerNode(GlsNode):
         self.timer = self.create_timer(0.001, self.publish_batch, callback_group=MutuallyExclusiveCallbackGroup())
         self.timer.cancel()
 
+    @answers_errors(ValueError)
     async def on_start_sweep(self, request, response):
         """Load the plate's marks, then start publishing the sweep."""
         if self.job is not None:
             response.success, response.message = False, "a sweep is running; request refused"
             return response
         length = request.length_mm or self.config.sweep_length_mm   # 0 in the request: the default
-        try:
-            profiles, speed, step = self.scanner.sweep_parameters(length, request.speed_mm_s or None,
-                                                                  request.step_mm or None)
-        except ValueError as error:
-            response.success, response.message = False, str(error)
-            return response
+        profiles, speed, step = self.scanner.sweep_parameters(length, request.speed_mm_s or None,
+                                                              request.step_mm or None)
         try:
             await self._load_marks()
         except ServiceCallError as error:

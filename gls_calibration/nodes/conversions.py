@@ -20,7 +20,7 @@ import yaml
 from gls_calibration.fiducials import FiducialMeasurement
 from gls_calibration.plate_pose import PlatePose
 from gls_calibration.correction import CorrectedSetpoints
-from gls_calibration.procedure import TrainedModel
+from gls_calibration.training import TrainedModel
 from gls_calibration_msgs.msg import PlatePose as PlatePoseMsg
 
 # ---------------------------------------------------------------------------------------------
@@ -356,9 +356,9 @@ def setpoints_from_response(response) -> CorrectedSetpoints:
 
 
 def trained_model_from_response(response) -> TrainedModel:
-    """A ``procedure.TrainedModel`` from a TrainCorrection response (ValueError on a bad model)."""
+    """A ``training.TrainedModel`` from a TrainCorrection response (ValueError on a bad model)."""
     model = yaml.safe_load(response.model_yaml)
     if not isinstance(model, dict) or "type" not in model:
         raise ValueError("the trainer answered with a model that is not a mapping with a 'type'")
     return TrainedModel(model=model, method=response.method, neurons=int(response.neurons),
-                        spread_mm=float(response.sigma_mm), cv_rms_mm=float(response.cv_rms_mm))
+                        spread_mm=float(response.spread_mm), cv_rms_mm=float(response.cv_rms_mm))

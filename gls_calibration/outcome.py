@@ -1,0 +1,180 @@
+"""One calibration's outcome and its figures: typed deviation metrics, the outcome, the run summary.
+
+The summary is computed here once; the calibration manager answers ``calibrate`` from it, the
+report writes it as ``summary.json`` and ``gls-sim-cell`` prints it.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, fields
+import math
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any, Optional
+
+import numpy as np
+
+from gls_calibration.validation import as_points, as_positive_number
+
+if TYPE_CHECKING:  # the procedure builds outcomes from these; imported for the annotations only
+    from gls_calibration.correction import Correction
+    from gls_calibration.procedure import PlateRun
+    from gls_calibration.training import TrainedModel
+
+FULL_FIELD = "full"
+
+
+@dataclass(frozen=True)
+class FieldMetrics:
+    """Max and RMS of ``u_x``, ``u_y`` and ``|delta|`` (mm) over one (sub-)field; NaN when it holds no point."""
+
+    count: int
+    max_ux_mm: float
+    rms_ux_mm: float
+    max_uy_mm: float
+    rms_uy_mm: float
+    max_abs_mm: float
+    rms_abs_mm: float
+
+
+@dataclass(frozen=True)
+class DeviationMetrics:
+    """Metrics of a deviation field by (sub-)field name: ``"full"``, then ``"150x150"``, ``"50x50"`` ..."""
+
+    fields: Mapping[str, FieldMetrics]
+
+    @property
+    def full(self) -> FieldMetrics:
+        """The metrics over every point."""
+        return self.fields[FULL_FIELD]
+
+    def field(self, size_mm: Optional[float]) -> FieldMetrics:
+        """The metrics of the centred ``size_mm`` square (None: the full field); KeyError when not computed."""
+        return self.fields[_field_name(size_mm)]
+
+    def to_dict(self) -> dict:
+        """Plain nested dict (record, report): ``{field name: {count, max_ux_mm, ...}}``."""
+        return {name: asdict(entry) for name, entry in self.fields.items()}
+
+
+def _field_name(size_mm: Optional[float]) -> str:
+    return FULL_FIELD if size_mm is None else f"{size_mm:g}x{size_mm:g}"
+
+
+def deviation_metrics(targets_xy, deviations_xy,
+                      subfields_mm: Sequence[Optional[float]] = (None, 150.0, 50.0)) -> DeviationMetrics:
+    """Max and RMS of ``u_x``, ``u_y`` and ``|delta|`` (mm) over the full field and centred square sub-fields.
+
+    Sub-fields are centred on the centre of the targets' bounding box and keep points with
+    ``|x - cx|, |y - cy| <= size / 2 + 1e-9``; ``None`` means the full field. "max" is the maximum
+    absolute value. A sub-field with no point has count 0 and NaN values (stored as null).
+    """
+    targets_xy = as_points(targets_xy, "targets_xy", 2)
+    deviations_xy = as_points(deviations_xy, "deviations", 2)
+    if targets_xy.shape[0] != deviations_xy.shape[0]:
+        raise ValueError(f"targets_xy and deviations must have the same number of points, "
+                         f"got {targets_xy.shape[0]} and {deviations_xy.shape[0]}")
+    centre = 0.5 * (targets_xy.min(axis=0) + targets_xy.max(axis=0))
+    offsets = np.abs(targets_xy - centre)
+    magnitude = np.hypot(deviations_xy[:, 0], deviations_xy[:, 1])
+    entries: dict[str, FieldMetrics] = {}
+    for size in subfields_mm:
+        if size is None:
+            selected = np.ones(targets_xy.shape[0], dtype=bool)
+        else:
+            half = 0.5 * as_positive_number(size, "subfields_mm") + 1e-9
+            selected = np.all(offsets <= half, axis=1)
+        values: dict[str, Any] = {"count": int(np.count_nonzero(selected))}
+        for label, column in (("ux", deviations_xy[selected, 0]), ("uy", deviations_xy[selected, 1]),
+                              ("abs", magnitude[selected])):
+            empty = column.size == 0
+            values[f"max_{label}_mm"] = math.nan if empty else float(np.max(np.abs(column)))
+            values[f"rms_{label}_mm"] = math.nan if empty else float(np.sqrt(np.mean(column ** 2)))
+        entries[_field_name(size)] = FieldMetrics(**values)
+    return DeviationMetrics(MappingProxyType(entries))
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A calibration saved (not activated) during a run: its file and the correction it describes."""
+
+    path: str
+    correction: "Correction"
+
+
+@dataclass(frozen=True)
+class CalibrationOutcome:
+    """What one successful calibrate request produced (a failure raises ``CalibrationError`` instead).
+
+    ``candidate`` is None when nothing was trained (the first plate was within the tolerance).
+    """
+
+    message: str
+    runs: tuple["PlateRun", ...]
+    validation: Optional["PlateRun"]
+    models: tuple["TrainedModel", ...]
+    candidate: Optional[Candidate]
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """The figures of one calibration (mm; NaN where a figure does not apply).
+
+    ``pre``: the first plate, marked through the calibration active before; ``post``: the
+    validation plate, marked through the new one. Measured figures come from the scanner's
+    measurement; ``true_*`` from the simulation's ground truth (NaN on a real cell).
+    """
+
+    message: str
+    pre_rms_mm: float
+    pre_max_mm: float
+    post_rms_mm: float
+    post_max_mm: float
+    true_pre_rms_mm: float
+    true_pre_max_mm: float
+    true_post_rms_mm: float
+    true_post_max_mm: float
+    true_post_rms_150_mm: float
+    fiducials_expected: int
+    fiducials_found: int
+    iterations: int
+    neurons: int
+    method: str
+    cv_rms_mm: float
+    duration_s: float
+    calibration_file: str
+    iteration_rms_mm: tuple[float, ...]
+
+    def to_dict(self) -> dict:
+        """The summary as plain values, in field order (``summary.json``)."""
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values["iteration_rms_mm"] = list(self.iteration_rms_mm)
+        return values
+
+
+def _full(metrics: Optional[DeviationMetrics], name: str) -> float:
+    return float(getattr(metrics.full, name)) if metrics is not None else math.nan
+
+
+def summarise(outcome: CalibrationOutcome) -> RunSummary:
+    """The run summary of ``outcome``."""
+    first, validation = outcome.runs[0], outcome.validation
+    last_model = outcome.models[-1] if outcome.models else None
+    measured_after = validation.metrics if validation else None
+    true_after = validation.true_metrics if validation else None
+    return RunSummary(
+        message=outcome.message,
+        pre_rms_mm=_full(first.metrics, "rms_abs_mm"), pre_max_mm=_full(first.metrics, "max_abs_mm"),
+        post_rms_mm=_full(measured_after, "rms_abs_mm"), post_max_mm=_full(measured_after, "max_abs_mm"),
+        true_pre_rms_mm=_full(first.true_metrics, "rms_abs_mm"),
+        true_pre_max_mm=_full(first.true_metrics, "max_abs_mm"),
+        true_post_rms_mm=_full(true_after, "rms_abs_mm"), true_post_max_mm=_full(true_after, "max_abs_mm"),
+        true_post_rms_150_mm=float(true_after.field(150.0).rms_abs_mm) if true_after else math.nan,
+        fiducials_expected=len(first.targets), fiducials_found=first.fiducials_found,
+        iterations=len(outcome.runs),
+        neurons=last_model.neurons if last_model else 0,
+        method=last_model.method if last_model else "",
+        cv_rms_mm=last_model.cv_rms_mm if last_model else math.nan,
+        duration_s=outcome.duration_s,
+        calibration_file=outcome.candidate.path if outcome.candidate else "",
+        iteration_rms_mm=tuple(_full(run.metrics, "rms_abs_mm") for run in outcome.runs))

@@ -1,0 +1,71 @@
+"""Training a correction from one plate's measurement: RBF/TPS alone, or the named physical effects first.
+
+The calibrate flow hands over the landed points ``P`` (N, 2) and the corrections ``K(Q) - K(P)``
+(N, 2) to add there (mm, gls frame; ``Q - P`` when no calibration was active). This module decides
+what to train and describes the result in plain numbers, so any cell (the trainer node, a direct
+simulation) trains the same way.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+from gls_calibration import rbf
+from gls_calibration.kinematics import HeadGeometry
+from gls_calibration.physical_model import train_physics_then_rbf
+from gls_calibration.validation import as_matching_points
+
+
+@dataclass(frozen=True)
+class TrainedModel:
+    """A trained deviation model as plain numbers, with what training reported."""
+
+    model: dict                 # the model's to_dict() form (deviation_models.model_from_dict rebuilds it)
+    method: str                 # "ols_rbf", "thin_plate_spline" or "physics+<either>"
+    neurons: int                # units of the RBF part (training points for a thin-plate spline)
+    spread_mm: float            # spread of the RBF part's Gaussian units (mm); 0 for a thin-plate spline
+    cv_rms_mm: float            # cross-validated RMS of what the data-driven part was trained on (mm)
+    description: str = ""       # one line for a log or a service message
+
+
+@dataclass(frozen=True)
+class TrainingOptions:
+    """The grid search of the data-driven part (see ``rbf.select_model``)."""
+
+    spreads_mm: Sequence[float] = (25.0, 35.0, 45.0, 60.0)
+    mse_goals_mm2: Sequence[float] = (0.0002, 0.0005)
+    tps_smoothings: Sequence[float] = (0.0, 10.0, 100.0, 300.0, 1000.0, 3000.0)
+    folds: int = 5
+    seed: int = 0
+
+    def select_kwargs(self) -> dict:
+        """Keyword arguments of ``rbf.select_model``."""
+        return dict(spreads_mm=tuple(self.spreads_mm), mse_goals_mm2=tuple(self.mse_goals_mm2),
+                    tps_smoothings=tuple(self.tps_smoothings), folds=self.folds, seed=self.seed)
+
+
+def train_correction(landed_xy, corrections, geometry: Optional[HeadGeometry] = None, *,
+                     physics_first: bool = False, options: TrainingOptions = TrainingOptions()) -> TrainedModel:
+    """A correction model trained at the landed points ``landed_xy`` on ``corrections`` (both (N, 2), mm).
+
+    ``physics_first``: the named effects are fitted first (discrepancy workflow, needs a plate
+    marked through the nominal model, which was then commanded at ``Q = P + correction``) and the
+    RBF/TPS takes what they leave: one ``sum`` model. Otherwise the RBF/TPS alone, chosen by
+    cross-validation. ValueError on bad data.
+    """
+    landed, corrections = as_matching_points(landed_xy, corrections, "landed points (x, y)",
+                                             "corrections (dx, dy)", 2)
+    if physics_first:
+        model, report = train_physics_then_rbf(landed + corrections, corrections, geometry,
+                                               **options.select_kwargs())
+        residual_model, selection, method = report.residual_model, report.selection, report.method
+        named = ", ".join(report.named_effects) or "no effect named"
+        description = f"{method} ({named}): CV RMS {selection.chosen.cv_rms_mm:.4f} mm"
+    else:
+        model, selection = rbf.select_model(landed, corrections, **options.select_kwargs())
+        residual_model, method = model, selection.method
+        description = f"{method}: CV RMS {selection.chosen.cv_rms_mm:.4f} mm"
+    return TrainedModel(model=model.to_dict(), method=method,
+                        neurons=int(getattr(residual_model, "neuron_count", len(landed))),
+                        spread_mm=float(getattr(residual_model, "spread_mm", 0.0)),  # a spline has none
+                        cv_rms_mm=float(selection.chosen.cv_rms_mm), description=description)
