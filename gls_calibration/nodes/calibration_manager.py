@@ -24,6 +24,7 @@ from gls_calibration.outcome import RunSummary, summarise
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.report import json_safe
 from gls_calibration.run_report import write_outcome_report
+from gls_calibration.sweep_plan import CellTimeModel, parse_plan, plan_label
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints, EstimatePlatePose,
                                       ExplainDeviations, GetMarkedPaths, LoadCalibration,
@@ -53,9 +54,15 @@ class ServiceCell:
             raise procedure.CalibrationError(f"{client.srv_name}: {response.message}")
         return response
 
-    async def acquire_sweep(self, step_mm: float):
-        request = AcquireSweep.Request(timeout_s=self.sweep_timeout_s, step_mm=step_mm)
+    async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0):
+        request = AcquireSweep.Request(timeout_s=self.sweep_timeout_s, step_mm=step_mm, direction=int(direction),
+                                       orientation_deg=float(orientation_deg))
         response = await self._checked(self.acquire, request, self.sweep_timeout_s + self.timeout_s)
+        if response.placed_by_pose != self.node.settings.profiles_placed_by_pose:
+            self.node.get_logger().warning(
+                f"profiles were placed {'by pose' if response.placed_by_pose else 'by time'} but "
+                f"sweep.placed_by_pose is {self.node.settings.profiles_placed_by_pose}: the error separation "
+                "trusts the wrong scale; set the parameter to match the scanner driver")
         return response.cloud  # forwarded as it came: the processing nodes convert it themselves
 
     async def estimate_plate_pose(self, cloud):
@@ -142,6 +149,22 @@ class CalibrationManager(GlsNode):
                                             minimum=0.0, maximum=1.0),
             default_iterations=self.declare("default_iterations", defaults.default_iterations,
                                             "iterations when a request says 0", minimum=1, maximum=5),
+            sweep_plan=parse_plan(self.declare(
+                "sweep.plan", plan_label(defaults.sweep_plan),
+                "passes over the marked plate, orientation (0|90 deg) and direction (+|-) each, e.g. "
+                "0+,0-,90+,90-: errors fixed to the scanner frame are separated from the marks")),
+            profiles_placed_by_pose=self.declare(
+                "sweep.placed_by_pose", defaults.profiles_placed_by_pose,
+                "the scanner driver publishes the robot's reported pose (scan/pose): the travel is trusted "
+                "for the scale; false: profiles placed by time, the sensor's line scale is trusted"),
+            cell_time=CellTimeModel(
+                sweep_length_mm=self.declare("sweep.length_mm", defaults.cell_time.sweep_length_mm,
+                                             "sweep length, for the cell-time estimate (mm)", minimum=1.0),
+                sweep_speed_mm_s=self.declare("sweep.speed_mm_s", defaults.cell_time.sweep_speed_mm_s,
+                                              "scanner speed, for the cell-time estimate (mm/s)", minimum=0.1),
+                robot_move_s=self.declare("sweep.robot_move_s", defaults.cell_time.robot_move_s,
+                                          "robot move between two sweeps, for the cell-time estimate (s)",
+                                          minimum=0.0)),
         )
         self.service_timeout_s = self.declare("service_timeout_s", 60.0, "timeout of one service call (s)",
                                               minimum=0.1)

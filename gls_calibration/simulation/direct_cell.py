@@ -52,7 +52,9 @@ class DirectCell:
                                  ring_radii_mm=self.ring_radii_mm)
         return dataclasses.replace(base, **overrides)
 
-    async def acquire_sweep(self, step_mm: float) -> Cloud:
+    async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Cloud:
+        if (direction, orientation_deg) != (1, 0.0):
+            raise CalibrationError("this simulated scanner sweeps forward with the sensor not turned only")
         self.sweeps += 1   # each sweep its own robot path error and noise, as on the ROS cell
         return self.sim.sweep_cloud(step_mm=step_mm, seed=self.sim.config.seed * 100003 + self.sweeps)
 
