@@ -350,3 +350,42 @@ def test_reported_poses_follow_the_true_travel_and_profiles_carry_them():
         scanner.sweep_data(Plate(FLAT), 20.0, orientation_deg=45.0)
     with pytest.raises(ValueError, match="direction must be"):
         scanner.sweep_data(Plate(FLAT), 20.0, direction=2)
+
+
+# ---------------------------------------------------------------- reference-plate check and the command line
+def test_reference_plate_check_on_ideal_is_within_a_hundredth():
+    from gls_calibration.simulation.reference_plate import RAW_PLAN, reference_plate_check
+    result = reference_plate_check(load_sim_config(preset="ideal"), RAW_PLAN, seed=1, positions=((0.0, 0.0),))
+    assert result.found == result.expected == 143
+    assert max(result.sigma_mm) < 0.01
+
+
+@pytest.mark.slow
+def test_reference_plate_check_on_paper_like_is_like_the_papers():
+    from gls_calibration.simulation.reference_plate import RAW_PLAN, reference_plate_check
+    result = reference_plate_check(load_sim_config(preset="paper_like"), RAW_PLAN, seed=1)
+    assert all(0.05 <= sigma <= 0.09 for sigma in result.sigma_mm), result.sigma_mm
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--measurement", "noisy"], "unknown measurement preset 'noisy'"),
+    (["--reference-plate", "--measurement", "loud"], "unknown measurement preset 'loud'"),
+])
+def test_sim_cell_refuses_bad_measurement_input_before_writing(tmp_path, capsys, arguments, message):
+    from gls_calibration.cli import sim_cell
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exit_info:
+        sim_cell.main(arguments + ["--out", str(out)])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_sim_cell_refuses_a_conflicting_sim_config(tmp_path, capsys):
+    from gls_calibration.cli import sim_cell
+    config = tmp_path / "sim.yaml"
+    config.write_text("/**:\n  ros__parameters:\n    measurement: {preset: careful, plate_warp_mm: 1.0}\n")
+    with pytest.raises(SystemExit) as exit_info:
+        sim_cell.main(["--sim-config", str(config), "--reference-plate", "--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 2
+    assert "measurement.plate_warp_mm = 1.0 conflicts with preset 'careful'" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
