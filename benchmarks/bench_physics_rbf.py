@@ -13,7 +13,11 @@ RBF at the targets Q (the published way) and the physics used to first order onl
 18x18 validation grid over 180 mm (half a pitch off the 19x19 one) on a fresh plate; the error is
 the TRUE one (landed ring polylines -> centres -> rigid 2-D alignment onto the targets), over the
 field and the central 150x150 mm, with the MEASURED RMS beside it. The first row of each grid is the
-cell without correction. Seeds are fixed (config/sim.yaml); training uses the trainer node's
+cell without correction. Common random numbers: every measurement plate (of every grid) gets the
+same sweep draws (robot path error, noise), and so does every validation plate, so the rows differ
+by grid and method only. The plate height a plate's sweeps measure moves the whole field's scale by
+a few micrometres from draw to draw, as much as the methods differ here; other draws give other
+figures at that level. Seeds are fixed (config/sim.yaml); training uses the trainer node's
 defaults (``training.TrainingOptions``).
 
 Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_physics_rbf.py   (several minutes)
@@ -41,15 +45,19 @@ from gls_calibration.training import TrainingOptions, train_correction
 GRIDS = (7, 11, 19)
 SIZE_MM = 190.0
 VALIDATION = grid_targets(18, 180.0)
+MEASUREMENT_DRAWS = 0       # sweeps "taken before" each measurement plate: the same draws for every grid
+VALIDATION_DRAWS = 1000     # ... and before each validation plate: the same draws for every row
 
 
 def rms(vectors: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(vectors ** 2, axis=1))))
 
 
-def plate(cell: DirectCell, settings, grid_xy: np.ndarray, correction: Correction):
-    """One plate of the calibrate flow marked through ``correction`` on a fresh plate."""
+def plate(cell: DirectCell, settings, grid_xy: np.ndarray, correction: Correction, sweeps_before: int):
+    """One plate of the calibrate flow marked through ``correction`` on a fresh plate; its sweeps
+    draw as if ``sweeps_before`` sweeps had been taken before."""
     cell.sim.exchange_plate()
+    cell.sweeps = sweeps_before
     cell.marks.clear()
     cell.correction = correction
     return asyncio.run(run_plate(cell, settings, grid_xy, lambda *_: None, (0.0, 1.0), True))
@@ -72,7 +80,7 @@ def main() -> None:
         settings = cell.settings(grid_per_side=per_side, grid_size_mm=SIZE_MM)
         region = calibrated_region(settings)
         began = time.perf_counter()
-        run = plate(cell, settings, grid_targets(per_side, SIZE_MM), Correction(geometry))
+        run = plate(cell, settings, grid_targets(per_side, SIZE_MM), Correction(geometry), MEASUREMENT_DRAWS)
         measuring = time.perf_counter() - began
         targets, landed, deviations = run.paired_targets_xy, run.measured_gls[:, :2], run.deviations
 
@@ -90,15 +98,15 @@ def main() -> None:
                      Correction(geometry, [model_from_dict(trained.model)], region), seconds))
         trained, seconds = timed(lambda: train_correction(landed, run.corrections, geometry, physics_first=True,
                                                           options=options))
-        named = trained.description[trained.description.find("(") + 1:trained.description.find(")")]
-        rows.append((trained.method, named, Correction(geometry, [model_from_dict(trained.model)], region), seconds))
+        rows.append((trained.method, ", ".join(trained.named_effects) or "none",
+                     Correction(geometry, [model_from_dict(trained.model)], region), seconds))
         # where the gain comes from: the same physics used to first order only (as the RBF is)
         (first_order, report), seconds = timed(lambda: train_physics_then_rbf(
             landed + run.corrections, run.corrections, geometry, inverse=False, **options.select_kwargs()))
         rows.append(("  same, physics 1st order", "(same)", Correction(geometry, [first_order], region), seconds))
         label = f"{per_side}x{per_side}"
         for method, named, correction, training in rows:
-            validation = plate(cell, settings, VALIDATION, correction)
+            validation = plate(cell, settings, VALIDATION, correction, VALIDATION_DRAWS)
             full = validation.true_metrics.full
             central = validation.true_metrics.field(150.0)
             print(f"{label:6s} {method:26s} {named:58s} {full.rms_abs_mm:8.4f} {full.max_abs_mm:8.4f} "

@@ -26,6 +26,7 @@ class TrainedModel:
     spread_mm: float            # spread of the RBF part's Gaussian units (mm); 0 for a thin-plate spline
     cv_rms_mm: float            # cross-validated RMS of what the data-driven part was trained on (mm)
     description: str = ""       # one line for a log or a service message
+    named_effects: tuple[str, ...] = ()   # physical effects the model holds (physics first)
 
 
 @dataclass(frozen=True)
@@ -61,13 +62,15 @@ def train_correction(landed_xy, corrections, geometry: Optional[HeadGeometry] = 
         model, report = train_physics_then_rbf(landed + corrections, corrections, geometry,
                                                **options.select_kwargs())
         residual_model, selection, method = report.residual_model, report.selection, report.method
-        named = ", ".join(report.named_effects) or "no effect named"
+        named_effects = tuple(report.named_effects)
+        named = ", ".join(named_effects) or "no effect named"
         description = f"{method} ({named}): CV RMS {selection.chosen.cv_rms_mm:.4f} mm"
     else:
         model, selection = rbf.select_model(landed, corrections, **options.select_kwargs())
-        residual_model, method = model, selection.method
+        residual_model, method, named_effects = model, selection.method, ()
         description = f"{method}: CV RMS {selection.chosen.cv_rms_mm:.4f} mm"
     return TrainedModel(model=model.to_dict(), method=method,
                         neurons=int(getattr(residual_model, "neuron_count", len(landed))),
                         spread_mm=float(getattr(residual_model, "spread_mm", 0.0)),  # a spline has none
-                        cv_rms_mm=float(selection.chosen.cv_rms_mm), description=description)
+                        cv_rms_mm=float(selection.chosen.cv_rms_mm), description=description,
+                        named_effects=named_effects)

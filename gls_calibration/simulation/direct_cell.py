@@ -30,8 +30,10 @@ class DirectCell:
     """``procedure.Cell`` over a :class:`SimulatedCell`; calibrations are read from ``store``.
 
     ``ring_radii_mm`` must be those of the settings the procedure runs with; ``physics_first`` and
-    ``training`` choose what ``train`` trains (see ``training.train_correction``). Clouds are in the
-    scanner base frame, profiles placed by the robot's reported pose (``placed_by_pose``) or by time.
+    ``training`` choose what ``train`` trains (see ``training.train_correction``). ``correction`` is
+    what ``correct`` uses (set by ``load_calibration``/``reload_active``; a benchmark may set it to
+    compare models); ``marks`` the polylines landed on the current plate. Clouds are in the scanner
+    base frame, profiles placed by the robot's reported pose (``placed_by_pose``) or by time.
     """
 
     def __init__(self, sim: SimulatedCell, store: CalibrationStore, *, ring_radii_mm=(2.5, 2.7),
