@@ -438,7 +438,9 @@ def test_calibration_fails_when_too_few_fiducials_are_found(start_cell, tmp_path
     cell = start_cell(grid=3, sim_config=narrow_scanner_config(tmp_path / "narrow_sim.yaml"))
     response = cell.call(Calibrate, "calibrate", Calibrate.Request(), timeout_s=240.0)
     assert not response.success
-    assert "calibration failed: found 2 of 9 fiducials; at least 9 (90%) are needed" == response.message
+    # config/gls.yaml sweeps the marked plate four times; the first sweep already finds too few
+    assert ("calibration failed: found 2 of 9 fiducials; at least 9 (90%) are needed "
+            "(sweep 0+ of 0+,0-,90+,90-)") == response.message
     assert store_state(cell.calibration_dir) == (None, [])
     nominal = cell.call(CorrectSetpoints, "correct_setpoints", CorrectSetpoints.Request(x=[0.0], y=[0.0]), TIMEOUT_S)
     assert nominal.success and "nominal" in nominal.message
@@ -446,7 +448,8 @@ def test_calibration_fails_when_too_few_fiducials_are_found(start_cell, tmp_path
 
 @pytest.mark.slow
 def test_the_full_loop_on_a_5x5_grid_corrects_the_head(start_cell):
-    cell = start_cell(grid=5)
+    # the marked plate swept as mounted and turned (the config's four passes cost twice the time)
+    cell = start_cell(grid=5, parameters={"sweep.plan": "0+,90+"})
     response = cell.call(Calibrate, "calibrate", Calibrate.Request(validate=True), timeout_s=600.0)
     assert response.success, response.message
     assert (response.fiducials_expected, response.fiducials_found) == (25, 25)
