@@ -23,7 +23,10 @@ TOOLS = {
     "gls-sim-cell": "sim_cell",
     "gls-calibrate": "calibrate",
     "gls-correct": "correct",
+    "gls-export": "export",
+    "gls-train": "train",
     "gls-discrepancy": "discrepancy",
+    "gls-measure": "measure",
 }
 
 setup(

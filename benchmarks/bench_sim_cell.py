@@ -38,11 +38,11 @@ from gls_calibration.config_files import config_path
 from gls_calibration.correction import Correction
 from gls_calibration.fiducials import measure_fiducials
 from gls_calibration.plate_pose import estimate_plate_pose, mean_plate_pose
-from gls_calibration.procedure import (ProcedureSettings, align_in_plane, plane_height, pose_in_frame,
+from gls_calibration.procedure import (ProcedureSettings, plane_height, pose_in_frame,
                                        true_fiducial_centres, validation_grid)
 from gls_calibration.rbf import OLSRBFNetwork
 from gls_calibration.outcome import deviation_metrics
-from gls_calibration.registration import RigidTransform, pair_with_targets
+from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 from gls_calibration.targets import rings_polylines
 
@@ -100,7 +100,7 @@ def published_way(report_dir: Path, preset: str, seed: int, grid: int) -> dict:
     paired = grid_xy[pairing.target_index]
     measured_metrics = deviation_metrics(paired, paired - measured).full
     true_centres = true_fiducial_centres(landed, len(settings.ring_radii_mm))[:, :2]
-    true_metrics = deviation_metrics(grid_xy, grid_xy - align_in_plane(true_centres, grid_xy)).full
+    true_metrics = deviation_metrics(grid_xy, grid_xy - align_rigid_2d(true_centres, grid_xy)[1]).full
     return {"published_post_rms_mm": measured_metrics.rms_abs_mm,
             "published_post_max_mm": measured_metrics.max_abs_mm,
             "published_true_post_rms_mm": true_metrics.rms_abs_mm,

@@ -19,10 +19,14 @@ from gls_calibration.training import TrainedModel
 from gls_calibration.deviation_models import model_from_dict
 
 
-def calibrated_region(settings: ProcedureSettings) -> CalibratedRegion:
-    """The training grid's box, padded by the outer ring radius so whole rings stay inside."""
+TAPER_MM = 10.0   # fade of the correction beyond the calibrated region (correction.taper_weight)
+
+
+def calibrated_region(settings: ProcedureSettings, plane_z_mm: float = 0.0) -> CalibratedRegion:
+    """The training grid's box, padded by the outer ring radius so whole rings stay inside, on the
+    plane ``z = plane_z_mm`` where the plate was measured."""
     half = settings.grid_size_mm / 2.0 + max(settings.ring_radii_mm)
-    return CalibratedRegion(-half, half, -half, half)
+    return CalibratedRegion(-half, half, -half, half, plane_z_mm)
 
 
 def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequence[PlateRun],
@@ -41,7 +45,10 @@ def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequ
     return new_record(
         head=geometry, plate_pose=runs[-1].plate_pose_gls,
         models=list(existing_models) + [model.model for model in models],
-        calibrated_region=calibrated_region(settings).to_dict(),
+        # The calibration plane: the mean height the first plate's targets were commanded at (the
+        # plate's plane); targets off it are corrected through Q'.
+        calibrated_region={**calibrated_region(settings, float(np.mean(first.targets[:, 2]))).to_dict(),
+                           "taper_mm": TAPER_MM},
         hyper_parameters={"trained_models": [
             {"method": model.method, "neurons": model.neurons, "spread_mm": model.spread_mm,
              "cv_rms_mm": model.cv_rms_mm} for model in models]},
@@ -64,7 +71,7 @@ def correction_from_record(record: Mapping, geometry: HeadGeometry) -> Correctio
     """The correction a record describes (ValueError when its models or region are unusable)."""
     models = [model_from_dict(model) for model in record["models"]]
     region = CalibratedRegion.from_dict(record["calibrated_region"]) if models else None
-    return Correction(geometry, models, region)
+    return Correction(geometry, models, region, record["calibrated_region"].get("taper_mm", TAPER_MM))
 
 
 def record_fiducials(record: Mapping) -> tuple[np.ndarray, np.ndarray]:

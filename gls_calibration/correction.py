@@ -1,8 +1,16 @@
 """Corrected galvo setpoints: nominal inverse kinematics applied to a model-corrected target.
 
-For a desired point ``Q`` the head is commanded to ``K = Q + sum_i model_i(Q)``: every model
-predicts the deviation ``delta = Q - P`` that was measured (the i-th one while the first i-1
-corrections were already commanded), so successive calibrations add up.
+The models were learned on one plane, the calibration plane ``z = plane_z_mm`` (gls frame). A
+target ``Q = (x, y, z)`` is corrected through ``Q'``, the point where Q's nominal ray meets that
+plane (seed section 2.3): ``K' = Q' + sum_i model_i(Q')`` on the plane, then ``K`` is the point
+where the nominal ray through ``K'`` meets Q's own height ``z``, and the mirror angles and the focus
+shift are the nominal inverse kinematics of ``K`` at ``z``. So the beam runs along the ray the
+calibration found for Q' and is focused at Q's true height. Every model predicts the deviation
+``delta = Q - P`` that was measured (the i-th one while the first i-1 corrections were already
+commanded), so successive calibrations add up. On the plane (``z = plane_z_mm``) ``K = K'``; for a
+deviation field linear in x, y the rule equals correcting Q at its own (x, y); for a nonlinear one
+and a head whose rays are straight it is the right one (the rays' errors scale with the distance
+from the head, not with x, y at the target's height).
 
 Calibrated region: the axis-aligned box of the training targets. The targets form a rectangular
 grid, whose convex hull is that box, and clamping to a box is exact and cheap. Outside it the
@@ -24,35 +32,39 @@ from gls_calibration.rbf import DeviationModel
 from gls_calibration.validation import as_coordinate_arrays, as_finite_array, as_non_negative_number, as_points
 
 
+_INSIDE_TOLERANCE_MM = 1e-9
+
+
 @dataclass(frozen=True)
 class CalibratedRegion:
-    """Axis-aligned box (mm, gls frame) where the deviation models were trained."""
+    """Axis-aligned box (mm, gls frame) on the calibration plane ``z = plane_z_mm`` where the models were trained."""
 
     x_min: float
     x_max: float
     y_min: float
     y_max: float
+    plane_z_mm: float = 0.0
 
     def __post_init__(self) -> None:
-        values = [float(getattr(self, name)) for name in ("x_min", "x_max", "y_min", "y_max")]
+        values = [float(getattr(self, name)) for name in ("x_min", "x_max", "y_min", "y_max", "plane_z_mm")]
         if not all(math.isfinite(value) for value in values):
             raise ValueError(f"calibrated region bounds must be finite, got {values}")
         if values[0] > values[1] or values[2] > values[3]:
             raise ValueError(f"calibrated region is empty: x [{values[0]}, {values[1]}], y [{values[2]}, {values[3]}]")
-        for name, value in zip(("x_min", "x_max", "y_min", "y_max"), values):
+        for name, value in zip(("x_min", "x_max", "y_min", "y_max", "plane_z_mm"), values):
             object.__setattr__(self, name, value)
 
     @classmethod
-    def from_points(cls, points) -> "CalibratedRegion":
-        """Bounding box of training targets (N, 2)."""
+    def from_points(cls, points, plane_z_mm: float = 0.0) -> "CalibratedRegion":
+        """Bounding box of training targets (N, 2) on the plane ``z = plane_z_mm``."""
         points = as_points(points, "points", 2)
         low, high = points.min(axis=0), points.max(axis=0)
-        return cls(float(low[0]), float(high[0]), float(low[1]), float(high[1]))
+        return cls(float(low[0]), float(high[0]), float(low[1]), float(high[1]), plane_z_mm)
 
     def contains(self, x, y) -> np.ndarray:
         """True for points inside the box or on its boundary (1e-9 mm tolerance)."""
         x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-        tolerance = 1e-9
+        tolerance = _INSIDE_TOLERANCE_MM
         return ((x >= self.x_min - tolerance) & (x <= self.x_max + tolerance)
                 & (y >= self.y_min - tolerance) & (y <= self.y_max + tolerance))
 
@@ -62,13 +74,14 @@ class CalibratedRegion:
                 np.clip(np.asarray(y, dtype=float), self.y_min, self.y_max))
 
     def intersection(self, other: "CalibratedRegion") -> "CalibratedRegion":
-        """Part covered by both boxes (ValueError if they do not overlap)."""
+        """Part covered by both boxes (ValueError if they do not overlap); the plane stays this one's."""
         return CalibratedRegion(max(self.x_min, other.x_min), min(self.x_max, other.x_max),
-                                max(self.y_min, other.y_min), min(self.y_max, other.y_max))
+                                max(self.y_min, other.y_min), min(self.y_max, other.y_max), self.plane_z_mm)
 
     def to_dict(self) -> dict:
         """Plain-number description (YAML-ready)."""
-        return {"type": "box", "x_min": self.x_min, "x_max": self.x_max, "y_min": self.y_min, "y_max": self.y_max}
+        return {"type": "box", "x_min": self.x_min, "x_max": self.x_max, "y_min": self.y_min, "y_max": self.y_max,
+                "plane_z_mm": self.plane_z_mm}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "CalibratedRegion":
@@ -78,7 +91,8 @@ class CalibratedRegion:
         missing = [key for key in ("x_min", "x_max", "y_min", "y_max") if key not in data]
         if missing:
             raise ValueError(f"calibrated region lacks key(s) {', '.join(missing)}")
-        return cls(data["x_min"], data["x_max"], data["y_min"], data["y_max"])
+        # Files of format version 1 have no plane: their calibrations were learned at z = 0.
+        return cls(data["x_min"], data["x_max"], data["y_min"], data["y_max"], data.get("plane_z_mm", 0.0))
 
 
 @dataclass(frozen=True)
@@ -159,10 +173,92 @@ class Correction:
         return weight * total[:, 0], weight * total[:, 1], inside
 
     def correct(self, x, y, z=None) -> CorrectedSetpoints:
-        """Corrected setpoints for targets (x, y[, z]) in mm (gls frame); z defaults to the work plane."""
+        """Corrected setpoints for targets (x, y[, z]) in mm (gls frame); z defaults to the work plane.
+
+        Through Q' on the calibration plane (see the module docstring); without models the nominal
+        kinematics of Q.
+        """
+        single = _single_target(x, y, z)
+        if single is not None and self.models:
+            return self._correct_one(*single)
         x, y, z = as_coordinate_arrays(x, y, z)
-        delta_x, delta_y, inside = self.deviation(x, y)
-        commanded_x, commanded_y = x + delta_x, y + delta_y
+        if not self.models:
+            joints = inverse(self.geometry, x, y, z)
+            return CorrectedSetpoints(x, y, joints.alpha_x, joints.alpha_y, joints.focus_shift,
+                                      np.zeros(x.shape, dtype=bool), joints.within_limits)
+        plane_z = self.calibrated_region.plane_z_mm
+        on_plane_x, on_plane_y = transfer_along_ray(self.geometry, x, y, z, plane_z)
+        delta_x, delta_y, inside = self.deviation(on_plane_x, on_plane_y)
+        commanded_x, commanded_y = transfer_along_ray(self.geometry, on_plane_x + delta_x, on_plane_y + delta_y,
+                                                      plane_z, z)
         joints = inverse(self.geometry, commanded_x, commanded_y, z)
         return CorrectedSetpoints(commanded_x, commanded_y, joints.alpha_x, joints.alpha_y, joints.focus_shift,
                                   inside, joints.within_limits)
+
+    def _correct_one(self, x: float, y: float, z: float) -> CorrectedSetpoints:
+        """:meth:`correct` for one target in scalar arithmetic (same formulas; numpy per call costs ~1 us)."""
+        geometry, region = self.geometry, self.calibrated_region
+        d, e, plane_z = geometry.working_distance_mm, geometry.mirror_distance_mm, region.plane_z_mm
+
+        def transfer(px: float, py: float, z_from: float, z_to: float) -> tuple[float, float]:
+            ratio = (d - z_to) / (d - z_from)
+            slant = math.hypot(d - z_from, px)
+            return px * ratio, py * ((e + slant * ratio) / (e + slant))
+
+        on_plane_x, on_plane_y = transfer(x, y, z, plane_z)
+        clamped_x = min(max(on_plane_x, region.x_min), region.x_max)
+        clamped_y = min(max(on_plane_y, region.y_min), region.y_max)
+        distance = math.hypot(on_plane_x - clamped_x, on_plane_y - clamped_y)
+        weight = float(taper_weight(distance, self.taper_mm)) if distance > 0.0 else 1.0
+        delta_x = delta_y = 0.0
+        for model in self.models:
+            if hasattr(model, "at_point"):
+                model_x, model_y = model.at_point(clamped_x, clamped_y)
+            else:
+                model_x, model_y = as_finite_array(model(np.array([[clamped_x, clamped_y]])), "model output",
+                                                   ndim=2)[0]
+            delta_x += model_x
+            delta_y += model_y
+        if not (math.isfinite(delta_x) and math.isfinite(delta_y)):
+            raise ValueError("model output contains NaN or infinite value(s)")
+        commanded_x, commanded_y = transfer(on_plane_x + weight * delta_x, on_plane_y + weight * delta_y, plane_z, z)
+        height = d - z
+        slant = math.hypot(height, commanded_x)
+        alpha_x = 0.5 * math.atan2(commanded_x, height)
+        alpha_y = 0.5 * math.atan2(commanded_y, e + slant)
+        focus_shift = math.hypot(e + slant, commanded_y) - (e + height)
+        limit = geometry.mirror_limit_rad
+        within = abs(alpha_x) <= limit and abs(alpha_y) <= limit and abs(focus_shift) <= geometry.focus_range_mm
+        tolerance = _INSIDE_TOLERANCE_MM
+        inside = (region.x_min - tolerance <= on_plane_x <= region.x_max + tolerance
+                  and region.y_min - tolerance <= on_plane_y <= region.y_max + tolerance)
+        return CorrectedSetpoints(np.array([commanded_x]), np.array([commanded_y]), np.array([alpha_x]),
+                                  np.array([alpha_y]), np.array([focus_shift]), np.array([inside]),
+                                  np.array([within]))
+
+
+def _single_target(x, y, z) -> Optional[tuple[float, float, float]]:
+    """(x, y, z) as floats when the request is one finite target (z absent or one value), else None."""
+    try:
+        if len(x) != 1 or len(y) != 1 or (z is not None and len(z) > 1):
+            return None
+        values = (float(x[0]), float(y[0]), float(z[0]) if z is not None and len(z) else 0.0)
+    except (TypeError, ValueError, IndexError):
+        return None           # scalars, nested or odd input: the general path validates and reports
+    if isinstance(x[0], (bool, np.bool_)) or not all(math.isfinite(value) for value in values):
+        return None
+    return values
+
+
+def transfer_along_ray(geometry: HeadGeometry, x, y, z_from, z_to) -> tuple[np.ndarray, np.ndarray]:
+    """Where the nominal ray through (x, y, ``z_from``) meets the plane ``z = z_to`` (mm).
+
+    Beyond the X mirror the nominal ray is straight: x scales with the height below the mirror
+    ``h = d - z``, the slant ``hypot(h, x)`` too, and ``y / (e + slant)`` (tan of the Y angle) is
+    constant along it.
+    """
+    height_from = geometry.working_distance_mm - np.asarray(z_from, dtype=float)
+    ratio = (geometry.working_distance_mm - np.asarray(z_to, dtype=float)) / height_from
+    slant = np.hypot(height_from, x)
+    e = geometry.mirror_distance_mm
+    return x * ratio, y * ((e + slant * ratio) / (e + slant))

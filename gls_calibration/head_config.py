@@ -9,7 +9,7 @@ The file is a ROS 2 parameter file (``config/head.yaml``)::
           mirror_distance_mm: 15.0
           mirror_limit_deg: 10.5
           focus_range_mm: 25.0
-          effects:                 # optional, name -> parameters (optics.EFFECTS order and units)
+          effects:                 # optional, name -> parameters (effect_table.EFFECT_TABLE order and units)
             galvo_gain_x: [0.0012]
 
 Nodes see the same values as the parameters ``head.working_distance_mm`` and so on (ROS flattens the

@@ -14,8 +14,8 @@ Mirror conventions (zero mechanical angle, normals point to the reflecting side)
   towards +x.
 
 The model serves twice: as the truth head of the simulation and as the extended model that the
-discrepancy workflow fits to measured deviations. Both refer to effects by the names in
-:data:`EFFECTS`.
+discrepancy workflow fits to measured deviations. Both refer to effects by the names of
+:data:`gls_calibration.effect_table.EFFECT_TABLE` (parameters, units, typical size, plausible range).
 """
 from __future__ import annotations
 
@@ -25,65 +25,9 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
+from gls_calibration.effect_table import EFFECTS
 from gls_calibration.kinematics import HeadGeometry
 from gls_calibration.validation import as_finite_array
-
-#: Effect name -> parameter names, in vector order.
-EFFECTS: dict[str, tuple[str, ...]] = {
-    "mirror_distance": ("delta_e_mm",),
-    "working_distance": ("delta_d_mm",),
-    "galvo_gain_x": ("gain_error_x",),
-    "galvo_gain_y": ("gain_error_y",),
-    "galvo_offset_x": ("offset_x_rad",),
-    "galvo_offset_y": ("offset_y_rad",),
-    "axis_skew": ("skew_rad",),
-    "mirror_offset": ("offset_x_mm", "offset_y_mm"),
-    "beam_tilt": ("tilt_a_rad", "tilt_b_rad"),
-    "plate_tilt": ("tilt_x_rad", "tilt_y_rad"),
-    "radial_distortion": ("k1_per_mm2",),
-    "thermal_drift": ("gain_rate_per_s", "offset_rate_rad_per_s"),
-}
-
-#: Effect name -> unit of each parameter (same order as :data:`EFFECTS`).
-PARAMETER_UNITS: dict[str, tuple[str, ...]] = {
-    "mirror_distance": ("mm",),
-    "working_distance": ("mm",),
-    "galvo_gain_x": ("1",),
-    "galvo_gain_y": ("1",),
-    "galvo_offset_x": ("rad",),
-    "galvo_offset_y": ("rad",),
-    "axis_skew": ("rad",),
-    "mirror_offset": ("mm", "mm"),
-    "beam_tilt": ("rad", "rad"),
-    "plate_tilt": ("rad", "rad"),
-    "radial_distortion": ("1/mm^2",),
-    "thermal_drift": ("1/s", "rad/s"),
-}
-
-#: One sentence of physics per effect.
-EFFECT_DOCS: dict[str, str] = {
-    "mirror_distance": "The Y mirror pivot sits delta_e further from the X mirror pivot than nominal "
-                       "(-e - delta_e, 0, d); only y carries e, so only y changes.",
-    "working_distance": "The plate lies delta_d below the nominal work plane (z = -delta_d, farther from "
-                        "the head when > 0); the field grows radially in proportion.",
-    "galvo_gain_x": "The X galvo turns (1 + gain_error_x) times the commanded mechanical angle: x scales.",
-    "galvo_gain_y": "The Y galvo turns (1 + gain_error_y) times the commanded mechanical angle: y scales.",
-    "galvo_offset_x": "The X galvo's zero is off by offset_x_rad (added to the mechanical angle): mostly a shift in x.",
-    "galvo_offset_y": "The Y galvo's zero is off by offset_y_rad (added to the mechanical angle): mostly a shift in y.",
-    "axis_skew": "The X mirror's rotation axis is tilted by skew_rad about gls x, out of perpendicular to "
-                 "the Y mirror axis; the mirror normal at zero angle stays nominal. Turning the X mirror "
-                 "then also deflects the beam in y: a shear (y changes in proportion to x).",
-    "mirror_offset": "Each reflecting surface is displaced along its normal (towards the incoming beam when "
-                     "> 0) from its rotation axis, so the reflection point walks as the mirror turns.",
-    "beam_tilt": "The incoming laser beam is tilted off +y by tilt_a_rad towards +x and tilt_b_rad towards "
-                 "+z; it still meets the Y mirror pivot.",
-    "plate_tilt": "The plate plane is rotated by tilt_x_rad about gls x, then by tilt_y_rad about gls y "
-                  "(axes through the plate origin): a keystone-like distortion.",
-    "radial_distortion": "The landing point moves radially about the field centre in the plate plane, "
-                         "r -> r (1 + k1 r^2), as an uncorrected lens or window would do.",
-    "thermal_drift": "Gain error and zero offset of both galvos grow linearly with marking time t: "
-                     "+gain_rate_per_s * t and +offset_rate_rad_per_s * t.",
-}
 
 _SQRT_HALF = np.sqrt(0.5)
 _Y_NORMAL = np.array([_SQRT_HALF, -_SQRT_HALF, 0.0])

@@ -42,9 +42,10 @@ from typing import Any, Optional
 import numpy as np
 
 from gls_calibration import rbf
-from gls_calibration.discrepancy import MIN_POINTS, DiscrepancyResult, align_rigid_2d, explain
+from gls_calibration.discrepancy import MIN_POINTS, DiscrepancyResult, explain
 from gls_calibration.kinematics import HeadGeometry, inverse
 from gls_calibration.optics import HeadEffects, PhysicalHead
+from gls_calibration.registration import align_rigid_2d
 from gls_calibration.validation import as_finite_array, as_matching_points, as_points, require_key, require_type
 
 _INVERSE_TOLERANCE_MM = 1e-9

@@ -20,7 +20,7 @@ from gls_calibration.correction import CorrectedSetpoints
 from gls_calibration.fiducials import FiducialMeasurement
 from gls_calibration.outcome import CalibrationOutcome, Candidate, DeviationMetrics, deviation_metrics
 from gls_calibration.plate_pose import PlatePose, mean_plate_pose
-from gls_calibration.registration import RigidTransform, fit_rigid, pair_with_targets
+from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
 from gls_calibration.sweep_plan import CellTimeModel, SweepPass, combine_sweeps, plan_label
 from gls_calibration.training import TrainedModel
 
@@ -144,13 +144,6 @@ def pose_in_frame(pose: PlatePose, transform: RigidTransform) -> PlatePose:
                      inlier_count=pose.inlier_count, inlier_fraction=pose.inlier_fraction)
 
 
-def align_in_plane(points_xy: np.ndarray, targets_xy: np.ndarray) -> np.ndarray:
-    """``points_xy`` after the best 2-D rotation + translation onto ``targets_xy``."""
-    lift = np.zeros((len(points_xy), 1))
-    transform = fit_rigid(np.hstack([points_xy, lift]), np.hstack([targets_xy, lift]))
-    return transform.apply(np.hstack([points_xy, lift]))[:, :2]
-
-
 def true_fiducial_centres(ring_marks: list[np.ndarray], rings_per_fiducial: int) -> np.ndarray:
     """Centres (N, 3) of marked fiducials from their landed closed ring polylines, in marking order.
 
@@ -240,7 +233,7 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
             true_centres = true_fiducial_centres(marks[-len(rings):], len(settings.ring_radii_mm))
             # The calibration cannot see a rigid motion of the whole field, so the truth is
             # compared after the same kind of alignment as the measurement.
-            every_true_deviation = grid_xy - align_in_plane(true_centres[:, :2], grid_xy)
+            every_true_deviation = grid_xy - align_rigid_2d(true_centres[:, :2], grid_xy)[1]
             true_metrics = deviation_metrics(grid_xy, every_true_deviation)
             true_deviations = every_true_deviation[pairing.target_index]
     report("deviations", 1.0, f"{len(deviations)} fiducials paired")

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gls_calibration.discrepancy import run_verdict_lines
 from gls_calibration.outcome import CalibrationOutcome, RunSummary
 from gls_calibration.report import ReportData, write_report
 
@@ -24,7 +25,7 @@ def measurement_lines(summary: RunSummary) -> tuple[str, ...]:
 
 
 def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: RunSummary) -> Path:
-    """Write report.md, plots, fiducials.csv and summary.json for ``outcome``; the folder's path."""
+    """Write report.md, plots, fiducials.csv and summary.json and training.csv for ``outcome``; the folder's path."""
     first, validation = outcome.runs[0], outcome.validation
     field = None
     correction = outcome.candidate.correction if outcome.candidate else None
@@ -47,7 +48,20 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: Ru
         correction_field=field,
         extra_lines=tuple(f"iteration {index + 1}: measured RMS {rms:.4f} mm"
                           for index, rms in enumerate(summary.iteration_rms_mm)) + measurement_lines(summary)
-        + (outcome.message,),
+        + (outcome.message,)
+        + run_verdict_lines(first.paired_targets_xy, first.deviations,
+                            correction.geometry if correction is not None else None),
     )
     write_report(out_dir, data)
+    (out_dir / "training.csv").write_text(training_csv_text(first), encoding="utf-8")
     return out_dir
+
+
+def training_csv_text(run) -> str:
+    """The first plate's fiducials as gls-train reads them: commanded targets, the height they were
+    commanded at and the measured centres (gls frame, mm). Training from it reproduces the run's
+    model when the plate was marked through the nominal model (the first calibration of a head)."""
+    height = {(float(x), float(y)): float(z) for x, y, z in run.targets}
+    z_cmd = [height[(float(x), float(y))] for x, y in run.paired_targets_xy]
+    rows = np.column_stack([run.paired_targets_xy, z_cmd, run.measured_gls[:, :2]]).tolist()
+    return "x_cmd,y_cmd,z_cmd,x_meas,y_meas\n" + "".join(",".join(map(repr, row)) + "\n" for row in rows)

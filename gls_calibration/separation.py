@@ -37,7 +37,7 @@ from typing import Optional, Sequence
 import numpy as np
 from scipy import linalg, sparse
 
-from gls_calibration.registration import fit_rigid
+from gls_calibration.registration import align_rigid_2d
 from gls_calibration.validation import as_integer_at_least, as_positive_number
 
 SIGMA_FLOOR_MM = 0.001
@@ -201,9 +201,8 @@ def separate(centres: Sequence, sigmas: Optional[Sequence] = None,
         both = valid[0] & valid[k]
         if both.sum() < 3:
             raise ValueError(f"sweep {k} shares fewer than 3 fiducials with sweep 0")
-        lift = np.zeros((both.sum(), 1))
-        rigid = fit_rigid(np.hstack([points[0][both], lift]), np.hstack([points[k][both], lift]))
-        placements[k] = (math.atan2(rigid.rotation[1, 0], rigid.rotation[0, 0]), *rigid.translation[:2])
+        rigid, _ = align_rigid_2d(points[0][both], points[k][both])
+        placements[k] = (rigid.rotation_rad, *rigid.translation_mm)
     seen = valid.sum(axis=0)
     marks = np.full((count, 2), np.nan)
     sweep_of, mark_of = np.nonzero(valid)

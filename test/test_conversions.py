@@ -285,3 +285,29 @@ def test_array_to_pointcloud2_rejects_bad_input(points, message):
 def test_helpers_reject_bad_input(call, message):
     with pytest.raises(ValueError, match=message):
         call()
+
+
+def test_fiducial_uncertainties_and_rejections_survive_the_service_response():
+    from gls_calibration.nodes.conversions import fiducials_from_response, fiducials_to_response
+    from gls_calibration.fiducials import FiducialMeasurement
+    from gls_calibration.plate_pose import estimate_plate_pose
+    from gls_calibration_msgs.srv import MeasureFiducials
+
+    plane = np.column_stack([np.random.default_rng(3).uniform(-5, 5, (2000, 2)), np.zeros(2000)])
+    pose = estimate_plate_pose(plane)
+    centres = np.array([[1.0, 2.0, 0.0], [3.0, -1.0, 0.0]])
+    measurement = FiducialMeasurement(
+        centres=centres, centres_plane=pose.to_plane(centres), quality=np.array([0.001, 0.002]),
+        radii=np.array([2.7, 2.71]), inner_radii=np.array([2.5, 2.49]), merged=0, rejected=1, missing=3,
+        image_shape=(10, 10), pixel_pitch_mm=(0.1, 0.1), sigma_xy_mm=np.array([[0.002, 0.003], [0.004, 0.005]]),
+        coverage=np.array([1.0, 0.8]), rejected_centres=np.array([[7.0, 7.0, 0.0]]), rejected_reasons=("partial",),
+        rejected_sigma_xy_mm=np.array([[0.02, 0.02]]), rejected_coverage=np.array([0.5]))
+    response = MeasureFiducials.Response()
+    fiducials_to_response(measurement, response)
+    back = deserialize_message(serialize_message(response), MeasureFiducials.Response)
+    restored = fiducials_from_response(back, pose)
+    assert np.allclose(restored.sigma_xy_mm, measurement.sigma_xy_mm)
+    assert np.allclose(restored.coverage, measurement.coverage)
+    assert np.allclose(restored.rejected_centres, measurement.rejected_centres)
+    assert restored.rejected_reasons == ("partial",) and restored.rejected == 1
+    assert restored.sigma_plane_mm.shape == (2, 2) and np.isnan(restored.sigma_plane_mm).all()

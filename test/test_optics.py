@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from gls_calibration.kinematics import HeadGeometry, forward, inverse
+from gls_calibration.effect_table import EFFECT_TABLE
 from gls_calibration.optics import (
-    EFFECT_DOCS, EFFECTS, PARAMETER_UNITS, HeadEffects, PhysicalHead, effect_names, parameter_count,
-    parameter_labels)
+    EFFECTS, HeadEffects, PhysicalHead, effect_names, parameter_count, parameter_labels)
 
 GEOMETRY = HeadGeometry()
 LIMIT = GEOMETRY.mirror_limit_rad
@@ -177,8 +177,12 @@ def test_remaining_effects_move_the_marks_smoothly(name):
 def test_metadata_tables_cover_every_effect():
     assert effect_names() == tuple(EFFECTS)
     for name, parameters in EFFECTS.items():
-        assert len(PARAMETER_UNITS[name]) == len(parameters)
-        assert EFFECT_DOCS[name]
+        spec = EFFECT_TABLE[name]
+        assert spec.parameter_names == parameters and len(spec.units) == len(parameters)
+        assert spec.doc
+        for parameter in spec.parameters:   # the typical size is itself plausible
+            assert parameter.low < 0.0 < parameter.high
+            assert parameter.per_run or parameter.plausible(parameter.typical)
     assert parameter_count(["mirror_offset", "galvo_gain_x"]) == 3
     assert parameter_labels(["beam_tilt"]) == ("beam_tilt.tilt_a_rad", "beam_tilt.tilt_b_rad")
 

@@ -98,7 +98,7 @@ def test_atomic_write_keeps_existing_mode(tmp_path):
 
 def test_new_record_fills_version_and_time():
     record = make_record()
-    assert record["format_version"] == 1
+    assert record["format_version"] == 2
     assert record["software_version"] == gls_calibration.__version__
     assert re.match(r"^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{6}\+00:00$", record["created_utc"])
     assert record["head"] == {"working_distance_mm": 490.0, "mirror_distance_mm": 15.0,
@@ -301,7 +301,9 @@ def test_save_refuses_nan(tmp_path):
 @pytest.mark.parametrize("mutate, problem", [
     (lambda r: r.pop("models"), "missing key 'models'"),
     (lambda r: r.pop("format_version"), "missing key 'format_version'"),
-    (lambda r: r.update(format_version=2), "unsupported format_version 2 (this software reads version 1)"),
+    (lambda r: r.update(format_version=3), "format_version 3 is newer than this software reads (up to 2); "
+                                           "update gls_calibration"),
+    (lambda r: r.update(format_version=0), "unsupported format_version 0 (this software reads versions 1, 2)"),
     (lambda r: r.update(format_version="1"), "key 'format_version' must be an integer, got str"),
     (lambda r: r.update(created_utc="yesterday"), "key 'created_utc' is not an ISO 8601 time: 'yesterday'"),
     (lambda r: r.update(head=[490.0]), "key 'head' must be a mapping, got list"),

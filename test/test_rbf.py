@@ -142,6 +142,34 @@ def test_thin_plate_spline_interpolates_without_smoothing_and_smooths_with_it():
     assert smooth(dense_points(5)).shape == (25, 2)
 
 
+def test_thin_plate_spline_solves_the_same_system_as_scipy():
+    from scipy.interpolate import RBFInterpolator
+    X, Y = noisy_samples(13)
+    query = dense_points(41, 120.0)
+    for smoothing in (0.0, 300.0):
+        reference = RBFInterpolator(X, Y, kernel="thin_plate_spline", smoothing=smoothing)(query)
+        np.testing.assert_allclose(ThinPlateSplineModel(X, Y, smoothing)(query), reference, atol=1e-9)
+
+
+def test_thin_plate_spline_loads_without_refitting(monkeypatch):
+    X, Y = noisy_samples(14)
+    spline = ThinPlateSplineModel(X, Y, smoothing=10.0)
+    description = spline.to_dict()
+    assert {"centres", "weights", "affine"} <= set(description) and "values" not in description
+    monkeypatch.setattr(np.linalg, "solve", lambda *a, **k: pytest.fail("loading refitted the spline"))
+    loaded = model_from_dict(description)
+    query = dense_points(23)
+    np.testing.assert_array_equal(loaded(query), spline(query))
+    singles = np.vstack([loaded(point[None, :]) for point in query[:20]])   # the small-batch path
+    np.testing.assert_allclose(singles, spline(query[:20]), atol=1e-12)
+
+
+def test_a_version_1_spline_of_training_data_still_loads():
+    X, Y = noisy_samples(15)
+    old = {"type": "thin_plate_spline", "smoothing": 10.0, "points": X.tolist(), "values": Y.tolist()}
+    np.testing.assert_allclose(model_from_dict(old)(X), ThinPlateSplineModel(X, Y, 10.0)(X), atol=1e-12)
+
+
 def test_selected_model_meets_the_accuracy_target_on_a_dense_held_out_grid():
     X, Y = noisy_samples(9)
     initial = rms(distortion_field(X))
@@ -180,7 +208,7 @@ def test_selection_by_cross_validation_prefers_the_truth_like_candidate():
     X, Y = noisy_samples(12, noise=0.2)
     model, report = select_model(X, Y, spreads_mm=(), tps_smoothings=(0.0, 1000.0))
     assert report.chosen.parameters == {"smoothing": 1000.0}
-    assert model.smoothing == 1000.0 and model.points.shape == (361, 2)        # refitted on all data
+    assert model.smoothing == 1000.0 and model.centres.shape == (361, 2)        # refitted on all data
 
 
 @pytest.mark.parametrize("X, Y, kwargs, message", [

@@ -1,17 +1,22 @@
-"""gls-correct: send targets from a CSV (x,y[,z] in mm, gls frame) to ``correct_setpoints``; write
-the corrected targets, mirror angles and focus shift as CSV."""
+"""gls-correct: corrected targets, mirror angles and focus shift for targets from a CSV (x,y[,z] in mm,
+gls frame), from a calibration file (``--calibration FILE``, no running cell needed) or from the
+running cell's ``correct_setpoints`` service.
+
+One output row per target, in input order. Exit 0 when every target is reachable, 1 when some lie
+beyond the mirror limits or the focus range (the file is still written, complete, with its
+``within_limits`` flags) or the service failed, 2 on bad input (nothing written).
+"""
 from __future__ import annotations
 
 import argparse
 import csv
 from pathlib import Path
 import sys
+from typing import Optional
 
 import numpy as np
-from gls_calibration.cli.client import call_and_wait, client_node
-from gls_calibration.nodes.conversions import float64_sequence
+
 from gls_calibration.persistence import atomic_write_text
-from gls_calibration_msgs.srv import CorrectSetpoints
 
 OUTPUT_COLUMNS = ("x", "y", "z", "k_x", "k_y", "alpha_x_rad", "alpha_y_rad", "focus_shift_mm",
                   "inside_calibrated_field", "within_limits")
@@ -28,47 +33,103 @@ def read_targets(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         rows = list(reader)
     if not rows:
         raise ValueError(f"{path}: no targets")
+    names = ("x", "y", "z") if "z" in columns else ("x", "y")
     try:
-        x = np.array([float(row["x"]) for row in rows])
-        y = np.array([float(row["y"]) for row in rows])
-        z = np.array([float(row["z"]) for row in rows]) if "z" in columns else np.empty(0)
-    except ValueError as error:
+        values = np.array([[float(row[name]) for name in names] for row in rows])
+    except (TypeError, ValueError) as error:
         raise ValueError(f"{path}: non-numeric value: {error}") from None
-    return x, y, z
+    bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
+    if bad.size:
+        raise ValueError(f"{path}: {bad.size} row(s) with NaN or infinite values (first: data row {bad[0] + 1})")
+    return values[:, 0], values[:, 1], values[:, 2] if "z" in columns else np.empty(0)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Exit 0 on success, 1 when the service refused, 2 on bad input."""
-    parser = argparse.ArgumentParser(prog="gls-correct", description=__doc__.splitlines()[0])
+def corrected_csv_text(x, y, z, k_x, k_y, alpha_x, alpha_y, focus_shift, inside, within) -> str:
+    """The output table: OUTPUT_COLUMNS, floats at full precision, flags as 0/1."""
+    lines = [",".join(OUTPUT_COLUMNS)]
+    floats = np.column_stack([x, y, z, k_x, k_y, alpha_x, alpha_y, focus_shift]).tolist()
+    for row, inside_flag, within_flag in zip(floats, np.asarray(inside, bool), np.asarray(within, bool)):
+        lines.append(",".join(map(repr, row)) + f",{int(inside_flag)},{int(within_flag)}")
+    return "\n".join(lines) + "\n"
+
+
+def correct_offline(calibration: Path, x, y, z):
+    """(k_x, k_y, alpha_x, alpha_y, focus_shift, inside, within, note) from a calibration file."""
+    from gls_calibration.calibration_record import correction_from_record
+    from gls_calibration.persistence import head_geometry, load_record
+    record = load_record(calibration)
+    try:
+        correction = correction_from_record(record, head_geometry(record))
+    except ValueError as error:
+        raise ValueError(f"calibration file {calibration}: {error}") from None
+    result = correction.correct(x, y, z if len(z) else None)
+    return (result.x, result.y, result.alpha_x, result.alpha_y, result.focus_shift,
+            result.inside_calibrated_field, result.within_limits, f"calibration {calibration}")
+
+
+def correct_by_service(namespace: str, timeout: float, x, y, z):
+    """The same from the running cell's ``correct_setpoints``; RuntimeError when it gives no usable answer."""
+    from gls_calibration.cli.client import call_and_wait, client_node
+    from gls_calibration.nodes.conversions import float64_sequence
+    from gls_calibration_msgs.srv import CorrectSetpoints
+    with client_node("gls_correct_client", namespace) as (node, executor):
+        try:
+            response = call_and_wait(executor, node.create_client(CorrectSetpoints, "correct_setpoints"),
+                                     CorrectSetpoints.Request(x=float64_sequence(x), y=float64_sequence(y),
+                                                              z=float64_sequence(z)), timeout)
+        except TimeoutError as error:
+            raise RuntimeError(str(error)) from None
+    if response is None:
+        raise RuntimeError("correct_setpoints: no answer")
+    complete = all(len(values) == len(x) for values in (response.x, response.y, response.alpha_x, response.alpha_y,
+                                                         response.focus_shift, response.inside_calibrated_field,
+                                                         response.within_limits))
+    # A refusal for unreachable targets still carries every answer and its flags.
+    if not complete or (not response.success and all(response.within_limits)):
+        raise RuntimeError(f"correct_setpoints: {response.message}")
+    return (np.asarray(response.x), np.asarray(response.y), np.asarray(response.alpha_x),
+            np.asarray(response.alpha_y), np.asarray(response.focus_shift),
+            np.asarray(response.inside_calibrated_field, bool), np.asarray(response.within_limits, bool),
+            f"service: {response.message}")
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    """Exit 0 on success, 1 when targets are unreachable or the service failed, 2 on bad input."""
+    parser = argparse.ArgumentParser(prog="gls-correct", description=__doc__.split("\n\n")[0])
     parser.add_argument("targets", type=Path, help="CSV with columns x,y[,z] (mm)")
     parser.add_argument("--out", type=Path, required=True, help="CSV to write")
+    parser.add_argument("--calibration", type=Path, help="calibration file: correct without a running cell")
     parser.add_argument("--namespace", default="gls")
     parser.add_argument("--timeout", type=float, default=30.0)
     args = parser.parse_args(argv)
     try:
         x, y, z = read_targets(args.targets)
+        if not args.out.parent.is_dir():
+            raise ValueError(f"cannot write {args.out}: folder {args.out.parent} does not exist")
+        if args.calibration is not None:
+            answers = correct_offline(args.calibration, x, y, z)
     except (OSError, ValueError) as error:
         print(error, file=sys.stderr)
         return 2
-    with client_node("gls_correct_client", args.namespace) as (node, executor):
+    if args.calibration is None:
         try:
-            response = call_and_wait(executor, node.create_client(CorrectSetpoints, "correct_setpoints"),
-                                     CorrectSetpoints.Request(x=float64_sequence(x), y=float64_sequence(y),
-                                                              z=float64_sequence(z)), args.timeout)
-        except TimeoutError as error:
+            answers = correct_by_service(args.namespace, args.timeout, x, y, z)
+        except RuntimeError as error:
             print(error, file=sys.stderr)
             return 1
-    if response is None or not response.success:
-        print(f"correct_setpoints: {'no answer' if response is None else response.message}", file=sys.stderr)
+    *columns, note = answers
+    try:
+        atomic_write_text(args.out, corrected_csv_text(x, y, z if len(z) else np.zeros_like(x), *columns))
+    except OSError as error:
+        print(f"cannot write {args.out}: {error.strerror or error}", file=sys.stderr)
+        return 2
+    unreachable = int(np.count_nonzero(~np.asarray(columns[-1], bool)))
+    if unreachable:
+        first = int(np.argmin(columns[-1]))
+        print(f"{unreachable} of {len(x)} target(s) beyond the mirror limits or the focus range (first: data row "
+              f"{first + 1}); all {len(x)} written to {args.out} with within_limits flags", file=sys.stderr)
         return 1
-    z_out = z if len(z) else np.zeros_like(x)
-    lines = [",".join(OUTPUT_COLUMNS)]
-    for row in zip(x, y, z_out, response.x, response.y, response.alpha_x, response.alpha_y,
-                   response.focus_shift, response.inside_calibrated_field, response.within_limits):
-        lines.append(",".join(repr(float(value)) if not isinstance(value, (bool, np.bool_)) else str(int(value))
-                              for value in row))
-    atomic_write_text(args.out, "\n".join(lines) + "\n")
-    print(f"{len(x)} targets corrected ({response.message}); written to {args.out}")
+    print(f"{len(x)} targets corrected ({note}); written to {args.out}")
     return 0
 
 

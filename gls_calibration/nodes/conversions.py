@@ -322,6 +322,13 @@ def fiducials_to_response(measurement: FiducialMeasurement, response) -> None:
     response.merged = int(measurement.merged)
     response.rejected = int(measurement.rejected)
     response.missing = int(measurement.missing or 0)
+    sigma = np.asarray(measurement.sigma_xy_mm, dtype=float).reshape(-1, 2)
+    response.sigma_x, response.sigma_y = float64_sequence(sigma[:, 0]), float64_sequence(sigma[:, 1])
+    response.coverage = float64_sequence(measurement.coverage)
+    rejected = np.asarray(measurement.rejected_centres, dtype=float).reshape(-1, 3)
+    response.rejected_x, response.rejected_y, response.rejected_z = (
+        float64_sequence(rejected[:, axis]) for axis in range(3))
+    response.rejected_reason = [str(reason) for reason in measurement.rejected_reasons]
 
 
 def fiducials_from_response(response, pose: PlatePose) -> FiducialMeasurement:
@@ -332,7 +339,12 @@ def fiducials_from_response(response, pose: PlatePose) -> FiducialMeasurement:
         quality=float64_array(response.quality), radii=float64_array(response.outer_radius),
         inner_radii=float64_array(response.inner_radius), merged=int(response.merged),
         rejected=int(response.rejected), missing=int(response.missing), image_shape=(0, 0),
-        pixel_pitch_mm=(float("nan"), float("nan")))
+        pixel_pitch_mm=(float("nan"), float("nan")),
+        sigma_xy_mm=np.column_stack([float64_array(response.sigma_x), float64_array(response.sigma_y)]),
+        sigma_plane_mm=None, coverage=float64_array(response.coverage),
+        rejected_centres=np.column_stack([float64_array(response.rejected_x), float64_array(response.rejected_y),
+                                          float64_array(response.rejected_z)]),
+        rejected_reasons=tuple(str(reason) for reason in response.rejected_reason))
 
 
 def setpoints_to_response(result, response) -> None:

@@ -6,7 +6,8 @@ import dataclasses
 
 from gls_calibration.config_files import config_path
 from gls_calibration.nodes.base import GlsNode
-from gls_calibration.optics import EFFECTS, HeadEffects, PARAMETER_UNITS
+from gls_calibration.effect_table import EFFECT_TABLE
+from gls_calibration.optics import HeadEffects
 from gls_calibration.simulation.world import SimConfig, load_sim_config
 
 
@@ -18,8 +19,8 @@ def declare_sim_config(node: GlsNode) -> SimConfig:
                           "custom (empty: the file's measurement.preset)")
     config = load_sim_config(path or config_path("sim.yaml"), preset or None)
     values = {}
-    for name, labels in EFFECTS.items():
-        units = ", ".join(f"{label} [{unit}]" for label, unit in zip(labels, PARAMETER_UNITS[name]))
+    for name, spec in EFFECT_TABLE.items():
+        units = ", ".join(f"{p.name} [{p.unit}]" for p in spec.parameters)
         values[name] = tuple(node.declare(f"effects.{name}", [float(v) for v in config.effects.get(name)],
                                           f"true {name} of the simulated head: {units}"))
     seed = node.declare("seed", config.seed, "seed of the simulated cell's random draws", minimum=0)

@@ -1,0 +1,243 @@
+"""gls-measure: measure the ring fiducials of a plate scan offline, without the ROS cell.
+
+Reads a cloud (``.npz`` with arrays x, y, z, intensity of equal shape in mm, 2-D organized or 1-D
+unorganized, NaN for missing points; or ``.pcd`` / ``.ply`` through Open3D), estimates the plate
+pose, measures the fiducials with the same core function as the fiducial_measurement node
+(``fiducials.measure_fiducials``) and writes into DIR (created):
+
+- ``centres.csv``: ``x,y,z,sigma_x_um,sigma_y_um,coverage,status``, one row per candidate
+  (coordinates in the cloud's frame in mm, standard uncertainty at k = 1 in um, coverage 0-1,
+  status ``ok`` or ``rejected:<reason>``); only the header when nothing was found;
+- ``detections.png``: the plate image with accepted (green) and rejected (red, with the reason)
+  detections drawn;
+- ``summary.json``: counts, median/max uncertainty, coverage, plate pose and time.
+
+Exit 0 on success (also when no fiducial is found), 2 on bad input (unreadable file, missing or
+mismatched arrays, no plane, 1 to 3 fiducials found: too few to use); nothing is written then.
+"""
+from __future__ import annotations
+
+import argparse
+from collections import Counter
+import json
+from pathlib import Path
+import sys
+import time
+
+import cv2
+import numpy as np
+
+from gls_calibration.fiducials import STATUS_OK, FiducialMeasurement, measure_fiducials
+from gls_calibration.persistence import atomic_write_bytes, atomic_write_text
+from gls_calibration.plate_pose import PlatePose, estimate_plate_pose
+
+CSV_HEADER = "x,y,z,sigma_x_um,sigma_y_um,coverage,status"
+NPZ_ARRAYS = ("x", "y", "z", "intensity")
+MIN_FOUND = 4
+"""Fewer accepted fiducials than this (but more than none) cannot support a calibration: bad input."""
+IMAGE_MAX_SIDE_PX = 2400
+"""The picture is binned coarser than ``--pixel`` when the plate would be larger than this."""
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def _rings(text: str) -> tuple[float, ...]:
+    try:
+        radii = tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be radii in mm separated by commas, got {text!r}") from None
+    if len(radii) < 1 or not all(np.isfinite(r) and r > 0 for r in radii) or len(set(radii)) != len(radii):
+        raise argparse.ArgumentTypeError(f"must be distinct positive radii in mm, got {text!r}")
+    return radii
+
+
+def load_cloud(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """xyz (H, W, 3) or (N, 3) and intensity of a cloud file; ValueError naming the problem."""
+    suffix = path.suffix.lower()
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file")
+    if suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                names = list(data.files)
+                arrays = {name: np.asarray(data[name]) for name in NPZ_ARRAYS if name in names}
+        except Exception as error:      # zip, pickle and OS errors: the file is not a usable npz
+            raise ValueError(f"{path}: unreadable npz file ({error})") from None
+        missing = [name for name in NPZ_ARRAYS if name not in arrays]
+        if missing:
+            raise ValueError(f"{path}: missing array(s) {', '.join(missing)} (has: {', '.join(names) or 'none'})")
+        shapes = {name: array.shape for name, array in arrays.items()}
+        if len(set(shapes.values())) != 1:
+            raise ValueError(f"{path}: arrays x, y, z, intensity must have one shape, got "
+                             + ", ".join(f"{name} {shape}" for name, shape in shapes.items()))
+        shape = shapes["x"]
+        if len(shape) not in (1, 2) or 0 in shape:
+            raise ValueError(f"{path}: arrays must be 1-D (unorganized) or 2-D (organized) and not empty, "
+                             f"got shape {shape}")
+        try:
+            xyz = np.stack([arrays[name].astype(float) for name in ("x", "y", "z")], axis=-1)
+            intensity = arrays["intensity"].astype(float)
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}: arrays must be numeric") from None
+        return xyz, intensity
+    if suffix in (".pcd", ".ply"):
+        import open3d as o3d
+
+        cloud = o3d.t.io.read_point_cloud(str(path))
+        if "positions" not in cloud.point or len(cloud.point["positions"]) == 0:
+            raise ValueError(f"{path}: unreadable or empty point cloud")
+        xyz = cloud.point["positions"].numpy().astype(float).reshape(-1, 3)
+        if "intensity" in cloud.point:
+            intensity = cloud.point["intensity"].numpy().astype(float).reshape(-1)
+        elif "colors" in cloud.point:
+            intensity = cloud.point["colors"].numpy().astype(float).reshape(-1, 3).mean(axis=1)
+        else:
+            raise ValueError(f"{path}: the cloud has no intensity (or colour) field")
+        return xyz, intensity
+    raise ValueError(f"{path}: unsupported file type {suffix!r} (use .npz, .pcd or .ply)")
+
+
+def csv_text(measurement: FiducialMeasurement) -> str:
+    """centres.csv: accepted candidates first, then the rejected ones."""
+    lines = [CSV_HEADER]
+    for centre, sigma, coverage in zip(measurement.centres, measurement.sigma_xy_mm, measurement.coverage):
+        lines.append(f"{centre[0]:.6f},{centre[1]:.6f},{centre[2]:.6f},{sigma[0] * 1000:.3f},"
+                     f"{sigma[1] * 1000:.3f},{coverage:.3f},{STATUS_OK}")
+    for centre, sigma, coverage, reason in zip(measurement.rejected_centres, measurement.rejected_sigma_xy_mm,
+                                               measurement.rejected_coverage, measurement.rejected_reasons):
+        lines.append(f"{centre[0]:.6f},{centre[1]:.6f},{centre[2]:.6f},{sigma[0] * 1000:.3f},"
+                     f"{sigma[1] * 1000:.3f},{coverage:.3f},rejected:{reason}")
+    return "\n".join(lines) + "\n"
+
+
+def detections_png(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose, measurement: FiducialMeasurement,
+                   pixel_mm: float, ring_radius_mm: float) -> bytes:
+    """Plate image (mean intensity per pixel on the plate plane) with the detections drawn."""
+    points = xyz.reshape(-1, 3)
+    values = intensity.reshape(-1)
+    keep = np.isfinite(points).all(axis=1) & np.isfinite(values)
+    uv = pose.to_plane(points[keep])
+    low = uv.min(axis=0)
+    extent = uv.max(axis=0) - low
+    pixel = max(pixel_mm, float(extent.max()) / IMAGE_MAX_SIDE_PX)
+    cols, rows = (int(v) + 1 for v in extent / pixel)
+    index = np.floor((uv - low) / pixel).astype(int)
+    flat = index[:, 1] * cols + index[:, 0]
+    sums = np.bincount(flat, weights=values[keep], minlength=rows * cols)
+    counts = np.bincount(flat, minlength=rows * cols)
+    image = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan).reshape(rows, cols)
+    finite = image[np.isfinite(image)]
+    lo, hi = np.percentile(finite, (0.5, 99.5)) if finite.size else (0.0, 1.0)
+    gray = np.clip((np.nan_to_num(image, nan=lo) - lo) / max(hi - lo, 1e-12) * 255, 0, 255).astype(np.uint8)
+    picture = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+    radius_px = max(int(round(ring_radius_mm * 1.3 / pixel)), 3)
+    thickness = max(1, radius_px // 12)
+    font_scale = max(0.3, radius_px / 40)
+
+    def draw(centres, colour, labels):
+        if len(centres) == 0:
+            return
+        at = (pose.to_plane(np.asarray(centres).reshape(-1, 3)) - low) / pixel
+        for (col, row), label in zip(at, labels):
+            centre = (int(round(col)), int(round(row)))
+            cv2.circle(picture, centre, radius_px, colour, thickness, cv2.LINE_AA)
+            cv2.drawMarker(picture, centre, colour, cv2.MARKER_CROSS, radius_px // 2, thickness)
+            if label:
+                cv2.putText(picture, label, (centre[0] - radius_px, centre[1] - radius_px - 2),
+                            cv2.FONT_HERSHEY_SIMPLEX, font_scale, colour, thickness, cv2.LINE_AA)
+
+    draw(measurement.centres, (0, 200, 0), [""] * len(measurement.centres))
+    draw(measurement.rejected_centres, (0, 0, 255), list(measurement.rejected_reasons))
+    ok, encoded = cv2.imencode(".png", picture)
+    if not ok:
+        raise ValueError("could not encode detections.png")
+    return encoded.tobytes()
+
+
+def summary(measurement: FiducialMeasurement, pose: PlatePose, args, seconds: float) -> dict:
+    """summary.json content."""
+    sigma_um = np.asarray(measurement.sigma_xy_mm).reshape(-1, 2) * 1000
+
+    def stats(values):
+        return {"median": float(np.median(values)), "max": float(np.max(values))} if len(values) else None
+
+    expected = args.grid**2
+    return {
+        "cloud": str(args.cloud),
+        "grid": {"per_side": args.grid, "size_mm": args.size, "expected": expected},
+        "rings_mm": list(args.rings),
+        "candidates": len(measurement.centres) + int(measurement.rejected),
+        "accepted": len(measurement.centres),
+        "rejected": int(measurement.rejected),
+        "rejected_by_reason": dict(Counter(measurement.rejected_reasons)),
+        "missing": expected - len(measurement.centres),
+        "sigma_x_um": stats(sigma_um[:, 0]),
+        "sigma_y_um": stats(sigma_um[:, 1]),
+        "coverage": ({"median": float(np.median(measurement.coverage)), "min": float(np.min(measurement.coverage))}
+                     if len(measurement.coverage) else None),
+        "plate_pose": {"normal": [float(v) for v in pose.normal], "centre_mm": [float(v) for v in pose.centre],
+                       "flatness_rms_mm": float(pose.flatness_rms_mm)},
+        "image_shape": list(measurement.image_shape),
+        "pixel_pitch_mm": [float(v) for v in measurement.pixel_pitch_mm],
+        "time_s": round(seconds, 3),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Exit 0 on success, 2 on bad input (nothing written then)."""
+    parser = argparse.ArgumentParser(prog="gls-measure", description=__doc__.splitlines()[0])
+    parser.add_argument("--cloud", type=Path, required=True, help=".npz (x, y, z, intensity), .pcd or .ply")
+    parser.add_argument("--grid", type=_positive_int, required=True, help="fiducials per side of the grid")
+    parser.add_argument("--size", type=_positive_float, required=True, help="grid span, first to last centre (mm)")
+    parser.add_argument("--out", type=Path, required=True, help="output directory (created)")
+    parser.add_argument("--pixel", type=_positive_float, default=0.1,
+                        help="raster pixel for unorganized clouds (mm, default 0.1)")
+    parser.add_argument("--rings", type=_rings, default=(2.5, 2.7), help="ring radii in mm (default 2.5,2.7)")
+    args = parser.parse_args(argv)
+    try:
+        if args.out.exists() and not args.out.is_dir():
+            raise ValueError(f"{args.out}: exists and is not a directory")
+        xyz, intensity = load_cloud(args.cloud)
+        start = time.perf_counter()
+        pose = estimate_plate_pose(xyz)
+        measurement = measure_fiducials(xyz, intensity, pose, ring_radii_mm=args.rings, pixel_size_mm=args.pixel,
+                                        expected_count=args.grid**2, marks_darker=None, allow_empty=True)
+        seconds = time.perf_counter() - start
+        found = len(measurement.centres)
+        if 0 < found < MIN_FOUND:
+            raise ValueError(f"only {found} fiducial(s) found; at least {MIN_FOUND} are needed "
+                             f"(grid {args.grid}x{args.grid})")
+        # Everything is prepared before the first file is written.
+        texts = {"centres.csv": csv_text(measurement),
+                 "summary.json": json.dumps(summary(measurement, pose, args, seconds), indent=2) + "\n"}
+        picture = detections_png(xyz, intensity, pose, measurement, args.pixel, max(args.rings))
+    except ValueError as error:
+        print(f"gls-measure: {error}", file=sys.stderr)
+        return 2
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(args.out / "detections.png", picture)
+        for name, text in texts.items():
+            atomic_write_text(args.out / name, text)
+    except OSError as error:
+        print(f"gls-measure: cannot write to {args.out}: {error}", file=sys.stderr)
+        return 2
+    print(f"{found} of {args.grid**2} fiducials accepted, {measurement.rejected} candidate(s) rejected "
+          f"in {seconds:.2f} s; written to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,144 @@
+"""gls-train: a calibration file from measured fiducials, without a running cell.
+
+Input: a CSV ``x_cmd,y_cmd,x_meas,y_meas`` (mm): targets commanded through the nominal model on the
+plane z = 0 of the gls frame (or ``--plane-z``, or the mean of an optional ``z_cmd`` column, as the
+main job's ``training.csv`` has it), and where they were measured, in any frame a rigid motion away
+(the measurement is aligned onto the targets first, as the calibrate flow does).
+The model is trained exactly as the calibrate flow trains it (:func:`gls_calibration.training.
+train_correction`, grid search from ``config/gls.yaml``), at the measured points on ``Q - P``. The
+calibrated region is the box of the commanded targets. Writes ``--out`` (the calibration YAML) and
+``<out>.report.md`` beside it. Exit 0, or 2 with a message and nothing written on bad input.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+import sys
+from typing import Any, Mapping, Optional
+
+import numpy as np
+
+from gls_calibration.config_files import config_path, read_config_file
+from gls_calibration.correction import CalibratedRegion
+from gls_calibration.head_config import default_head_config_path, load_head_config
+from gls_calibration.persistence import atomic_write_text, dump_record, new_record
+from gls_calibration.registration import align_rigid_2d
+from gls_calibration.training import TrainingOptions, train_correction
+
+COLUMNS = ("x_cmd", "y_cmd", "x_meas", "y_meas")
+TAPER_MM = 10.0
+
+
+def read_measured(path: Path) -> tuple[np.ndarray, np.ndarray, Optional[float]]:
+    """Commanded (N, 2) and measured (N, 2) points and the mean ``z_cmd`` (None without that column)
+    from the CSV; ValueError naming the problem."""
+    try:
+        with path.open(newline="") as stream:
+            reader = csv.DictReader(stream)
+            header = reader.fieldnames or []
+            missing = [name for name in COLUMNS if name not in header]
+            if missing:
+                raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (header: {','.join(header)})")
+            names = COLUMNS + (("z_cmd",) if "z_cmd" in header else ())
+            values = np.array([[float(row[name]) for name in names] for row in reader]).reshape(-1, len(names))
+    except (TypeError, ValueError) as error:
+        if str(error).startswith(str(path)):
+            raise
+        raise ValueError(f"{path}: non-numeric value: {error}") from None
+    if values.shape[0] < 10:
+        raise ValueError(f"{path}: {values.shape[0]} row(s); at least 10 measured fiducials are needed")
+    bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
+    if bad.size:
+        raise ValueError(f"{path}: {bad.size} row(s) with NaN or infinite values (first: data row {bad[0] + 1})")
+    return values[:, :2], values[:, 2:4], float(np.mean(values[:, 4])) if values.shape[1] > 4 else None
+
+
+def training_options(config: Path) -> TrainingOptions:
+    """The trainer's grid search from a parameter file (the keys the rbf_trainer node reads)."""
+    def parse(document: Any) -> TrainingOptions:
+        parameters = document.get("/**", {}).get("ros__parameters", {}) if isinstance(document, Mapping) else {}
+        defaults = TrainingOptions()
+        return TrainingOptions(**{name: parameters.get(name, getattr(defaults, name))
+                                  for name in ("spreads_mm", "mse_goals_mm2", "tps_smoothings", "folds", "seed")})
+    return read_config_file(config, "parameter file", parse)
+
+
+def train_file(measured_csv: Path, head_file: Path, config: Path, physics_first: bool,
+               plane_z_mm: Optional[float]):
+    """(record, report text): the calibration the CSV gives (plane: ``plane_z_mm``, else the CSV's, else 0)."""
+    commanded, measured, commanded_height = read_measured(measured_csv)
+    if plane_z_mm is None:
+        plane_z_mm = commanded_height if commanded_height is not None else 0.0
+    geometry, _known = load_head_config(head_file)
+    aligned = align_rigid_2d(measured, commanded)[1]
+    # Commanding Q through the nominal model landed at P: Q - P is the correction to add at P.
+    corrections = commanded - aligned
+    trained = train_correction(aligned, corrections, geometry, physics_first=physics_first,
+                               options=training_options(config))
+    region = CalibratedRegion.from_points(commanded, plane_z_mm)
+    rms = float(np.sqrt(np.mean(np.sum(corrections ** 2, axis=1))))
+    worst = float(np.max(np.linalg.norm(corrections, axis=1)))
+    record = new_record(
+        head=geometry,
+        plate_pose={"normal": [0.0, 0.0, 1.0], "centre": [0.0, 0.0, plane_z_mm], "rotation": np.eye(3),
+                    "flatness_rms_mm": 0.0},
+        models=[trained.model], calibrated_region={**region.to_dict(), "taper_mm": TAPER_MM},
+        hyper_parameters={"trained_models": [{"method": trained.method, "neurons": trained.neurons,
+                                              "spread_mm": trained.spread_mm, "cv_rms_mm": trained.cv_rms_mm}],
+                          "source": {"tool": "gls-train", "measured": str(measured_csv), "head": str(head_file),
+                                     "trainer_config": str(config), "physics_first": physics_first}},
+        metrics={"training": {"count": len(commanded), "rms_abs_mm": rms, "max_abs_mm": worst}},
+        fiducials={"target_x": commanded[:, 0], "target_y": commanded[:, 1], "measured_x": aligned[:, 0],
+                   "measured_y": aligned[:, 1], "measured_z": np.full(len(commanded), plane_z_mm),
+                   "dx": corrections[:, 0], "dy": corrections[:, 1], "commanded_through_nominal_model": True})
+    report = "\n".join([
+        "# gls-train", "",
+        f"- measured fiducials: {measured_csv} ({len(commanded)} points), head {head_file}, grid search {config}",
+        f"- deviations Q - P after rigid alignment (MEASURED): RMS {rms:.4f} mm, max {worst:.4f} mm",
+        f"- model: {trained.description or trained.method}",
+        f"- calibrated region: x [{region.x_min:g}, {region.x_max:g}] mm, y [{region.y_min:g}, {region.y_max:g}] mm "
+        f"on z = {plane_z_mm:g} mm, taper {TAPER_MM:g} mm", ""])
+    return record, report
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    """Exit 0 on success, 2 on bad input or an unwritable output (nothing written)."""
+    parser = argparse.ArgumentParser(prog="gls-train", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--measured", type=Path, required=True, help="CSV x_cmd,y_cmd,x_meas,y_meas (mm)")
+    parser.add_argument("--out", type=Path, required=True, help="calibration file to write (YAML)")
+    parser.add_argument("--physics-first", action="store_true", help="fit the named physical effects first")
+    parser.add_argument("--head", type=Path, default=None, help="head file (default: config/head.yaml)")
+    parser.add_argument("--config", type=Path, default=None, help="trainer grid search (default: config/gls.yaml)")
+    parser.add_argument("--plane-z", type=float, default=None,
+                        help="height the targets were commanded at (mm; default: mean z_cmd of the CSV, else 0)")
+    args = parser.parse_args(argv)
+    report_path = args.out.with_name(args.out.name + ".report.md")
+    try:
+        if args.plane_z is not None and not np.isfinite(args.plane_z):
+            raise ValueError(f"--plane-z must be finite, got {args.plane_z}")
+        for output in (args.out, report_path):
+            if not output.parent.is_dir():
+                raise ValueError(f"cannot write {output}: folder {output.parent} does not exist")
+        record, report = train_file(args.measured, args.head or default_head_config_path(),
+                                    args.config or config_path("gls.yaml"), args.physics_first, args.plane_z)
+        text = dump_record(record)
+    except (OSError, ValueError) as error:
+        print(error, file=sys.stderr)
+        return 2
+    report_existed = report_path.exists()
+    try:   # the report first: a failed calibration write then leaves no new report behind
+        atomic_write_text(report_path, report)
+        atomic_write_text(args.out, text)
+    except OSError as error:
+        if not report_existed:
+            report_path.unlink(missing_ok=True)
+        print(f"cannot write {args.out}: {error.strerror or error}", file=sys.stderr)
+        return 2
+    print(f"calibration written to {args.out} ({record['hyper_parameters']['trained_models'][0]['method']}); "
+          f"report {report_path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

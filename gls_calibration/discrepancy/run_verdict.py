@@ -1,0 +1,27 @@
+"""The discrepancy verdict for a calibration run's report: the workflow on the first plate's deviations."""
+from __future__ import annotations
+
+import numpy as np
+
+from gls_calibration.discrepancy.residual_statistics import MIN_POINTS
+from gls_calibration.discrepancy.selection import explain
+from gls_calibration.discrepancy.verdict import verdict_lines
+from gls_calibration.kinematics import HeadGeometry
+
+
+def run_verdict_lines(targets_xy, deviations_xy, geometry: HeadGeometry | None = None,
+                      sigma_mm=None) -> tuple[str, ...]:
+    """Report lines: the discrepancy verdict on ``deviations_xy = Q - P`` at the targets ``Q`` (gls, mm).
+
+    Assumes the plate was marked through the nominal model (the first plate of a run without an
+    active calibration). A data set the workflow cannot take gives one line saying why.
+    """
+    targets_xy = np.asarray(targets_xy, dtype=float)
+    if len(targets_xy) < MIN_POINTS:
+        return (f"Discrepancy verdict: not computed ({len(targets_xy)} fiducials, at least {MIN_POINTS} needed).",)
+    try:
+        result = explain(targets_xy, targets_xy - np.asarray(deviations_xy, dtype=float), geometry, sigma_mm=sigma_mm)
+    except ValueError as error:
+        return (f"Discrepancy verdict: not computed ({error}).",)
+    return ("Discrepancy workflow on the first plate (assumes it was marked through the nominal model):",
+            *verdict_lines(result))

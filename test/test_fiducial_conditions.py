@@ -1,0 +1,134 @@
+"""Fiducial measurement on rendered scans of real-plate conditions (issue 11), and its quality figures.
+
+Every condition of ``rendering.vision_conditions`` is rendered (independently of the package's
+simulator) as a 5x5 grid at the 19x19 plate's pitch, one as the full 19x19 plate. Targets at 0.1 mm
+pitch: every fiducial found, per-axis centre RMS <= 10 um against the TRUE rendered centres, no
+accepted centre off by more than 30 um or by more than 3x its stated standard uncertainty.
+"""
+from functools import lru_cache
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from gls_calibration.fiducials import measure_fiducials
+from gls_calibration.plate_pose import estimate_plate_pose
+from rendering import BASE_SCAN, grid_truth, plate_to_scanner, render_condition, render_plate_scan
+
+PER_SIDE = 5
+# The conditions the issue names (the benchmark adds combinations beyond them).
+ISSUE_CONDITIONS = ("clean", "speckle_0.3", "speckle_0.3_corr2", "marks_85pct", "marks_bright", "scratches",
+                    "pitch_0.07", "pitch_0.15", "pitch_0.07x0.15", "unorganized", "rotation_15deg",
+                    "rotation_-15deg", "tilt_3deg", "dropouts_1pct")
+# Missed target, kept visible: under correlated speckle the stated uncertainty is too small (RMS of
+# error / sigma about 1.3, worst accepted centre about 4x its sigma; see README, fiducial measurement).
+SIGMA_MISSED = {"speckle_0.3", "speckle_0.3_corr2"}
+
+
+@lru_cache(maxsize=None)
+def measured(name: str, per_side: int = PER_SIDE):
+    """Measurement (polarity found by the measurement) and true centres of one rendered condition."""
+    xyz, intensity, truth, _ = render_condition(name, per_side, seed=11)
+    pose = estimate_plate_pose(xyz)
+    return measure_fiducials(xyz, intensity, pose, expected_count=per_side**2, marks_darker=None), truth
+
+
+def per_axis_errors(measurement, truth):
+    """Per-axis errors (K, 2) of the accepted centres against their nearest true centre, and its index."""
+    _, index = cKDTree(truth).query(measurement.centres)
+    return measurement.centres[:, :2] - truth[index, :2], index
+
+
+@pytest.mark.parametrize("name", ISSUE_CONDITIONS)
+def test_every_fiducial_found_within_target(name):
+    measurement, truth = measured(name)
+    error, index = per_axis_errors(measurement, truth)
+    assert len(measurement.centres) == len(truth) and len(np.unique(index)) == len(truth)
+    assert np.all(np.sqrt(np.mean(error**2, axis=0)) <= 0.010)
+    assert np.abs(error).max() <= 0.030
+
+
+@pytest.mark.parametrize("name", [pytest.param(name, marks=pytest.mark.xfail(
+    strict=True, reason="target missed under 0.3 speckle: worst centre about 4x its sigma"))
+    if name in SIGMA_MISSED else name for name in ISSUE_CONDITIONS])
+def test_accepted_centres_within_three_sigma(name):
+    measurement, truth = measured(name)
+    error, _ = per_axis_errors(measurement, truth)
+    assert np.all(np.abs(error) <= 3 * measurement.sigma_xy_mm)
+
+
+@pytest.mark.parametrize("name", ISSUE_CONDITIONS)
+def test_quality_figures_are_reported_per_centre(name):
+    measurement, _ = measured(name)
+    count = len(measurement.centres)
+    assert measurement.sigma_xy_mm.shape == (count, 2) and measurement.coverage.shape == (count,)
+    assert np.all((measurement.sigma_xy_mm > 0) & (measurement.sigma_xy_mm <= 0.010))
+    assert np.all((measurement.coverage >= 0.75) & (measurement.coverage <= 1.0))
+    assert len(measurement.rejected_reasons) == measurement.rejected == len(measurement.rejected_centres)
+
+
+def test_bright_marks_are_found_without_being_told():
+    measurement, _ = measured("marks_bright")
+    assert len(measurement.centres) == PER_SIDE**2
+
+
+@pytest.mark.slow
+def test_full_plate_19x19_with_speckle():
+    measurement, truth = measured("speckle_0.3", 19)
+    error, index = per_axis_errors(measurement, truth)
+    assert len(measurement.centres) == 361 and len(np.unique(index)) == 361
+    assert np.all(np.sqrt(np.mean(error**2, axis=0)) <= 0.010)
+    assert np.abs(error).max() <= 0.030
+
+
+def _render(truth_uv, **scan):
+    xyz, intensity = render_plate_scan(truth_uv, size_mm=(60.0, 60.0), **dict(BASE_SCAN, **scan))
+    return xyz, intensity, plate_to_scanner(truth_uv, BASE_SCAN["tilt_rad"], BASE_SCAN["offset_mm"])
+
+
+@pytest.mark.parametrize("arc_rad", [np.pi, 0.35 * np.pi])
+@pytest.mark.parametrize("speckle", [0.0, 0.1])
+def test_half_erased_rings_are_rejected_or_accurate(arc_rad, speckle):
+    truth_uv = grid_truth(PER_SIDE, seed=12)
+    erased = {6: (0.3, 0.3 + arc_rad), 12: (2.0, 2.0 + arc_rad), 18: (-1.0, -1.0 + arc_rad)}
+    xyz, intensity, truth = _render(truth_uv, erased=erased, speckle=speckle, speckle_corr_px=1.5)
+    measurement = measure_fiducials(xyz, intensity, estimate_plate_pose(xyz), expected_count=PER_SIDE**2)
+    error, index = per_axis_errors(measurement, truth)
+    assert np.abs(error).max() <= 0.030
+    if speckle == 0.0:
+        # Under correlated speckle the stated uncertainty is too small (see SIGMA_MISSED).
+        assert np.all(np.abs(error) <= 3 * measurement.sigma_xy_mm)
+    damaged = np.isin(index, list(erased))
+    if arc_rad == np.pi:
+        # Half a ring: listed as partial, never accepted.
+        assert not damaged.any()
+        _, rejected_index = cKDTree(truth).query(measurement.rejected_centres)
+        reasons = [reason for reason, k in zip(measurement.rejected_reasons, rejected_index) if k in erased]
+        assert reasons.count("partial") >= 3
+    else:
+        # A small gap (17 % of the circumference): accepted with the coverage that was seen.
+        assert damaged.sum() == 3
+        assert np.all(measurement.coverage[damaged] < 0.95)
+    assert len(measurement.centres) == PER_SIDE**2 - (3 if arc_rad == np.pi else 0)
+
+
+@pytest.mark.xfail(strict=True, reason="target missed: the merged detection is accepted about 155 um off; its "
+                   "radii (+0.06/+0.09 mm) pass the 0.12 mm tolerance that rings marked by the uncalibrated "
+                   "simulated head need (2.78 mm measured for 2.7 mm)")
+def test_overlapping_rings_are_not_accepted_off_target():
+    # Two fiducials 0.3 mm apart (one merged detection) between two normal ones.
+    truth_uv = np.array([[-15.0, 0.0], [0.0, 0.0], [0.3, 0.1], [15.0, 0.0]])
+    xyz, intensity, truth = _render(truth_uv)
+    measurement = measure_fiducials(xyz, intensity, estimate_plate_pose(xyz), allow_empty=True)
+    error, index = per_axis_errors(measurement, truth)
+    assert np.abs(error).max() <= 0.030
+    assert set(index.tolist()) == {0, 3}
+    # One candidate for the pair, turned down: its rings are neither whole nor of the nominal size.
+    assert len(measurement.rejected_reasons) == 1 and measurement.rejected_reasons[0] in ("partial", "radius")
+
+
+def test_bare_speckled_steel_gives_no_fiducial():
+    xyz, intensity, _ = _render(np.empty((0, 2)), speckle=0.3, speckle_corr_px=1.5)
+    measurement = measure_fiducials(xyz, intensity, estimate_plate_pose(xyz), allow_empty=True)
+    assert len(measurement.centres) == 0
+    assert all(reason != "ok" for reason in measurement.rejected_reasons)
