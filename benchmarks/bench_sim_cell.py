@@ -38,8 +38,8 @@ from gls_calibration.config_files import config_path
 from gls_calibration.correction import Correction
 from gls_calibration.fiducials import measure_fiducials
 from gls_calibration.plate_pose import estimate_plate_pose, mean_plate_pose
-from gls_calibration.procedure import (ProcedureSettings, plane_height, pose_in_frame,
-                                       true_fiducial_centres, validation_grid)
+from gls_calibration.procedure import (ProcedureSettings, plane_height, pose_in_frame, true_fiducial_centres,
+                                       validation_grid)
 from gls_calibration.rbf import OLSRBFNetwork
 from gls_calibration.outcome import deviation_metrics
 from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets

@@ -448,8 +448,9 @@ def test_calibration_fails_when_too_few_fiducials_are_found(start_cell, tmp_path
 
 @pytest.mark.slow
 def test_the_full_loop_on_a_5x5_grid_corrects_the_head(start_cell):
+    # the ideal measurement chain: this checks the loop, not the measurement (paper_like leaves ~0.1 mm);
     # the marked plate swept as mounted and turned (the config's four passes cost twice the time)
-    cell = start_cell(grid=5, parameters={"sweep.plan": "0+,90+"})
+    cell = start_cell(grid=5, parameters={"measurement_preset": "ideal", "sweep.plan": "0+,90+"})
     response = cell.call(Calibrate, "calibrate", Calibrate.Request(validate=True), timeout_s=600.0)
     assert response.success, response.message
     assert (response.fiducials_expected, response.fiducials_found) == (25, 25)

@@ -175,7 +175,7 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager) -> in
         print(f"calibrate did not answer within {args.timeout:g} s", file=sys.stderr)
         return 1
     if response.report_dir:
-        note_measurement(Path(response.report_dir), args.sim.measurement_preset, None)
+        note_measurement(Path(response.report_dir), args.sim.measurement_preset)
     print(summary_table(response))
     if response.report_dir:
         truth = json.loads((Path(response.report_dir) / "summary.json").read_text())
@@ -189,14 +189,12 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager) -> in
     return 0
 
 
-def note_measurement(report_dir: Path, preset: str, calibration_file: str | None) -> None:
+def note_measurement(report_dir: Path, preset: str) -> None:
     """Say in summary.json and report.md which measurement chain produced the figures."""
     summary_path = report_dir / "summary.json"
     if summary_path.is_file():
         summary = json.loads(summary_path.read_text())
         summary["measurement_preset"] = preset
-        if calibration_file:
-            summary["calibration_file"] = calibration_file
         atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
     report_path = report_dir / "report.md"
     if report_path.is_file():

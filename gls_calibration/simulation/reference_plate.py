@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from gls_calibration import targets
 from gls_calibration.fiducials import measure_fiducials
 from gls_calibration.plate_pose import estimate_plate_pose
-from gls_calibration.registration import fit_rigid
+from gls_calibration.registration import align_rigid_2d
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.simulation.world import SimConfig
 
@@ -140,6 +140,4 @@ def reference_plate_check(config: SimConfig, plan: MeasurementPlan = CALIBRATION
 
 def _aligned_residuals(measured: np.ndarray, known: np.ndarray) -> np.ndarray:
     """In-plane residuals (N, 2) of measured centres after the best 2-D rigid motion onto the known ones."""
-    flat = np.zeros((len(measured), 1))
-    transform = fit_rigid(np.hstack([measured[:, :2], flat]), np.hstack([known[:, :2], flat]))
-    return transform.apply(np.hstack([measured[:, :2], flat]))[:, :2] - known[:, :2]
+    return align_rigid_2d(measured[:, :2], known[:, :2])[1] - known[:, :2]
