@@ -23,6 +23,7 @@ from gls_calibration.outcome import CalibrationOutcome, Candidate, DeviationMetr
 from gls_calibration.plate_marks import existing_marks
 from gls_calibration.plate_pose import PlatePose, mean_plate_pose
 from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
+from gls_calibration.sweep_plan import CellTimeModel, SweepPass, combine_sweeps, plan_label
 from gls_calibration.training import TrainedModel
 from gls_calibration.validation import as_positive_number
 
@@ -43,8 +44,11 @@ class Cell(Protocol):
     keep it in its own form (the manager keeps the PointCloud2 message and forwards it untouched).
     """
 
-    async def acquire_sweep(self, step_mm: float) -> Any:
-        """Sweep the scanner over the plate with ``step_mm`` between profiles; the cloud (scanner frame)."""
+    async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Any:
+        """Sweep the scanner over the plate with ``step_mm`` between profiles, along the sensor's +y
+        (``direction`` 1) or -y (-1), the sensor turned by ``orientation_deg`` (0 or 90) about its
+        viewing axis; the cloud in the scanner (base) frame, whatever the direction and orientation,
+        placed by the robot's reported pose where the cell has one (see ``sweep.py``)."""
 
     async def estimate_plate_pose(self, cloud: Any) -> PlatePose:
         """The plate plane fitted to ``cloud`` (scanner frame, normal towards the head)."""
@@ -108,6 +112,12 @@ class ProcedureSettings:
     max_cv_factor: float = 20.0         # a CV RMS above this many uncertainties...
     max_cv_fraction: float = 0.5        # ...and above this fraction of the deviations' RMS: the model explains little
 
+    # the marked plate is swept once per pass; several passes (reversed, sensor turned) let the
+    # separation remove what is fixed to the scanner frame or to one sweep's motion
+    sweep_plan: tuple[SweepPass, ...] = (SweepPass(),)
+    profiles_placed_by_pose: bool = True    # the cell places profiles by the robot's reported pose
+    cell_time: CellTimeModel = CellTimeModel()
+
     def __post_init__(self) -> None:
         radii = np.asarray(self.ring_radii_mm, dtype=float)
         if radii.ndim != 1 or radii.size == 0 or not np.all(np.isfinite(radii)) or np.any(radii <= 0.0) \
@@ -144,6 +154,11 @@ class PlateRun:
     alignment: RigidTransform
     metrics: DeviationMetrics              # of ``deviations``
     true_metrics: Optional[DeviationMetrics]  # over every target, from the ground truth
+    sigma_mm: Optional[np.ndarray] = None  # (M,) standard uncertainty per axis of each measured centre
+    sweep_plan: str = "0+"                 # the passes over the marked plate (``sweep_plan.parse_plan``)
+    cell_time_s: float = math.nan          # sweeps at the configured speed, robot moves, marking
+    scanner_error_rms_mm: float = math.nan  # RMS of the removed scanner-frame (lateral) error
+    motion_error_rms_mm: float = math.nan   # RMS of the removed per-sweep motion error
 
 
 def plane_height(pose: PlatePose, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -256,18 +271,29 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
         raise CalibrationError(f"{count} ring point(s) lie beyond the mirror limits or the focus range; "
                                "reduce the grid size or check the plate pose")
     report("marking", 0.2, f"marking {len(grid_xy)} fiducials")
-    await cell.mark(setpoints.alpha_x, setpoints.alpha_y, setpoints.focus_shift, starts)
+    marking_s = await cell.mark(setpoints.alpha_x, setpoints.alpha_y, setpoints.focus_shift, starts)
 
-    report("sweep_marked", 0.45, "scanning the marked plate")
-    cloud = await cell.acquire_sweep(settings.marked_sweep_step_mm)
-    report("measurement", 0.7, "measuring fiducials")
-    found = await cell.measure_fiducials(cloud, pose_scanner, len(grid_xy))
+    plan = settings.sweep_plan
     needed = math.ceil(settings.min_found_fraction * len(grid_xy))
-    if len(found.centres) < needed:
-        raise CalibrationError(f"found {len(found.centres)} of {len(grid_xy)} fiducials; at least {needed} "
-                               f"({settings.min_found_fraction:.0%}) are needed")
-
-    centres_gls = settings.scanner_to_gls.apply(found.centres)
+    measurements = []
+    for number, item in enumerate(plan):
+        report("sweep_marked", 0.45 + 0.4 * number / len(plan),
+               f"scanning the marked plate ({number + 1} of {len(plan)}: {item.label})")
+        cloud = await cell.acquire_sweep(settings.marked_sweep_step_mm, item.direction, item.orientation_deg)
+        found = await cell.measure_fiducials(cloud, pose_scanner, len(grid_xy))
+        if len(found.centres) < needed:
+            which = f" (sweep {item.label} of {plan_label(plan)})" if len(plan) > 1 else ""
+            raise CalibrationError(f"found {len(found.centres)} of {len(grid_xy)} fiducials; at least {needed} "
+                                   f"({settings.min_found_fraction:.0%}) are needed{which}")
+        measurements.append(found)
+    report("measurement", 0.85, "combining the sweeps")
+    try:
+        combined = combine_sweeps(measurements, plan, targets, settings.scanner_to_gls,
+                                  settings.profiles_placed_by_pose)
+    except ValueError as error:
+        raise CalibrationError(f"the sweeps of the marked plate cannot be combined: {error}") from None
+    centres = np.column_stack([combined.centres_xy, plane_height(pose_scanner, *combined.centres_xy.T)])
+    centres_gls = settings.scanner_to_gls.apply(centres)
     pairing = pair_with_targets(centres_gls, targets)
     if len(pairing.target_index) < needed:
         raise CalibrationError(f"paired {len(pairing.target_index)} of {len(grid_xy)} fiducials with their "
@@ -294,11 +320,16 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
             true_metrics = deviation_metrics(grid_xy, every_true_deviation)
             true_deviations = every_true_deviation[pairing.target_index]
     report("deviations", 1.0, f"{len(deviations)} fiducials paired")
+    separation = combined.separation
     return PlateRun(targets=targets, paired_targets_xy=paired_xy, deviations=deviations,
                     measured_gls=measured, corrections=corrections, true_deviations=true_deviations,
                     plate_pose_gls=pose_gls,
-                    fiducials_found=len(found.centres), alignment=pairing.transform,
-                    metrics=deviation_metrics(paired_xy, deviations), true_metrics=true_metrics)
+                    fiducials_found=min(combined.found_per_sweep), alignment=pairing.transform,
+                    metrics=deviation_metrics(paired_xy, deviations), true_metrics=true_metrics,
+                    sigma_mm=combined.sigma_mm[pairing.measured_index], sweep_plan=plan_label(plan),
+                    cell_time_s=settings.cell_time.plate_s(settings.plain_sweeps + len(plan), marking_s),
+                    scanner_error_rms_mm=separation.scanner_rms_mm if separation else math.nan,
+                    motion_error_rms_mm=separation.motion_rms_mm if separation else math.nan)
 
 
 def validation_grid(settings: ProcedureSettings) -> np.ndarray:

@@ -20,6 +20,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
+from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import PointCloud2
 
 from gls_calibration import kinematics
@@ -259,6 +260,7 @@ class FakeScanner:
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self.points = node.create_publisher(PointCloud2, "scan/points", qos)
         self.done = node.create_publisher(SweepDone, "scan/sweep_done", qos)
+        self.poses = node.create_publisher(PoseStamped, "scan/pose", qos)
         node.create_service(StartSweep, "scanner/start_sweep", self.on_start)
         self.rng = np.random.default_rng(4)
         self.profiles = [self.profile(index) for index in range(PROFILES)]
@@ -278,14 +280,24 @@ class FakeScanner:
             threading.Timer(0.05, self.stream).start()
         return response
 
+    def reported_y_mm(self, index: int) -> float:
+        """Where the robot reports the sensor at a profile: a 2 % fast robot with a ripple."""
+        return 1.02 * SPEED_MM_S * PROFILE_PERIOD_S * index + 0.05 * math.sin(index)
+
     def stream(self) -> None:
-        count = PROFILES if self.script == "complete" else 5
+        count = PROFILES if self.script in ("complete", "posed") else 5
         for index in range(count):
             stamp = Time(nanoseconds=int(round((FIRST_STAMP_S + index * PROFILE_PERIOD_S) * 1e9)))
+            if self.script == "posed":
+                pose = PoseStamped()
+                pose.header.stamp, pose.header.frame_id = stamp.to_msg(), "scanner_base"
+                pose.pose.position.y = self.reported_y_mm(index) * 1e-3         # metres on the wire
+                pose.pose.orientation.w = 1.0
+                self.poses.publish(pose)
             self.points.publish(array_to_pointcloud2(self.profiles[index], "scanner", stamp))
         self.done.publish(SweepDone(sweep_id=7, profiles=count, step_mm=SPEED_MM_S * PROFILE_PERIOD_S,
                                     speed_mm_s=SPEED_MM_S, direction=[0.0, 1.0, 0.0],
-                                    complete=self.script == "complete"))
+                                    complete=self.script in ("complete", "posed")))
 
 
 def acquire(ros_context, add_node, script: str, timeout_s: float) -> tuple[AcquireSweep.Response, float, FakeScanner]:
@@ -318,7 +330,8 @@ def test_scan_acquisition_fails_on_a_sweep_cut_short(ros_context, add_node):
 def test_scan_acquisition_assembles_an_organized_cloud(ros_context, add_node):
     response, _, scanner = acquire(ros_context, add_node, "complete", timeout_s=TIMEOUT_S)
     assert response.success, response.message
-    assert response.message == f"{PROFILES} profiles of {POINTS} points"
+    assert response.message == f"{PROFILES} profiles of {POINTS} points, placed by time at the nominal speed"
+    assert not response.placed_by_pose
     cloud = pointcloud2_to_array(response.cloud)
     assert cloud.shape == (PROFILES, POINTS)
     assert response.cloud.header.frame_id == "scanner"
@@ -328,6 +341,15 @@ def test_scan_acquisition_assembles_an_organized_cloud(ros_context, add_node):
         np.testing.assert_array_equal(cloud["x"][row], profile["x"])
         np.testing.assert_array_equal(cloud["z"][row], profile["z"])
         np.testing.assert_array_equal(cloud["intensity"][row], profile["intensity"])
+
+
+def test_scan_acquisition_places_profiles_by_the_reported_pose(ros_context, add_node):
+    response, _, scanner = acquire(ros_context, add_node, "posed", timeout_s=TIMEOUT_S)
+    assert response.success, response.message
+    assert response.placed_by_pose and response.message.endswith("placed by the reported pose")
+    cloud = pointcloud2_to_array(response.cloud)
+    reported = np.array([scanner.reported_y_mm(index) for index in range(PROFILES)])
+    np.testing.assert_allclose(cloud["y"], np.repeat(reported[:, None], POINTS, axis=1), rtol=0, atol=1e-4)
 
 
 # --- calibration manager -------------------------------------------------------------------------
@@ -419,7 +441,9 @@ def test_calibration_fails_when_too_few_fiducials_are_found(start_cell, tmp_path
     cell = start_cell(grid=3, sim_config=narrow_scanner_config(tmp_path / "narrow_sim.yaml"))
     response = cell.call(Calibrate, "calibrate", Calibrate.Request(), timeout_s=240.0)
     assert not response.success
-    assert "calibration failed: found 2 of 9 fiducials; at least 9 (90%) are needed" == response.message
+    # config/gls.yaml sweeps the marked plate four times; the first sweep already finds too few
+    assert ("calibration failed: found 2 of 9 fiducials; at least 9 (90%) are needed "
+            "(sweep 0+ of 0+,0-,90+,90-)") == response.message
     assert store_state(cell.calibration_dir) == (None, [])
     nominal = cell.call(CorrectSetpoints, "correct_setpoints", CorrectSetpoints.Request(x=[0.0], y=[0.0]), TIMEOUT_S)
     assert nominal.success and "nominal" in nominal.message
@@ -427,8 +451,9 @@ def test_calibration_fails_when_too_few_fiducials_are_found(start_cell, tmp_path
 
 @pytest.mark.slow
 def test_the_full_loop_on_a_5x5_grid_corrects_the_head(start_cell):
-    # the ideal measurement chain: this checks the loop, not the measurement (paper_like leaves ~0.1 mm)
-    cell = start_cell(grid=5, parameters={"measurement_preset": "ideal"})
+    # the ideal measurement chain: this checks the loop, not the measurement (paper_like leaves ~0.1 mm);
+    # the marked plate swept as mounted and turned (the config's four passes cost twice the time)
+    cell = start_cell(grid=5, parameters={"measurement_preset": "ideal", "sweep.plan": "0+,90+"})
     response = cell.call(Calibrate, "calibrate", Calibrate.Request(validate=True), timeout_s=600.0)
     assert response.success, response.message
     assert (response.fiducials_expected, response.fiducials_found) == (25, 25)

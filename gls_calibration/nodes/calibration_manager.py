@@ -25,6 +25,7 @@ from gls_calibration.outcome import RunSummary, summarise
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.report import json_safe
 from gls_calibration.run_report import write_outcome_report
+from gls_calibration.sweep_plan import CellTimeModel, parse_plan, plan_label
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints, EstimatePlatePose,
                                       ExplainDeviations, GetMarkedPaths, LoadCalibration,
@@ -60,13 +61,19 @@ class ServiceCell:
             raise procedure.CalibrationError(f"{client.srv_name}: {response.message}")
         return response
 
-    async def acquire_sweep(self, step_mm: float):
+    async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0):
         deadlines = self.deadlines
         sweep_s = deadlines.sweep_s()
         request = AcquireSweep.Request(timeout_s=sweep_s, length_mm=deadlines.sweep_length_mm,
-                                       speed_mm_s=deadlines.sweep_speed_mm_s, step_mm=step_mm)
+                                       speed_mm_s=deadlines.sweep_speed_mm_s, step_mm=step_mm,
+                                       direction=int(direction), orientation_deg=float(orientation_deg))
         # scan_acquisition gives up at sweep_s and answers; the margin is for that answer.
         response = await self._checked(self.acquire, request, sweep_s + deadlines.margin_s, idempotent=False)
+        if response.placed_by_pose != self.node.settings.profiles_placed_by_pose:
+            self.node.get_logger().warning(
+                f"profiles were placed {'by pose' if response.placed_by_pose else 'by time'} but "
+                f"sweep.placed_by_pose is {self.node.settings.profiles_placed_by_pose}: the error separation "
+                "trusts the wrong scale; set the parameter to match the scanner driver")
         return response.cloud  # forwarded as it came: the processing nodes convert it themselves
 
     async def estimate_plate_pose(self, cloud):
@@ -134,6 +141,7 @@ class CalibrationManager(GlsNode):
         super().__init__("calibration_manager", **kwargs)
         self.geometry = declare_head_geometry(self)
         scanner_to_gls = declare_scanner_to_gls(self)
+        self.deadlines = declare_deadlines(self)
         defaults = procedure.ProcedureSettings()
         self.settings = procedure.ProcedureSettings(
             grid_per_side=self.declare("grid.per_side", defaults.grid_per_side,
@@ -180,6 +188,21 @@ class CalibrationManager(GlsNode):
             max_iterations=self.declare("max_iterations", defaults.max_iterations,
                                         "most iterations a request may ask for (each marks a fresh plate)",
                                         minimum=1, maximum=10),
+            sweep_plan=parse_plan(self.declare(
+                "sweep.plan", plan_label(defaults.sweep_plan),
+                "passes over the marked plate, orientation (0|90 deg) and direction (+|-) each, e.g. "
+                "0+,0-,90+,90-: errors fixed to the scanner frame are separated from the marks")),
+            profiles_placed_by_pose=self.declare(
+                "sweep.placed_by_pose", defaults.profiles_placed_by_pose,
+                "the scanner driver publishes the robot's reported pose (scan/pose): the travel is trusted "
+                "for the scale; false: profiles placed by time, the sensor's line scale is trusted"),
+            # sweep length and speed are the ones sent to the scanner (declared with the deadlines)
+            cell_time=CellTimeModel(
+                sweep_length_mm=self.deadlines.sweep_length_mm,
+                sweep_speed_mm_s=self.deadlines.sweep_speed_mm_s,
+                robot_move_s=self.declare("sweep.robot_move_s", defaults.cell_time.robot_move_s,
+                                          "robot move between two sweeps, for the cell-time estimate (s)",
+                                          minimum=0.0, maximum=3600.0)),
         )
         self.service_timeout_s = self.declare(
             "service_timeout_s", 60.0, "time limit of one call to a processing node (plate pose, fiducials, "

@@ -29,7 +29,11 @@ class RbfTrainerNode(GlsNode):
                                                       "thin-plate-spline smoothings tried ([] disables the TPS)",
                                                       positive=False, allow_empty=True)),
             folds=self.declare("folds", defaults.folds, "folds of the cross-validation", minimum=2, maximum=50),
-            seed=self.declare("seed", defaults.seed, "seed of the fold assignment", minimum=0))
+            seed=self.declare("seed", defaults.seed, "seed of the fold assignment", minimum=0),
+            block_mm=self.declare("cv_block_mm", 0.0,
+                                  "side of the square blocks held out together by the cross-validation (mm): "
+                                  "honest when measurement errors are correlated between neighbours; 0: points "
+                                  "at random", minimum=0.0) or None)
         self.physics_first = self.declare(
             "physics_first", False,
             "fit the named physical effects first and the RBF on what they leave (needs deviations of a "

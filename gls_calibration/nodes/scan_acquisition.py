@@ -1,17 +1,20 @@
 """scan_acquisition: serves ``scan/acquire``; starts a sweep, collects ``scan/points`` profiles and
-returns them assembled as one organized cloud, placed by their stamps and the sweep's known motion."""
+returns them assembled as one organized cloud in the scanner base frame, each profile placed by the
+robot's reported sensor pose (``scan/pose``, PoseStamped, metres, interpolated at the profile's
+stamp) when that stream covers the sweep, else by its stamp and the sweep's nominal motion."""
 from __future__ import annotations
 
 import math
 import time
 from typing import Optional
 
+from geometry_msgs.msg import PoseStamped
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
-from gls_calibration.sweep import SweepCollector, SweepMotion
+from gls_calibration.sweep import PoseTrack, SweepCollector, SweepMotion, nominal_start_pose
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, StartSweep
 
@@ -40,12 +43,18 @@ class ScanAcquisitionNode(GlsNode):
                                        minimum=1, maximum=100000)
         self.default_timeout_s = self.declare("timeout_s", 120.0, "default time limit of one sweep (s)",
                                               minimum=0.1, maximum=MAX_TIMEOUT_S)
+        self.use_poses = self.declare("use_pose_stream", True,
+                                      "place profiles by the reported sensor pose on scan/pose when it covers "
+                                      "the sweep (else by time at the nominal speed)")
         self.collector: Optional[SweepCollector] = None
+        self.poses: Optional[PoseTrack] = None
         self.ends: dict[int, tuple] = {}       # (end of sweep, arrival) received while acquiring, by id
         self.sweep_id: Optional[int] = None    # the sweep this node started; other ends of sweep are ignored
         self.malformed = 0
         self.start_client = self.client(StartSweep, "scanner/start_sweep")
         self.create_subscription(PointCloud2, "scan/points", self.on_profile, profile_qos(self.max_profiles),
+                                 callback_group=self.reentrant_group)
+        self.create_subscription(PoseStamped, "scan/pose", self.on_pose, profile_qos(self.max_profiles),
                                  callback_group=self.reentrant_group)
         self.create_subscription(SweepDone, "scan/sweep_done", self.on_sweep_done, profile_qos(10),
                                  callback_group=self.reentrant_group)
@@ -68,6 +77,17 @@ class ScanAcquisitionNode(GlsNode):
             self.malformed += 1
             self.get_logger().warning(f"malformed profile dropped ({self.malformed} in this sweep): {error}",
                                       throttle_duration_sec=1.0)
+
+    def on_pose(self, message: PoseStamped) -> None:
+        """Keep a reported sensor pose of the running sweep (metres -> mm)."""
+        poses = self.poses
+        if poses is None:
+            return
+        position, orientation = message.pose.position, message.pose.orientation
+        stamp = message.header.stamp
+        poses.add(stamp.sec + stamp.nanosec * 1e-9,
+                  (1000.0 * position.x, 1000.0 * position.y, 1000.0 * position.z),
+                  (orientation.x, orientation.y, orientation.z, orientation.w))
 
     def on_sweep_done(self, message: SweepDone) -> None:
         """Remember an end of sweep while acquiring; only the one of the sweep this node started counts.
@@ -108,11 +128,18 @@ class ScanAcquisitionNode(GlsNode):
             response.success, response.message = False, f"request refused: {problem}"
             return response
         timeout_s = request.timeout_s or self.default_timeout_s
+        direction = request.direction or 1
+        if direction not in (1, -1):
+            response.success = False
+            response.message = f"direction must be +1, -1 or 0 (+1), got {request.direction}"
+            return response
         self.collector, self.sweep_id, self.malformed = SweepCollector(self.max_profiles, self.max_points), None, 0
+        self.poses = PoseTrack(self.max_profiles) if self.use_poses else None
         self.ends.clear()
         try:
             started = await self.call(self.start_client, StartSweep.Request(
-                length_mm=request.length_mm, speed_mm_s=request.speed_mm_s, step_mm=request.step_mm), timeout_s)
+                length_mm=request.length_mm, speed_mm_s=request.speed_mm_s, step_mm=request.step_mm,
+                direction=direction, orientation_deg=request.orientation_deg), timeout_s)
             if not started.success:
                 raise ServiceCallError(f"the scanner refused the sweep: {started.message}")
             self.sweep_id = started.sweep_id
@@ -131,16 +158,21 @@ class ScanAcquisitionNode(GlsNode):
                 raise ServiceCallError(
                     f"{len(collector)} of {done.profiles} profiles kept: {self.malformed} malformed, "
                     f"{collector.dropped} over the bounds ({self.max_profiles} profiles of {self.max_points} points)")
-            cloud = collector.assemble(SweepMotion(tuple(done.direction), done.speed_mm_s))
+            length_mm = (done.profiles - 1) * done.step_mm
+            cloud, by_pose = collector.assemble(SweepMotion(tuple(done.direction), done.speed_mm_s),
+                                                nominal_start_pose(length_mm, direction, request.orientation_deg),
+                                                self.poses)
         except (ServiceCallError, ValueError) as error:
             response.success = False
             response.message = str(error)
             return response
         finally:
-            self.collector, self.sweep_id = None, None
+            self.collector, self.poses, self.sweep_id = None, None, None
         response.cloud = conversions.array_to_pointcloud2(cloud, frame_id="scanner")
+        response.placed_by_pose = by_pose
         response.success = True
-        response.message = f"{cloud.shape[0]} profiles of {cloud.shape[1]} points"
+        response.message = (f"{cloud.shape[0]} profiles of {cloud.shape[1]} points, placed "
+                            + ("by the reported pose" if by_pose else "by time at the nominal speed"))
         if self.malformed:
             response.message += f"; {self.malformed} malformed profile(s) dropped"
         return response
