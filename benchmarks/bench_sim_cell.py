@@ -49,7 +49,7 @@ from gls_calibration.targets import rings_polylines
 FIGURES = ("pre_rms_mm", "pre_max_mm", "true_post_rms_mm", "true_post_max_mm", "true_post_rms_150_mm")
 PRESET_FIGURES = ("post_rms_mm", "post_max_mm", "true_post_rms_mm", "true_post_max_mm",
                   "published_post_rms_mm", "published_post_max_mm", "published_true_post_rms_mm",
-                  "published_true_post_max_mm")
+                  "published_true_post_max_mm", "fiducial_sigma_median_mm", "scanner_share", "cell_time_s")
 
 
 def run(seed: int, iterations: int, grid: int, out: Path, extra: list[str]) -> dict:

@@ -182,10 +182,12 @@ class Correction:
         if single is not None and self.models:
             return self._correct_one(*single)
         x, y, z = as_coordinate_arrays(x, y, z)
+        # The height itself must lie in the focus range too, not only the focus shift it needs.
+        height_ok = np.abs(z) <= self.geometry.focus_range_mm
         if not self.models:
             joints = inverse(self.geometry, x, y, z)
             return CorrectedSetpoints(x, y, joints.alpha_x, joints.alpha_y, joints.focus_shift,
-                                      np.zeros(x.shape, dtype=bool), joints.within_limits)
+                                      np.zeros(x.shape, dtype=bool), joints.within_limits & height_ok)
         plane_z = self.calibrated_region.plane_z_mm
         on_plane_x, on_plane_y = transfer_along_ray(self.geometry, x, y, z, plane_z)
         delta_x, delta_y, inside = self.deviation(on_plane_x, on_plane_y)
@@ -193,7 +195,7 @@ class Correction:
                                                       plane_z, z)
         joints = inverse(self.geometry, commanded_x, commanded_y, z)
         return CorrectedSetpoints(commanded_x, commanded_y, joints.alpha_x, joints.alpha_y, joints.focus_shift,
-                                  inside, joints.within_limits)
+                                  inside, joints.within_limits & height_ok)
 
     def _correct_one(self, x: float, y: float, z: float) -> CorrectedSetpoints:
         """:meth:`correct` for one target in scalar arithmetic (same formulas; numpy per call costs ~1 us)."""
@@ -228,7 +230,8 @@ class Correction:
         alpha_y = 0.5 * math.atan2(commanded_y, e + slant)
         focus_shift = math.hypot(e + slant, commanded_y) - (e + height)
         limit = geometry.mirror_limit_rad
-        within = abs(alpha_x) <= limit and abs(alpha_y) <= limit and abs(focus_shift) <= geometry.focus_range_mm
+        within = (abs(alpha_x) <= limit and abs(alpha_y) <= limit and abs(focus_shift) <= geometry.focus_range_mm
+                  and abs(z) <= geometry.focus_range_mm)
         tolerance = _INSIDE_TOLERANCE_MM
         inside = (region.x_min - tolerance <= on_plane_x <= region.x_max + tolerance
                   and region.y_min - tolerance <= on_plane_y <= region.y_max + tolerance)

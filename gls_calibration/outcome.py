@@ -106,6 +106,8 @@ class CalibrationOutcome:
     """What one successful calibrate request produced (a failure raises ``CalibrationError`` instead).
 
     ``candidate`` is None when nothing was trained (the first plate was within the tolerance).
+    ``rejection`` says why a validated candidate must not replace the calibration in use (empty:
+    accepted); the run then went through, but nothing is activated.
     """
 
     message: str
@@ -114,6 +116,7 @@ class CalibrationOutcome:
     models: tuple["TrainedModel", ...]
     candidate: Optional[Candidate]
     duration_s: float
+    rejection: str = ""
 
 
 @dataclass(frozen=True)
@@ -144,6 +147,13 @@ class RunSummary:
     duration_s: float
     calibration_file: str
     iteration_rms_mm: tuple[float, ...]
+    sweep_plan: str = "0+"
+    cell_time_s: float = math.nan               # every plate: sweeps at the configured speed, moves, marking
+    fiducial_sigma_median_mm: float = math.nan  # first plate: standard uncertainty per axis of a centre
+    fiducial_sigma_max_mm: float = math.nan
+    scanner_error_rms_mm: float = math.nan      # first plate: removed error fixed to the scanner frame
+    motion_error_rms_mm: float = math.nan       # first plate: removed per-sweep motion error
+    scanner_share: float = math.nan             # removed (scanner + motion) RMS / measured deviation RMS
 
     def to_dict(self) -> dict:
         """The summary as plain values, in field order (``summary.json``)."""
@@ -177,4 +187,19 @@ def summarise(outcome: CalibrationOutcome) -> RunSummary:
         cv_rms_mm=last_model.cv_rms_mm if last_model else math.nan,
         duration_s=outcome.duration_s,
         calibration_file=outcome.candidate.path if outcome.candidate else "",
-        iteration_rms_mm=tuple(_full(run.metrics, "rms_abs_mm") for run in outcome.runs))
+        iteration_rms_mm=tuple(_full(run.metrics, "rms_abs_mm") for run in outcome.runs),
+        sweep_plan=first.sweep_plan,
+        cell_time_s=float(sum(run.cell_time_s for run in outcome.runs + ((validation,) if validation else ()))),
+        fiducial_sigma_median_mm=_nan_stat(np.nanmedian, first.sigma_mm),
+        fiducial_sigma_max_mm=_nan_stat(np.nanmax, first.sigma_mm),
+        scanner_error_rms_mm=first.scanner_error_rms_mm, motion_error_rms_mm=first.motion_error_rms_mm,
+        scanner_share=math.hypot(first.scanner_error_rms_mm, first.motion_error_rms_mm)
+        / _full(first.metrics, "rms_abs_mm"))
+
+
+def _nan_stat(statistic, values: Optional[np.ndarray]) -> float:
+    """``statistic`` of the finite ``values``; NaN when there is none."""
+    if values is None:
+        return math.nan
+    values = np.asarray(values, dtype=float)
+    return float(statistic(values[np.isfinite(values)])) if np.any(np.isfinite(values)) else math.nan

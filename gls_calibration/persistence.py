@@ -28,6 +28,7 @@ import math
 import os
 from pathlib import Path
 import re
+import stat
 import tempfile
 from typing import Any
 
@@ -80,6 +81,7 @@ def atomic_write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """:func:`atomic_write_text` for bytes (e.g. an NPZ archive built in memory)."""
     path = Path(path)
+    require_regular_output(path)
     directory = path.parent
     mode = path.stat().st_mode & 0o777 if path.exists() else 0o644
     handle = tempfile.NamedTemporaryFile(
@@ -96,6 +98,17 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
             os.unlink(handle.name)
         raise
     _fsync_directory(directory)
+
+
+def require_regular_output(path: str | os.PathLike) -> None:
+    """ValueError unless ``path`` may be written as a regular file: absent, or a regular file
+    (a device, FIFO, directory or a symlink to one is refused: renaming onto it would replace it)."""
+    path = Path(path)
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        kind = "a symlink" if path.is_symlink() else "not a regular file"
+        raise ValueError(f"output {path} is {kind}: refused (outputs are written as regular files only)")
+    if not path.parent.is_dir():
+        raise ValueError(f"output {path}: folder {path.parent} does not exist")
 
 
 def _fsync_directory(directory: Path) -> None:
@@ -316,18 +329,80 @@ def head_geometry(record: Mapping) -> HeadGeometry:
 
 def dump_record(record: Mapping) -> str:
     """YAML text of a record: keys in insertion order, short lists inline, floats at full precision."""
-    return yaml.dump(to_plain(record), Dumper=_SafeDumper, sort_keys=False, default_flow_style=None,
+    return yaml.dump(to_plain(record), Dumper=_NoAliasDumper, sort_keys=False, default_flow_style=None,
                      allow_unicode=True)
 
 
+class _NoAliasDumper(_SafeDumper):
+    """Writes a repeated object in full: the reader refuses aliases (see _check_structure)."""
+
+    def ignore_aliases(self, data):  # noqa: D102 (PyYAML's hook)
+        return True
+
+
+MAX_FILE_BYTES = 4 * 1024 * 1024   # a 19x19 calibration is ~0.1 MB; bounds memory and parsing time
+MAX_YAML_DEPTH = 32                # a calibration file nests 5 levels deep
+_OPENING_EVENTS = (yaml.SequenceStartEvent, yaml.MappingStartEvent)
+_CLOSING_EVENTS = (yaml.SequenceEndEvent, yaml.MappingEndEvent)
+
+
+def _check_structure(text: str) -> None:
+    """YAMLError for aliases (an alias bomb expands exponentially when walked) or nesting deeper
+    than MAX_YAML_DEPTH (construction recurses once per level). The parser is lazy: a hostile
+    document is refused after a few events, however long it is."""
+    depth = 0
+    for event in yaml.parse(text, Loader=_SafeLoader):
+        if isinstance(event, yaml.AliasEvent):
+            raise yaml.composer.ComposerError(None, None, "aliases are not allowed", event.start_mark)
+        if isinstance(event, _OPENING_EVENTS):
+            depth += 1
+            if depth > MAX_YAML_DEPTH:
+                raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_YAML_DEPTH} levels",
+                                                  event.start_mark)
+        elif isinstance(event, _CLOSING_EVENTS):
+            depth -= 1
+
+
+def read_bounded_text(path: str | os.PathLike, limit_bytes: int = MAX_FILE_BYTES) -> str:
+    """The text of the regular file ``path``, read with a bound; CalibrationFileError otherwise.
+
+    Devices, FIFOs and directories are refused without blocking (opened non-blocking, checked with
+    fstat on the open descriptor), and so is a file over ``limit_bytes``.
+    """
+    path = Path(path)
+    try:
+        descriptor = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except OSError as error:
+        raise CalibrationFileError(path, f"cannot read file: {error.strerror or error}") from None
+    try:
+        status = os.fstat(descriptor)
+        if not stat.S_ISREG(status.st_mode):
+            raise CalibrationFileError(path, "not a regular file")
+        if status.st_size > limit_bytes:
+            raise CalibrationFileError(path, f"file of {status.st_size} bytes is over the limit of {limit_bytes}")
+        with os.fdopen(descriptor, "rb", closefd=False) as handle:
+            data = handle.read(limit_bytes + 1)
+    except OSError as error:
+        raise CalibrationFileError(path, f"cannot read file: {error.strerror or error}") from None
+    finally:
+        os.close(descriptor)
+    if len(data) > limit_bytes:
+        raise CalibrationFileError(path, f"file grew over the limit of {limit_bytes} bytes while read")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise CalibrationFileError(path, f"cannot read file: {error}") from None
+
+
 def _read_yaml(path: Path) -> Any:
-    """Parse a YAML file, turning read and syntax errors into CalibrationFileError."""
+    """Parse a YAML file, turning read and syntax errors into CalibrationFileError.
+
+    The one place where calibration files and pointers are read: bounded size, regular files only,
+    no aliases, bounded nesting (see read_bounded_text and _check_structure).
+    """
+    text = read_bounded_text(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        reason = error.strerror if isinstance(error, OSError) and error.strerror else str(error)
-        raise CalibrationFileError(path, f"cannot read file: {reason}") from None
-    try:
+        _check_structure(text)
         return yaml.load(text, Loader=_SafeLoader)
     except yaml.YAMLError as error:
         where = getattr(error, "problem_mark", None)
@@ -422,8 +497,20 @@ class CalibrationStore:
         return sorted(entries, key=lambda path: (int(_HISTORY_NAME.match(path.name).group(2)), path.name))
 
     def load(self, path: str | os.PathLike) -> dict:
-        """Read and validate one calibration file (relative paths are taken inside the history)."""
+        """Read and validate one calibration file of this store (relative paths are taken inside the
+        history); a path that leads outside the store's directory, even through a symlink, is refused."""
+        return load_record(self.confined(path))
+
+    def confined(self, path: str | os.PathLike) -> Path:
+        """``path`` (relative: inside the history) once resolved inside the store's directory;
+        CalibrationFileError when it leads outside (``..``, absolute paths elsewhere, symlinks)."""
         path = Path(path)
-        if not path.is_absolute() and not path.exists():
+        if not path.is_absolute():
             path = self.history_directory / path
-        return load_record(path)
+        try:
+            resolved = path.resolve(strict=True)
+        except (OSError, RuntimeError) as error:  # missing, or a symlink loop
+            raise CalibrationFileError(path, f"cannot read file: {getattr(error, 'strerror', None) or error}") from None
+        if not resolved.is_relative_to(self.directory.resolve()):
+            raise CalibrationFileError(path, f"outside the calibration directory {self.directory}: refused")
+        return resolved

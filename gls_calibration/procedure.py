@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
+from pathlib import Path
 import time
 from typing import Any, Callable, Optional, Protocol
 
@@ -19,9 +20,12 @@ from gls_calibration import targets as grid
 from gls_calibration.correction import CorrectedSetpoints
 from gls_calibration.fiducials import FiducialMeasurement
 from gls_calibration.outcome import CalibrationOutcome, Candidate, DeviationMetrics, deviation_metrics
+from gls_calibration.plate_marks import existing_marks
 from gls_calibration.plate_pose import PlatePose, mean_plate_pose
 from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
+from gls_calibration.sweep_plan import CellTimeModel, SweepPass, combine_sweeps, plan_label
 from gls_calibration.training import TrainedModel
+from gls_calibration.validation import as_positive_number
 
 
 class CalibrationError(RuntimeError):
@@ -40,8 +44,11 @@ class Cell(Protocol):
     keep it in its own form (the manager keeps the PointCloud2 message and forwards it untouched).
     """
 
-    async def acquire_sweep(self, step_mm: float) -> Any:
-        """Sweep the scanner over the plate with ``step_mm`` between profiles; the cloud (scanner frame)."""
+    async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Any:
+        """Sweep the scanner over the plate with ``step_mm`` between profiles, along the sensor's +y
+        (``direction`` 1) or -y (-1), the sensor turned by ``orientation_deg`` (0 or 90) about its
+        viewing axis; the cloud in the scanner (base) frame, whatever the direction and orientation,
+        placed by the robot's reported pose where the cell has one (see ``sweep.py``)."""
 
     async def estimate_plate_pose(self, cloud: Any) -> PlatePose:
         """The plate plane fitted to ``cloud`` (scanner frame, normal towards the head)."""
@@ -78,6 +85,10 @@ class Cell(Protocol):
         """Simulation only: the polylines really marked on the current plate ((M, 3) each, gls frame,
         mm), in marking order; None on a real cell."""
 
+    def intensities(self, cloud: Any) -> np.ndarray:
+        """The intensity of every point of a cloud from ``acquire_sweep`` (any shape; NaN: no return),
+        for the check that the plain plate carries no old marks. Not a coroutine: the cloud is here."""
+
 
 @dataclass(frozen=True)
 class ProcedureSettings:
@@ -93,7 +104,39 @@ class ProcedureSettings:
     tolerance_rms_mm: float = 0.05
     min_found_fraction: float = 0.9
     default_iterations: int = 1
+    max_iterations: int = 3             # each iteration marks and measures a fresh plate
     validation_offset_half_pitch: bool = True
+    mark_check_sigmas: float = 6.0      # plain-plate points this far outside the texture look like marks...
+    max_outlying_points: int = 10       # ...and more of them than this mean the plate is not clean
+    measurement_uncertainty_mm: float = 0.005   # of one fiducial centre (3-4 um RMS measured against the truth)
+    max_cv_factor: float = 20.0         # a CV RMS above this many uncertainties...
+    max_cv_fraction: float = 0.5        # ...and above this fraction of the deviations' RMS: the model explains little
+
+    # the marked plate is swept once per pass; several passes (reversed, sensor turned) let the
+    # separation remove what is fixed to the scanner frame or to one sweep's motion
+    sweep_plan: tuple[SweepPass, ...] = (SweepPass(),)
+    profiles_placed_by_pose: bool = True    # the cell places profiles by the robot's reported pose
+    cell_time: CellTimeModel = CellTimeModel()
+
+    def __post_init__(self) -> None:
+        radii = np.asarray(self.ring_radii_mm, dtype=float)
+        if radii.ndim != 1 or radii.size == 0 or not np.all(np.isfinite(radii)) or np.any(radii <= 0.0) \
+                or np.any(np.diff(radii) <= 0.0):
+            raise ValueError(f"ring_radii_mm must be one or more positive finite radii in increasing order, "
+                             f"got {list(self.ring_radii_mm)}")
+        for name in ("mark_check_sigmas", "measurement_uncertainty_mm", "max_cv_factor", "max_cv_fraction"):
+            as_positive_number(getattr(self, name), name)
+        if self.max_outlying_points < 0:
+            raise ValueError(f"max_outlying_points must not be negative, got {self.max_outlying_points}")
+        if not 1 <= self.default_iterations <= self.max_iterations:
+            raise ValueError(f"default_iterations must be between 1 and max_iterations ({self.max_iterations}), "
+                             f"got {self.default_iterations}")
+
+    def iterations_problem(self, iterations: int) -> str:
+        """Why a requested iteration count (0: the default) is refused; empty string when it is fine."""
+        if iterations == 0 or 1 <= iterations <= self.max_iterations:
+            return ""
+        return f"iterations must be 0 (the default, {self.default_iterations}) or 1 to {self.max_iterations}, got {iterations}"
 
 
 @dataclass(frozen=True)
@@ -111,6 +154,11 @@ class PlateRun:
     alignment: RigidTransform
     metrics: DeviationMetrics              # of ``deviations``
     true_metrics: Optional[DeviationMetrics]  # over every target, from the ground truth
+    sigma_mm: Optional[np.ndarray] = None  # (M,) standard uncertainty per axis of each measured centre
+    sweep_plan: str = "0+"                 # the passes over the marked plate (``sweep_plan.parse_plan``)
+    cell_time_s: float = math.nan          # sweeps at the configured speed, robot moves, marking
+    scanner_error_rms_mm: float = math.nan  # RMS of the removed scanner-frame (lateral) error
+    motion_error_rms_mm: float = math.nan   # RMS of the removed per-sweep motion error
 
 
 def plane_height(pose: PlatePose, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -146,9 +194,55 @@ def true_fiducial_centres(ring_marks: list[np.ndarray], rings_per_fiducial: int)
 Progress = Callable[[str, float, str], None]
 
 
+def check_clean_plate(intensity: np.ndarray, settings: ProcedureSettings) -> None:
+    """CalibrationError when the plain-plate sweep shows marks beyond the plate's texture."""
+    evidence = existing_marks(intensity, settings.mark_check_sigmas)
+    if evidence.marked(settings.max_outlying_points):
+        raise CalibrationError(
+            f"the plate already carries marks: {evidence.outlying_points} of {evidence.finite_points} points of "
+            f"the plain-plate sweep lie beyond {evidence.sigmas:g} sigma of its texture (at most "
+            f"{settings.max_outlying_points} allowed); exchange the plate, or give a plate region that avoids "
+            "the old marks (force marks over them anyway)")
+
+
+def check_model_explains(model: "TrainedModel", deviation_rms_mm: float, settings: ProcedureSettings) -> None:
+    """CalibrationError when the model cannot explain the measurement: its cross-validated error is
+    far above the measurement's uncertainty and a large part of the deviations it was trained on.
+
+    Both, because a sparse grid (3x3) leaves a CV error of ~0.6 mm on a 1.5 mm field and still
+    helps, while new marks measured among old ones (the issue's case) leave 0.25 mm of 0.34 mm.
+    """
+    limit = max(settings.max_cv_factor * settings.measurement_uncertainty_mm,
+                settings.max_cv_fraction * deviation_rms_mm)
+    if not model.cv_rms_mm <= limit:
+        raise CalibrationError(
+            f"the model cannot explain the measurement: CV RMS {model.cv_rms_mm:.4f} mm is over "
+            f"{settings.max_cv_factor:g} x the per-fiducial uncertainty ({settings.measurement_uncertainty_mm:g} mm) "
+            f"and over {settings.max_cv_fraction:g} x the deviations' RMS ({deviation_rms_mm:.4f} mm); old marks "
+            "or ambiguous pairings? Nothing activated")
+
+
+def acceptance_problem(before_rms_mm: float, after_rms_mm: float, settings: ProcedureSettings) -> str:
+    """Why a validated candidate must not replace the calibration in use (empty string: accept it).
+
+    ``before_rms_mm``: the first plate of the run, marked through the calibration in use; ``after``:
+    the validation plate, marked through the candidate; both measured the same way.
+    """
+    margin = settings.measurement_uncertainty_mm
+    if after_rms_mm + margin < before_rms_mm:
+        return ""
+    return (f"candidate rejected: validation {after_rms_mm:.4f} mm RMS is not better than the calibration in use "
+            f"({before_rms_mm:.4f} mm RMS on this run's first plate) by more than the measurement uncertainty "
+            f"{margin:g} mm")
+
+
 async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray, progress: Progress,
-                    span: tuple[float, float], want_truth: bool) -> PlateRun:
-    """Scan the plain plate, mark ``grid_xy`` through the active correction, scan, measure, pair."""
+                    span: tuple[float, float], want_truth: bool, allow_marked: bool = False) -> PlateRun:
+    """Scan the plain plate, mark ``grid_xy`` through the active correction, scan, measure, pair.
+
+    The plain plate must be clean (see ``plate_marks``) unless ``allow_marked``: measuring new
+    marks among old ones pairs the wrong rings.
+    """
     start, width = span
 
     def report(stage: str, part: float, text: str) -> None:
@@ -158,7 +252,10 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
     for repeat in range(settings.plain_sweeps):
         report("sweep_plain", 0.1 * repeat / settings.plain_sweeps,
                f"scanning the plain plate ({repeat + 1} of {settings.plain_sweeps})")
-        poses.append(await cell.estimate_plate_pose(await cell.acquire_sweep(settings.plain_sweep_step_mm)))
+        cloud = await cell.acquire_sweep(settings.plain_sweep_step_mm)
+        if repeat == 0 and not allow_marked:
+            check_clean_plate(cell.intensities(cloud), settings)
+        poses.append(await cell.estimate_plate_pose(cloud))
     pose_scanner = mean_plate_pose(poses)
     pose_gls = pose_in_frame(pose_scanner, settings.scanner_to_gls)
     report("plate_pose", 0.15, f"plate flatness {pose_scanner.flatness_rms_mm:.4f} mm RMS")
@@ -174,18 +271,29 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
         raise CalibrationError(f"{count} ring point(s) lie beyond the mirror limits or the focus range; "
                                "reduce the grid size or check the plate pose")
     report("marking", 0.2, f"marking {len(grid_xy)} fiducials")
-    await cell.mark(setpoints.alpha_x, setpoints.alpha_y, setpoints.focus_shift, starts)
+    marking_s = await cell.mark(setpoints.alpha_x, setpoints.alpha_y, setpoints.focus_shift, starts)
 
-    report("sweep_marked", 0.45, "scanning the marked plate")
-    cloud = await cell.acquire_sweep(settings.marked_sweep_step_mm)
-    report("measurement", 0.7, "measuring fiducials")
-    found = await cell.measure_fiducials(cloud, pose_scanner, len(grid_xy))
+    plan = settings.sweep_plan
     needed = math.ceil(settings.min_found_fraction * len(grid_xy))
-    if len(found.centres) < needed:
-        raise CalibrationError(f"found {len(found.centres)} of {len(grid_xy)} fiducials; at least {needed} "
-                               f"({settings.min_found_fraction:.0%}) are needed")
-
-    centres_gls = settings.scanner_to_gls.apply(found.centres)
+    measurements = []
+    for number, item in enumerate(plan):
+        report("sweep_marked", 0.45 + 0.4 * number / len(plan),
+               f"scanning the marked plate ({number + 1} of {len(plan)}: {item.label})")
+        cloud = await cell.acquire_sweep(settings.marked_sweep_step_mm, item.direction, item.orientation_deg)
+        found = await cell.measure_fiducials(cloud, pose_scanner, len(grid_xy))
+        if len(found.centres) < needed:
+            which = f" (sweep {item.label} of {plan_label(plan)})" if len(plan) > 1 else ""
+            raise CalibrationError(f"found {len(found.centres)} of {len(grid_xy)} fiducials; at least {needed} "
+                                   f"({settings.min_found_fraction:.0%}) are needed{which}")
+        measurements.append(found)
+    report("measurement", 0.85, "combining the sweeps")
+    try:
+        combined = combine_sweeps(measurements, plan, targets, settings.scanner_to_gls,
+                                  settings.profiles_placed_by_pose)
+    except ValueError as error:
+        raise CalibrationError(f"the sweeps of the marked plate cannot be combined: {error}") from None
+    centres = np.column_stack([combined.centres_xy, plane_height(pose_scanner, *combined.centres_xy.T)])
+    centres_gls = settings.scanner_to_gls.apply(centres)
     pairing = pair_with_targets(centres_gls, targets)
     if len(pairing.target_index) < needed:
         raise CalibrationError(f"paired {len(pairing.target_index)} of {len(grid_xy)} fiducials with their "
@@ -212,11 +320,16 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
             true_metrics = deviation_metrics(grid_xy, every_true_deviation)
             true_deviations = every_true_deviation[pairing.target_index]
     report("deviations", 1.0, f"{len(deviations)} fiducials paired")
+    separation = combined.separation
     return PlateRun(targets=targets, paired_targets_xy=paired_xy, deviations=deviations,
                     measured_gls=measured, corrections=corrections, true_deviations=true_deviations,
                     plate_pose_gls=pose_gls,
-                    fiducials_found=len(found.centres), alignment=pairing.transform,
-                    metrics=deviation_metrics(paired_xy, deviations), true_metrics=true_metrics)
+                    fiducials_found=min(combined.found_per_sweep), alignment=pairing.transform,
+                    metrics=deviation_metrics(paired_xy, deviations), true_metrics=true_metrics,
+                    sigma_mm=combined.sigma_mm[pairing.measured_index], sweep_plan=plan_label(plan),
+                    cell_time_s=settings.cell_time.plate_s(settings.plain_sweeps + len(plan), marking_s),
+                    scanner_error_rms_mm=separation.scanner_rms_mm if separation else math.nan,
+                    motion_error_rms_mm=separation.motion_rms_mm if separation else math.nan)
 
 
 def validation_grid(settings: ProcedureSettings) -> np.ndarray:
@@ -234,7 +347,10 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
     """Run the calibrate flow. ``save_candidate`` stores a calibration without activating it.
 
     The cell is switched to the candidate for later iterations and validation; the caller activates
-    it only when this returns, so a failure (``CalibrationError``) keeps the active one.
+    it only when this returns without a ``rejection``, so a failure (``CalibrationError``) keeps the
+    active one. The plain plate must be clean, the model must explain the measurement, and with
+    validation the candidate must beat the calibration in use (``acceptance_problem``); ``force``
+    allows a marked plate and training within the tolerance.
     """
     began = time.monotonic()
     iterations = iterations or settings.default_iterations
@@ -248,7 +364,7 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
         if iteration > 0:
             await cell.exchange_plate()
         run = await run_plate(cell, settings, training_grid, progress, (iteration * span, span * 0.9),
-                              want_truth)
+                              want_truth, allow_marked=force)
         runs.append(run)
         rms = run.metrics.full.rms_abs_mm
         if iteration == 0 and rms <= settings.tolerance_rms_mm and not force:
@@ -257,6 +373,7 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
                                       tuple(runs), None, tuple(models), None, time.monotonic() - began)
         progress("training", (iteration + 0.9) * span, f"training on {len(run.deviations)} deviations")
         models.append(await cell.train(run.measured_gls[:, :2], run.corrections))
+        check_model_explains(models[-1], rms, settings)
         candidate = save_candidate(runs, models)
         await cell.load_calibration(candidate.path)
 
@@ -264,7 +381,14 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
     if validate:
         await cell.exchange_plate()
         validation = await run_plate(cell, settings, validation_grid(settings), progress,
-                                     (iterations * span, span), want_truth)
+                                     (iterations * span, span), want_truth, allow_marked=force)
+        rejected = acceptance_problem(runs[0].metrics.full.rms_abs_mm, validation.metrics.full.rms_abs_mm,
+                                      settings)
+        if rejected:
+            rejected = f"{rejected}; {Path(candidate.path).name} stays in the history, inactive"
+            progress("done", 1.0, rejected)
+            return CalibrationOutcome(rejected, tuple(runs), validation, tuple(models), candidate,
+                                      time.monotonic() - began, rejection=rejected)
     progress("done", 1.0, "calibration finished")
     return CalibrationOutcome("calibrated", tuple(runs), validation, tuple(models), candidate,
                               time.monotonic() - began)

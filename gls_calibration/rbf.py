@@ -436,12 +436,34 @@ class CrossValidation:
     residuals: np.ndarray        # (N, 2) held-out residual Y - prediction, in input order
 
 
-def _fold_indices(count: int, folds: int, seed) -> list[np.ndarray]:
+def _fold_indices(count: int, folds: int, seed, points: Optional[np.ndarray] = None,
+                  block_mm: Optional[float] = None) -> list[np.ndarray]:
+    """Seeded folds: points at random, or whole square blocks of ``block_mm`` (spatially blocked).
+
+    When measurement errors are correlated between neighbours, a random split leaves a held-out
+    point's correlated neighbours in training, and the CV error favours models that follow the
+    measurement error; holding out whole blocks wider than that correlation keeps the CV honest.
+    """
     folds = as_integer_at_least(folds, "folds", 2)
     if count < folds:
         raise ValueError(f"cannot split {count} point(s) into {folds} folds")
-    order = np.random.default_rng(seed).permutation(count)
-    return np.array_split(order, folds)
+    rng = np.random.default_rng(seed)
+    if block_mm is None:
+        return np.array_split(rng.permutation(count), folds)
+    block_mm = as_positive_number(block_mm, "block_mm")
+    cells = np.floor((points - points.min(axis=0)) / block_mm).astype(np.int64)
+    _, block = np.unique(cells, axis=0, return_inverse=True)
+    block = block.ravel()
+    if block.max() + 1 < folds:
+        raise ValueError(f"{block.max() + 1} block(s) of {block_mm:g} mm cannot make {folds} folds")
+    sizes = np.zeros(folds, dtype=int)
+    members: list[list[int]] = [[] for _ in range(folds)]
+    for label in rng.permutation(block.max() + 1):    # each block to the smallest fold so far
+        smallest = int(np.argmin(sizes))
+        chosen = np.flatnonzero(block == label)
+        members[smallest].extend(chosen.tolist())
+        sizes[smallest] += chosen.size
+    return [np.sort(np.asarray(fold, dtype=int)) for fold in members]
 
 
 def _summarise(residuals: np.ndarray, split: list[np.ndarray]) -> CrossValidation:
@@ -451,10 +473,11 @@ def _summarise(residuals: np.ndarray, split: list[np.ndarray]) -> CrossValidatio
 
 
 def cross_validate(make_model: Callable[[np.ndarray, np.ndarray], DeviationModel], X, Y,
-                   folds: int = 5, seed=0) -> CrossValidation:
-    """K-fold cross-validation of ``make_model(X_train, Y_train)`` on a seeded random split."""
+                   folds: int = 5, seed=0, block_mm: Optional[float] = None) -> CrossValidation:
+    """K-fold cross-validation of ``make_model(X_train, Y_train)`` on a seeded random split
+    (``block_mm``: whole square blocks held out together)."""
     X, Y = as_matching_points(X, Y, "X", "Y", 2)
-    split = _fold_indices(X.shape[0], folds, seed)
+    split = _fold_indices(X.shape[0], folds, seed, X, block_mm)
     residuals = np.empty_like(Y)
     for held_out in split:
         training = np.setdiff1d(np.arange(X.shape[0]), held_out)
@@ -500,15 +523,17 @@ def select_model(X, Y, spreads_mm: Sequence[float] = (20.0, 25.0, 30.0, 35.0, 45
                  mse_goals_mm2: Sequence[float] = (0.0002, 0.0005, 0.001),
                  tps_smoothings: Sequence[float] = (0.0, 10.0, 100.0, 300.0, 1000.0, 3000.0),
                  folds: int = 5, seed: int = 0,
-                 max_neurons: Optional[int] = None) -> tuple[DeviationModel, ModelSelection]:
+                 max_neurons: Optional[int] = None,
+                 block_mm: Optional[float] = None) -> tuple[DeviationModel, ModelSelection]:
     """Choose among OLS RBF networks (spread x MSE goal) and thin-plate splines by K-fold CV error.
 
     Every candidate is scored on the same seeded folds; the lowest CV RMS wins and is refitted
     on all data. The greedy OLS path does not depend on the MSE goal (only where it stops), so
-    one selection per spread and fold, run to the smallest goal, serves every goal.
+    one selection per spread and fold, run to the smallest goal, serves every goal. ``block_mm``
+    holds out whole square blocks of that side together (spatially blocked CV, see ``_fold_indices``).
     """
     X, Y = as_matching_points(X, Y, "X", "Y", 2)
-    split = _fold_indices(X.shape[0], folds, seed)
+    split = _fold_indices(X.shape[0], folds, seed, X, block_mm)
     spreads = [as_positive_number(value, "spreads_mm") for value in spreads_mm]
     goals = sorted(as_non_negative_number(value, "mse_goals_mm2") for value in mse_goals_mm2)
     smoothings = [as_non_negative_number(value, "tps_smoothings") for value in tps_smoothings]
@@ -535,7 +560,7 @@ def select_model(X, Y, spreads_mm: Sequence[float] = (20.0, 25.0, 30.0, 35.0, 45
             scores.append(CandidateScore("ols_rbf", {"spread_mm": spread, "mse_goal_mm2": goal},
                                          summary.rms_mm, summary.fold_rms_mm))
     for smoothing in smoothings:
-        summary = cross_validate(lambda x, y: ThinPlateSplineModel(x, y, smoothing), X, Y, folds, seed)
+        summary = cross_validate(lambda x, y: ThinPlateSplineModel(x, y, smoothing), X, Y, folds, seed, block_mm)
         scores.append(CandidateScore("thin_plate_spline", {"smoothing": smoothing},
                                      summary.rms_mm, summary.fold_rms_mm))
 

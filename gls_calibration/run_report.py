@@ -10,6 +10,20 @@ from gls_calibration.outcome import CalibrationOutcome, RunSummary
 from gls_calibration.report import ReportData, write_report
 
 
+def measurement_lines(summary: RunSummary) -> tuple[str, ...]:
+    """What the report says about the measurement: sweep plan, cell time, uncertainty, separation."""
+    lines = [f"sweep plan of the marked plate: {summary.sweep_plan}; simulated cell time of the whole "
+             f"calibration (sweeps at the configured speed, robot moves, marking): {summary.cell_time_s / 60.0:.1f} min",
+             f"measurement uncertainty per fiducial (standard, per axis, first plate): median "
+             f"{summary.fiducial_sigma_median_mm:.4f} mm, max {summary.fiducial_sigma_max_mm:.4f} mm"]
+    if np.isfinite(summary.scanner_share):
+        lines.append(f"attributed to the scanner and the robot's motion, not the galvo: "
+                     f"{summary.scanner_error_rms_mm:.4f} mm RMS fixed to the scanner frame, "
+                     f"{summary.motion_error_rms_mm:.4f} mm RMS of per-sweep motion "
+                     f"({summary.scanner_share:.1%} of the measured deviation RMS)")
+    return tuple(lines)
+
+
 def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: RunSummary) -> Path:
     """Write report.md, plots, fiducials.csv and summary.json and training.csv for ``outcome``; the folder's path."""
     first, validation = outcome.runs[0], outcome.validation
@@ -33,7 +47,8 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: Ru
         true_metrics_after=plain(validation.true_metrics) if validation else None,
         correction_field=field,
         extra_lines=tuple(f"iteration {index + 1}: measured RMS {rms:.4f} mm"
-                          for index, rms in enumerate(summary.iteration_rms_mm)) + (outcome.message,)
+                          for index, rms in enumerate(summary.iteration_rms_mm)) + measurement_lines(summary)
+        + (outcome.message,)
         + run_verdict_lines(first.paired_targets_xy, first.deviations,
                             correction.geometry if correction is not None else None),
     )

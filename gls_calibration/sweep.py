@@ -1,15 +1,30 @@
 """Assembly of laser-line profiles into one organized cloud per sweep.
 
-A laser-line scanner measures 2-D profiles in its own moving frame; the sweep's known motion (a
-straight line at constant speed) places each profile: its points move by ``direction * speed *
-(stamp - first stamp)``. Rows of the result are profiles in time order, columns the points of a
-profile; profiles shorter than the widest are padded with NaN points.
+A laser-line scanner measures 2-D profiles in its own moving frame. Each profile is placed
+
+- *by pose* when the robot reports the sensor's pose as a stamped stream (its encoders): the pose
+  interpolated at the profile's stamp (linear in position, slerp in rotation) maps the profile's
+  points into the scanner base frame. Speed error and ripple then cost nothing; what the encoders
+  cannot see (the path's structural wander) remains;
+- *by time* otherwise (a driver without a pose stream): the sweep's nominal motion, a straight line
+  at constant speed, moves the points by ``direction * speed * (stamp - first stamp)`` in the
+  sweep's start frame, which the sweep's nominal start pose maps into the base frame. Speed error
+  and ripple of the robot go straight into the cloud.
+
+The base frame B is the sensor's nominal pose at the start of a default sweep (forward, not turned);
+a sweep of length L covers L centred on (0, L/2, 0) of B, travelling along the sensor's +y
+(``direction`` +1) or -y (-1), with the sensor turned by ``orientation_deg`` about its viewing axis.
+Rows of the result are profiles in time order, columns the points of a profile; profiles shorter
+than the widest are padded with NaN points.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
+from typing import Optional
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 XYZI_FIELDS = ("x", "y", "z", "intensity")
 
@@ -29,6 +44,89 @@ class SweepMotion:
             raise ValueError(f"sweep speed must be positive, got {self.speed_mm_s} mm/s")
 
 
+def profile_problem(stamp_s: float, profile: np.ndarray) -> str:
+    """Why one profile cannot be part of a sweep (empty string when it can).
+
+    Each of x, y, z, intensity must be one number per point (count 1); the stamp must be finite and
+    not negative; the coordinates must not be infinite, and at least one point must be finite (a
+    missing return is a NaN point, a profile of NaN points carries nothing).
+    """
+    if not np.isfinite(stamp_s) or stamp_s < 0.0:
+        return f"profile stamp {stamp_s!r} s is not a finite non-negative time"
+    names = profile.dtype.names or ()
+    missing = [name for name in XYZI_FIELDS if name not in names]
+    if missing:
+        return f"profile has no field {', '.join(missing)} (fields: {', '.join(names) or 'none'})"
+    for name in XYZI_FIELDS:
+        if profile.dtype[name].shape != ():
+            return f"profile field {name} has count {int(np.prod(profile.dtype[name].shape))}; 1 is expected"
+    if profile.size == 0:
+        return "profile has no points"
+    coordinates = np.stack([np.asarray(profile[name], dtype=np.float64).reshape(-1) for name in ("x", "y", "z")])
+    if np.isinf(coordinates).any():
+        return "profile has infinite coordinates"
+    if not np.isfinite(coordinates).all(axis=0).any():
+        return "profile has no finite point"
+    return ""
+
+
+def nominal_start_pose(length_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> np.ndarray:
+    """4x4 pose (start frame -> base frame, mm) of the sensor at the first profile of a sweep."""
+    if direction not in (1, -1):
+        raise ValueError(f"sweep direction must be +1 or -1, got {direction!r}")
+    angle = math.radians(orientation_deg)
+    cos, sin = round(math.cos(angle), 15), round(math.sin(angle), 15)
+    pose = np.eye(4)
+    pose[:3, :3] = [[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]]
+    pose[:3, 3] = np.array([0.0, 0.5 * length_mm, 0.0]) - pose[:3, :3] @ np.array([0.0, direction * 0.5 * length_mm, 0.0])
+    return pose
+
+
+class PoseTrack:
+    """Stamped sensor poses (sensor -> base frame, mm) reported by the robot during one sweep."""
+
+    def __init__(self, max_poses: int) -> None:
+        self.max_poses = max_poses
+        self._stamps: list[float] = []
+        self._positions: list[tuple[float, float, float]] = []
+        self._quaternions: list[tuple[float, float, float, float]] = []
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    def add(self, stamp_s: float, position_mm, quaternion_xyzw) -> bool:
+        """Keep one reported pose; False (ignored) when over the bound or not finite."""
+        values = np.concatenate([[stamp_s], np.asarray(position_mm, float), np.asarray(quaternion_xyzw, float)])
+        if len(self._stamps) >= self.max_poses or values.shape != (8,) or not np.all(np.isfinite(values)) \
+                or np.linalg.norm(values[4:]) < 1e-9:
+            return False
+        self._stamps.append(float(stamp_s))
+        self._positions.append(tuple(values[1:4]))
+        self._quaternions.append(tuple(values[4:]))
+        return True
+
+    def covers(self, stamps_s: np.ndarray, tolerance_s: float = 1e-6) -> bool:
+        """True when every stamp lies within the reported poses' time span."""
+        if len(self._stamps) < 2:
+            return len(self._stamps) == 1 and bool(np.all(np.abs(stamps_s - self._stamps[0]) <= tolerance_s))
+        return bool(stamps_s.min() >= min(self._stamps) - tolerance_s and stamps_s.max() <= max(self._stamps) + tolerance_s)
+
+    def at(self, stamps_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rotations (n, 3, 3) and positions (n, 3) interpolated at ``stamps_s`` (inside the span)."""
+        order = np.argsort(self._stamps, kind="stable")
+        stamps = np.asarray(self._stamps)[order]
+        keep = np.concatenate([[True], np.diff(stamps) > 0.0])     # one pose per stamp
+        stamps = stamps[keep]
+        positions = np.asarray(self._positions)[order][keep]
+        rotations = Rotation.from_quat(np.asarray(self._quaternions)[order][keep])
+        if stamps.size == 1:
+            count = len(stamps_s)
+            return np.repeat(rotations.as_matrix(), count, axis=0), np.repeat(positions, count, axis=0)
+        clipped = np.clip(stamps_s, stamps[0], stamps[-1])
+        moved = np.column_stack([np.interp(clipped, stamps, positions[:, axis]) for axis in range(3)])
+        return Slerp(stamps, rotations)(clipped).as_matrix(), moved
+
+
 class SweepCollector:
     """Collects the profiles of one sweep with a bound on their number (bounded memory)."""
 
@@ -45,7 +143,13 @@ class SweepCollector:
         return len(self._profiles)
 
     def add(self, stamp_s: float, profile: np.ndarray) -> bool:
-        """Keep a copy of one profile (structured x, y, z, intensity); False when over a bound."""
+        """Keep a copy of one profile (structured x, y, z, intensity); False when over a bound.
+
+        ValueError (nothing kept) for a profile that cannot be placed: see :func:`profile_problem`.
+        """
+        problem = profile_problem(stamp_s, profile)
+        if problem:
+            raise ValueError(problem)
         if len(self._profiles) >= self.max_profiles or profile.size > self.max_points:
             self.dropped += 1
             return False
@@ -56,19 +160,33 @@ class SweepCollector:
         self._profiles.append(flat)
         return True
 
-    def assemble(self, motion: SweepMotion) -> np.ndarray:
-        """The organized (profiles, points) structured cloud in the frame of the first profile."""
+    def assemble(self, motion: SweepMotion, start_pose: Optional[np.ndarray] = None,
+                 poses: Optional[PoseTrack] = None) -> tuple[np.ndarray, bool]:
+        """The organized (profiles, points) structured cloud in the base frame, and whether by pose.
+
+        Placed by ``poses`` when they cover every profile's stamp, else by ``motion`` in the start
+        frame mapped by ``start_pose`` (4x4, start frame -> base frame; None: the identity).
+        """
         if not self._profiles:
             raise ValueError("no profiles were received in this sweep")
         order = np.argsort(np.asarray(self._stamps), kind="stable")
         stamps = np.asarray(self._stamps)[order]
+        by_pose = poses is not None and poses.covers(stamps)
+        if by_pose:
+            rotations, translations = poses.at(stamps)
+        else:
+            pose = np.eye(4) if start_pose is None else np.asarray(start_pose, dtype=float)
+            rotations = np.repeat(pose[None, :3, :3], len(order), axis=0)
+            travel = np.outer(stamps - stamps[0], np.asarray(motion.direction) * motion.speed_mm_s)
+            translations = travel @ pose[:3, :3].T + pose[:3, 3]
         width = max(profile.size for profile in self._profiles)
         cloud = np.full((len(order), width), np.nan,
                         dtype=[(name, np.float32) for name in XYZI_FIELDS])
-        offsets = np.outer(stamps - stamps[0], np.asarray(motion.direction) * motion.speed_mm_s)
         for row, index in enumerate(order):
             profile = self._profiles[index]
+            local = np.column_stack([profile["x"], profile["y"], profile["z"]]).astype(float)
+            placed = local @ rotations[row].T + translations[row]
             for axis, name in enumerate(("x", "y", "z")):
-                cloud[name][row, :profile.size] = profile[name] + offsets[row, axis]
+                cloud[name][row, :profile.size] = placed[:, axis]
             cloud["intensity"][row, :profile.size] = profile["intensity"]
-        return cloud
+        return cloud, by_pose

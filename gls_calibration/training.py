@@ -38,11 +38,13 @@ class TrainingOptions:
     tps_smoothings: Sequence[float] = (0.0, 10.0, 100.0, 300.0, 1000.0, 3000.0)
     folds: int = 5
     seed: int = 0
+    block_mm: Optional[float] = None   # spatially blocked folds of this side (None: points at random)
 
     def select_kwargs(self) -> dict:
         """Keyword arguments of ``rbf.select_model``."""
         return dict(spreads_mm=tuple(self.spreads_mm), mse_goals_mm2=tuple(self.mse_goals_mm2),
-                    tps_smoothings=tuple(self.tps_smoothings), folds=self.folds, seed=self.seed)
+                    tps_smoothings=tuple(self.tps_smoothings), folds=self.folds, seed=self.seed,
+                    block_mm=self.block_mm)
 
 
 def train_correction(landed_xy, corrections, geometry: Optional[HeadGeometry] = None, *,

@@ -20,6 +20,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
+from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import PointCloud2
 
 from gls_calibration import kinematics
@@ -265,6 +266,7 @@ class FakeScanner:
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self.points = node.create_publisher(PointCloud2, "scan/points", qos)
         self.done = node.create_publisher(SweepDone, "scan/sweep_done", qos)
+        self.poses = node.create_publisher(PoseStamped, "scan/pose", qos)
         node.create_service(StartSweep, "scanner/start_sweep", self.on_start)
         self.rng = np.random.default_rng(4)
         self.profiles = [self.profile(index) for index in range(PROFILES)]
@@ -284,14 +286,24 @@ class FakeScanner:
             threading.Timer(0.05, self.stream).start()
         return response
 
+    def reported_y_mm(self, index: int) -> float:
+        """Where the robot reports the sensor at a profile: a 2 % fast robot with a ripple."""
+        return 1.02 * SPEED_MM_S * PROFILE_PERIOD_S * index + 0.05 * math.sin(index)
+
     def stream(self) -> None:
-        count = PROFILES if self.script == "complete" else 5
+        count = PROFILES if self.script in ("complete", "posed") else 5
         for index in range(count):
             stamp = Time(nanoseconds=int(round((FIRST_STAMP_S + index * PROFILE_PERIOD_S) * 1e9)))
+            if self.script == "posed":
+                pose = PoseStamped()
+                pose.header.stamp, pose.header.frame_id = stamp.to_msg(), "scanner_base"
+                pose.pose.position.y = self.reported_y_mm(index) * 1e-3         # metres on the wire
+                pose.pose.orientation.w = 1.0
+                self.poses.publish(pose)
             self.points.publish(cloud_to_msg(self.profiles[index], "scanner_sensor", stamp))   # metres
         self.done.publish(SweepDone(sweep_id=7, profiles=count, step_mm=SPEED_MM_S * PROFILE_PERIOD_S,
                                     speed_mm_s=SPEED_MM_S, direction=[0.0, 1.0, 0.0],
-                                    complete=self.script == "complete"))
+                                    complete=self.script in ("complete", "posed")))
 
 
 def acquire(ros_context, add_node, script: str, timeout_s: float) -> tuple[AcquireSweep.Response, float, FakeScanner]:
@@ -324,7 +336,8 @@ def test_scan_acquisition_fails_on_a_sweep_cut_short(ros_context, add_node):
 def test_scan_acquisition_assembles_an_organized_cloud(ros_context, add_node):
     response, _, scanner = acquire(ros_context, add_node, "complete", timeout_s=TIMEOUT_S)
     assert response.success, response.message
-    assert response.message == f"{PROFILES} profiles of {POINTS} points"
+    assert response.message == f"{PROFILES} profiles of {POINTS} points, placed by time at the nominal speed"
+    assert not response.placed_by_pose
     # On the wire in metres, in the frame of the sensor at the start of the sweep, stamped with the
     # first profile.
     assert response.cloud.header.frame_id == "scanner"
@@ -341,6 +354,15 @@ def test_scan_acquisition_assembles_an_organized_cloud(ros_context, add_node):
         np.testing.assert_array_equal(cloud["intensity"][row], profile["intensity"])
 
 
+def test_scan_acquisition_places_profiles_by_the_reported_pose(ros_context, add_node):
+    response, _, scanner = acquire(ros_context, add_node, "posed", timeout_s=TIMEOUT_S)
+    assert response.success, response.message
+    assert response.placed_by_pose and response.message.endswith("placed by the reported pose")
+    cloud = cloud_from_msg(response.cloud)
+    reported = np.array([scanner.reported_y_mm(index) for index in range(PROFILES)])
+    np.testing.assert_allclose(cloud["y"], np.repeat(reported[:, None], POINTS, axis=1), rtol=0, atol=1e-4)
+
+
 # --- calibration manager -------------------------------------------------------------------------
 
 def start_manager(ros_context, add_node, tmp_path, sweep_timeout_s: float, store_dir: Path) -> FakeScanner:
@@ -348,7 +370,9 @@ def start_manager(ros_context, add_node, tmp_path, sweep_timeout_s: float, store
     add_node(CalibrationManager(context=ros_context, parameter_overrides=[
         Parameter("calibration_dir", value=str(store_dir)),
         Parameter("report_dir", value=str(tmp_path / "reports")),
-        Parameter("sweep_timeout_s", value=sweep_timeout_s),
+        # sweep time limit = factor x length / speed + margin = sweep_timeout_s
+        Parameter("sweep.length_mm", value=1.0), Parameter("sweep.speed_mm_s", value=2.0),
+        Parameter("deadline_factor", value=1.0), Parameter("deadline_margin_s", value=sweep_timeout_s - 0.5),
         Parameter("service_timeout_s", value=5.0)]))
     add_node(ScanAcquisitionNode(context=ros_context))
     start_correction_node(ros_context, add_node, store_dir)
@@ -428,7 +452,9 @@ def test_calibration_fails_when_too_few_fiducials_are_found(start_cell, tmp_path
     cell = start_cell(grid=3, sim_config=narrow_scanner_config(tmp_path / "narrow_sim.yaml"))
     response = cell.call(Calibrate, "calibrate", Calibrate.Request(), timeout_s=240.0)
     assert not response.success
-    assert "calibration failed: found 2 of 9 fiducials; at least 9 (90%) are needed" == response.message
+    # config/gls.yaml sweeps the marked plate four times; the first sweep already finds too few
+    assert ("calibration failed: found 2 of 9 fiducials; at least 9 (90%) are needed "
+            "(sweep 0+ of 0+,0-,90+,90-)") == response.message
     assert store_state(cell.calibration_dir) == (None, [])
     nominal = cell.call(CorrectSetpoints, "correct_setpoints", CorrectSetpoints.Request(x=[0.0], y=[0.0]), TIMEOUT_S)
     assert nominal.success and "nominal" in nominal.message
@@ -436,8 +462,9 @@ def test_calibration_fails_when_too_few_fiducials_are_found(start_cell, tmp_path
 
 @pytest.mark.slow
 def test_the_full_loop_on_a_5x5_grid_corrects_the_head(start_cell):
-    # the ideal measurement chain: this checks the loop, not the measurement (paper_like leaves ~0.1 mm)
-    cell = start_cell(grid=5, parameters={"measurement_preset": "ideal"})
+    # the ideal measurement chain: this checks the loop, not the measurement (paper_like leaves ~0.1 mm);
+    # the marked plate swept as mounted and turned (the config's four passes cost twice the time)
+    cell = start_cell(grid=5, parameters={"measurement_preset": "ideal", "sweep.plan": "0+,90+"})
     response = cell.call(Calibrate, "calibrate", Calibrate.Request(validate=True), timeout_s=600.0)
     assert response.success, response.message
     assert (response.fiducials_expected, response.fiducials_found) == (25, 25)

@@ -64,6 +64,18 @@ class _Run:
         self.metrics = deviation_metrics(targets, np.tile([rms, 0.0], (9, 1)))
         self.true_metrics = (None if true_rms is None
                              else deviation_metrics(targets, np.tile([0.0, true_rms], (9, 1)), (None, 150.0)))
+        self.sweep_plan, self.cell_time_s = "0+,90+", 150.0
+        self.sigma_mm = np.array([0.002, 0.004, np.nan, 0.003])
+        self.scanner_error_rms_mm, self.motion_error_rms_mm = 0.03 * rms, 0.04 * rms
+
+
+def test_summary_states_the_plan_the_cell_time_the_uncertainty_and_the_scanners_share():
+    outcome = CalibrationOutcome("calibrated", (_Run(0.5), _Run(0.1)), _Run(0.02), (), None, 1.5)
+    summary = summarise(outcome)
+    assert summary.sweep_plan == "0+,90+" and summary.cell_time_s == pytest.approx(450.0)
+    assert summary.fiducial_sigma_median_mm == pytest.approx(0.003)
+    assert summary.fiducial_sigma_max_mm == pytest.approx(0.004)
+    assert summary.scanner_share == pytest.approx(0.05)      # hypot(0.03, 0.04) of the first plate's RMS
 
 
 def test_summary_of_a_run_without_training_has_nan_after_and_no_file():

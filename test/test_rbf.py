@@ -4,6 +4,7 @@ import math
 import numpy as np
 import pytest
 
+from gls_calibration import rbf
 from gls_calibration.deviation_models import load_model_yaml, model_from_dict, save_model_yaml
 from gls_calibration.rbf import CrossValidation, OLSRBFNetwork, ThinPlateSplineModel, cross_validate, select_model
 from gls_calibration.targets import grid_targets
@@ -257,3 +258,39 @@ def test_model_from_dict_rejects_unknown_types():
         model_from_dict({"type": "spline3"})
     with pytest.raises(ValueError, match="model description lacks key 'centres'"):
         model_from_dict({"type": "ols_rbf", "spread_mm": 35.0})
+
+
+def test_blocked_folds_hold_out_whole_blocks_and_balance_the_folds():
+    axis = np.linspace(-90.0, 90.0, 19)
+    points = np.column_stack([value.ravel() for value in np.meshgrid(axis, axis)])
+    split = rbf._fold_indices(len(points), 5, 0, points, block_mm=40.0)
+    assert sorted(np.concatenate(split).tolist()) == list(range(len(points)))
+    block = np.floor((points - points.min(axis=0)) / 40.0)
+    for fold in split:
+        others = np.setdiff1d(np.arange(len(points)), fold)
+        # no block is split between a fold and the rest
+        held = {tuple(b) for b in block[fold]}
+        assert not held & {tuple(b) for b in block[others]}
+    sizes = [len(fold) for fold in split]
+    assert max(sizes) - min(sizes) <= 40          # at most about one block apart
+    with pytest.raises(ValueError, match="cannot make 5 folds"):
+        rbf._fold_indices(len(points), 5, 0, points, block_mm=500.0)
+
+
+def test_blocked_cv_is_not_fooled_by_errors_correlated_between_neighbours():
+    # a smooth field measured with an error correlated over ~20 mm: a random split rewards a model
+    # that follows the error (its neighbours are in training), blocks wider than that do not
+    rng = np.random.default_rng(3)
+    axis = np.linspace(-90.0, 90.0, 19)
+    points = np.column_stack([value.ravel() for value in np.meshgrid(axis, axis)])
+    truth = np.column_stack([0.5 * np.sin(points[:, 0] / 70.0), 0.4 * np.cos(points[:, 1] / 60.0)])
+    waves = rng.normal(size=(12, 2)) / 15.0
+    phases = rng.uniform(0, 2 * np.pi, 12)
+    error = np.column_stack([sum(0.02 * np.sin(points @ w + p) for w, p in zip(waves[:6], phases[:6])),
+                             sum(0.02 * np.sin(points @ w + p) for w, p in zip(waves[6:], phases[6:]))])
+    measured = truth + error + rng.normal(0, 0.003, truth.shape)
+    def tps(smoothing):
+        return lambda x, y: rbf.ThinPlateSplineModel(x, y, smoothing)
+    random_cv = rbf.cross_validate(tps(0.0), points, measured, 5, 0).rms_mm
+    blocked_cv = rbf.cross_validate(tps(0.0), points, measured, 5, 0, block_mm=40.0).rms_mm
+    assert blocked_cv > 1.5 * random_cv     # the random split's figure is the optimistic one

@@ -6,6 +6,7 @@ ROS arguments follow ``--ros-args`` (e.g. ``--ros-args -r __ns:=/cell2``).
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from rclpy.action import ActionClient
@@ -24,11 +25,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--namespace", default="gls", help="namespace of the calibration manager")
     parser.add_argument("--iterations", type=int, default=0, help="0: the configured default")
     parser.add_argument("--no-validate", action="store_true", help="skip the validation grid")
-    parser.add_argument("--force", action="store_true", help="train even when within tolerance")
+    parser.add_argument("--force", action="store_true",
+                        help="train even when within tolerance, and mark a plate that carries old marks")
     parser.add_argument("--timeout", type=float, default=900.0, help="give up after this (s)")
     args = parser.parse_args(own_arguments)
-    if not 0 <= args.iterations <= 5:
-        parser.error("--iterations must be between 0 and 5")
+    if not 0 <= args.iterations <= 255:
+        parser.error("--iterations must be between 0 and 255 (the manager refuses more than its max_iterations)")
+    if not math.isfinite(args.timeout) or args.timeout <= 0.0:
+        parser.error("--timeout must be a positive number of seconds")
     bar = ProgressBar(sys.stderr)
     with client_node("gls_calibrate_client", args.namespace, ros_arguments) as (node, executor):
         client = ActionClient(node, Calibrate, "calibrate")

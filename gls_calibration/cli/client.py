@@ -68,8 +68,10 @@ class ProgressBar:
     def update(self, message) -> None:
         """Callback of ``calibration/progress`` messages and of the action's feedback."""
         text = message.text if hasattr(message, "text") else message.message
-        filled = int(round(self.width * message.fraction))
-        line = f"[{'#' * filled}{'.' * (self.width - filled)}] {message.fraction:4.0%} {message.stage}: {text}"
+        # The message comes from the network: a NaN or out-of-range fraction must not end the tool.
+        fraction = min(max(message.fraction, 0.0), 1.0) if math.isfinite(message.fraction) else 0.0
+        filled = int(round(self.width * fraction))
+        line = f"[{'#' * filled}{'.' * (self.width - filled)}] {fraction:4.0%} {message.stage}: {text}"
         if self.interactive:
             self.stream.write("\r" + line[:120].ljust(120))
             self.line_open = True

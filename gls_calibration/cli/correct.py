@@ -16,7 +16,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from gls_calibration.persistence import atomic_write_text
+from gls_calibration.persistence import atomic_write_text, require_regular_output
 
 OUTPUT_COLUMNS = ("x", "y", "z", "k_x", "k_y", "alpha_x_rad", "alpha_y_rad", "focus_shift_mm",
                   "inside_calibrated_field", "within_limits")
@@ -108,6 +108,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--timeout", type=float, default=30.0)
     args = parser.parse_args(own_arguments)
     try:
+        require_regular_output(args.out)   # checked before anything is asked of the cell
         x, y, z = read_targets(args.targets)
         if not args.out.parent.is_dir():
             raise ValueError(f"cannot write {args.out}: folder {args.out.parent} does not exist")

@@ -23,7 +23,8 @@ from rclpy.executors import SingleThreadedExecutor
 from gls_calibration.config_files import config_path
 from gls_calibration.simulation.measurement import PRESETS
 from gls_calibration.simulation.world import load_sim_config
-from gls_calibration.nodes.base import NodeThreads
+from gls_calibration.sweep_plan import parse_plan
+from gls_calibration.nodes.base import NodeThreads, use_fast_liveliness
 from gls_calibration.persistence import atomic_write_text
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
@@ -66,6 +67,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--measurement", choices=None, default=None, metavar="|".join(PRESETS),
                         help="measurement-chain preset of the simulated robot, scanner, marks and plate "
                              "(default: the sim configuration's measurement.preset, paper_like)")
+    parser.add_argument("--sweep-plan", default=None, metavar="PLAN",
+                        help="passes over the marked plate, e.g. 0+ (one forward sweep) or 0+,0-,90+,90- "
+                             "(reversed and sensor turned: scanner-frame errors separated); default: config/gls.yaml")
+    parser.add_argument("--placement", choices=("pose", "time"), default="pose",
+                        help="place profiles by the robot's reported pose (default) or by time at the nominal "
+                             "speed (a driver without a pose stream)")
     parser.add_argument("--reference-plate", action="store_true",
                         help="run the simulated reference-plate check (no calibration) and write DIR/summary.json")
     parser.add_argument("--namespace", default=None,
@@ -79,6 +86,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         parser.error("--iterations must be between 1 and 5")
     if args.sim_config is not None and not args.sim_config.is_file():
         parser.error(f"--sim-config {args.sim_config}: no such file")
+    if args.sweep_plan is not None:
+        try:
+            parse_plan(args.sweep_plan)
+        except ValueError as error:
+            parser.error(f"--sweep-plan: {error}")
     if args.measurement is not None and args.measurement not in PRESETS:
         parser.error(f"--measurement: unknown measurement preset {args.measurement!r}; known: {', '.join(PRESETS)}")
     try:
@@ -103,7 +115,11 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
         "physics_first": args.physics_first,
         "sim_config": str(sim_config),
         "measurement_preset": args.measurement or "",
+        "use_pose_stream": args.placement == "pose",
+        "sweep.placed_by_pose": args.placement == "pose",
     }
+    if args.sweep_plan is not None:
+        overrides["sweep.plan"] = args.sweep_plan
     ros_args = ["--ros-args", "--log-level", "info" if args.verbose else "warn"]
     for path in (config_path("head.yaml"), config_path("gls.yaml"), sim_config):
         ros_args += ["--params-file", str(path)]
@@ -124,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     store = args.out / "calibrations"
     if not args.serve:
         shutil.rmtree(store, ignore_errors=True)
+    use_fast_liveliness()
     context = rclpy.Context()
     # "--" ends the cell's ROS arguments; the user's command line follows with its own --ros-args.
     user = ["--", *args.user_ros_arguments] if args.user_ros_arguments else []

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import functools
 import inspect
+import math
+import os
 import threading
 import time
 from typing import Any, Callable, Optional, Sequence
@@ -11,16 +13,42 @@ import rclpy
 from rclpy.context import Context
 from rclpy.signals import SignalHandlerOptions
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.task import Future
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 
 DEFAULT_NAMESPACE = "gls"
+POLL_PERIOD_S = 0.05          # how often a pending call checks its deadline and its server
+SERVER_GONE_CONFIRM_S = 0.3   # a server absent from the graph this long is gone (not a discovery blip)
+SERVER_WAIT_S = 2.0           # how long a call waits for its server to appear before failing
+
+
+FAST_DDS_PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+
+
+def use_fast_liveliness() -> None:
+    """Make a crashed node leave the DDS graph within 1.5 s (Fast DDS's default lease is 20 s).
+
+    Call before ``rclpy.init``: the lease is read when the process creates its DDS participant, and
+    it is each node's own announced lease that the others wait out. A profile file already named
+    in the environment wins; child processes inherit the choice.
+    """
+    if any(os.environ.get(name) for name in FAST_DDS_PROFILE_VARIABLES):
+        return
+    from gls_calibration.config_files import config_path
+    try:
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(config_path("fastdds_liveliness.xml"))
+    except FileNotFoundError:  # an install without the profile: Fast DDS's defaults apply
+        pass
 
 
 class ServiceCallError(RuntimeError):
     """A service another node serves did not answer in time, or answered with a failure."""
+
+
+class DeadlineExpired(ServiceCallError):
+    """No answer (or condition) within the time limit, the server still being there."""
 
 
 def answers_errors(*errors: type[BaseException]) -> Callable:
@@ -109,55 +137,134 @@ class GlsNode(Node):
             return SetParametersResult(successful=reason is None, reason=reason or "")
         self.add_on_set_parameters_callback(on_set)
 
+    def declare_numbers(self, name: str, default: list, description: str, *, positive: bool = True,
+                        allow_empty: bool = False, length: int | None = None) -> list[float]:
+        """Declare a list-of-numbers parameter and check it at start (ROS ranges do not apply to lists):
+        finite, positive (or not negative), not empty unless allowed, of ``length`` when given.
+        ValueError naming the parameter otherwise, so a bad value stops the node at start with the reason."""
+        values = self.declare(name, default, description)
+        numbers = [float(value) for value in values] if isinstance(values, (list, tuple)) else None
+        bound_ok = numbers is not None and all(
+            math.isfinite(value) and (value > 0.0 if positive else value >= 0.0) for value in numbers)
+        if not bound_ok or (not numbers and not allow_empty) or (length is not None and len(numbers) != length):
+            size = f"{length} " if length is not None else ("" if allow_empty else "one or more ")
+            raise ValueError(f"parameter {name}: {size}finite {'positive' if positive else 'non-negative'} "
+                             f"numbers are needed, got {values!r}")
+        return numbers
+
     def client(self, srv_type: type, name: str):
         """A client in the reentrant group, so that coroutine callbacks can await it."""
         return self.create_client(srv_type, name, callback_group=self.reentrant_group)
 
-    async def call(self, client, request: Any, timeout_s: float) -> Any:
-        """Await ``client``'s answer to ``request``; ServiceCallError after ``timeout_s`` (never blocks)."""
+    async def call(self, client, request: Any, timeout_s: float, *, server_wait_s: float = SERVER_WAIT_S,
+                   resend_after_s: float | None = None) -> Any:
+        """Await ``client``'s answer to ``request``; ServiceCallError after ``timeout_s`` (never blocks).
+
+        The server is watched while the call runs: when it leaves the node graph (a crashed or
+        stopped node), the call fails within about ``SERVER_GONE_CONFIRM_S`` of the graph noticing,
+        naming the service and its node, instead of waiting for the deadline.
+        ``resend_after_s`` (idempotent requests only): send the request again when no answer came
+        within that time. A server that has just started may not yet know this client's reader and
+        then drops its answer (DDS discovery is not symmetric); the copy gets through.
+        """
+        if not math.isfinite(timeout_s) or timeout_s <= 0.0:
+            raise ServiceCallError(f"invalid time limit {timeout_s!r} s for {client.srv_name}")
         if not client.service_is_ready():
-            await self.wait_for(lambda: client.service_is_ready(), min(timeout_s, 10.0),
-                                f"service {client.srv_name} is not available")
-        future = client.call_async(request)
-        response = await self._with_timeout(future, timeout_s, f"service {client.srv_name} did not answer "
-                                                                f"within {timeout_s:g} s")
-        return response
+            await self.wait_for(client.service_is_ready, min(timeout_s, server_wait_s),
+                                f"service {client.srv_name} is not available (no server within "
+                                f"{min(timeout_s, server_wait_s):g} s)")
+        deadline = time.monotonic() + timeout_s
+        while True:
+            remaining = deadline - time.monotonic()
+            attempt_s = remaining if resend_after_s is None else min(remaining, resend_after_s)
+            future = client.call_async(request)
+            try:
+                return await self._await(future, max(attempt_s, 1e-3),
+                                         f"service {client.srv_name} did not answer within {timeout_s:g} s",
+                                         watch=[client])
+            except DeadlineExpired:
+                if attempt_s >= remaining:
+                    raise
+                self.get_logger().warning(f"no answer from {client.srv_name} after {attempt_s:g} s: request sent again")
+            finally:
+                if not future.done():
+                    client.remove_pending_request(future)
+
+    async def yield_to_executor(self) -> None:
+        """Let the executor serve what is waiting (other requests) before this coroutine goes on."""
+        resumed = Future()
+        timer = self.create_timer(0.0, lambda: resumed.done() or resumed.set_result(None),
+                                  callback_group=self.reentrant_group)
+        try:
+            await resumed
+        finally:
+            self.destroy_timer(timer)
+
+    def server_names(self, client) -> str:
+        """The nodes that serve ``client``'s service, from the node graph (for messages)."""
+        names = []
+        for name, namespace in self.get_node_names_and_namespaces():
+            try:
+                services = self.get_service_names_and_types_by_node(name, namespace)
+            except Exception:  # the node left the graph between the two queries
+                continue
+            if any(service == self.resolve_service_name(client.srv_name) for service, _ in services):
+                names.append(f"{namespace.rstrip('/')}/{name}")
+        return ", ".join(names) or "unknown node"
 
     async def wait_for(self, condition: Callable[[], bool], timeout_s: float, message: str | Callable[[], str],
-                       period_s: float = 0.05) -> None:
+                       *, watch: Sequence = ()) -> None:
         """Await ``condition()`` becoming true, polled by a timer; ServiceCallError(message) on timeout.
 
         ``message`` may be a callable, so that it can tell the state at the time of the timeout.
+        ``watch``: clients whose servers must stay in the node graph meanwhile (see ``call``).
         """
         if condition():
             return
-        done = Future()
+        await self._await(Future(), timeout_s, message, watch=watch, condition=condition)
+
+    async def _await(self, future: Future, timeout_s: float, message: str | Callable[[], str], *,
+                     watch: Sequence = (), condition: Callable[[], bool] | None = None) -> Any:
+        """Await ``future`` (or ``condition()``) with a deadline, failing early when a watched server leaves.
+
+        One polling timer does all the checks, so any finite ``timeout_s`` is safe (a timer of 1e308 s
+        is not).
+        """
+        if not math.isfinite(timeout_s) or timeout_s <= 0.0:
+            raise ServiceCallError(f"invalid time limit {timeout_s!r} s")
+        servers = {client: self.server_names(client) for client in watch}
+        waiter = Future()
+        future.add_done_callback(lambda _: waiter.done() or waiter.set_result(None))
+        began = time.monotonic()
+        gone_since: dict = {}
 
         def poll() -> None:
-            if not done.done() and condition():
-                done.set_result(True)
-        timer = self.create_timer(period_s, poll, callback_group=self.reentrant_group)
+            if waiter.done():
+                return
+            if condition is not None and condition():
+                waiter.set_result(None)
+                return
+            now = time.monotonic()
+            if now - began >= timeout_s:
+                waiter.set_result(DeadlineExpired(message() if callable(message) else message))
+                return
+            for client in watch:
+                if client.service_is_ready():
+                    gone_since.pop(client, None)
+                elif now - gone_since.setdefault(client, now) >= SERVER_GONE_CONFIRM_S:
+                    waiter.set_result(ServiceCallError(
+                        f"the server of {client.srv_name} ({servers[client]}) disappeared after "
+                        f"{now - began:.1f} s; step abandoned"))
+                    return
+        timer = self.create_timer(min(POLL_PERIOD_S, timeout_s), poll, callback_group=self.reentrant_group)
         try:
-            await self._with_timeout(done, timeout_s, message)
+            failure = await waiter
         finally:
             self.destroy_timer(timer)
-
-    async def _with_timeout(self, future: Future, timeout_s: float, message: str | Callable[[], str]) -> Any:
-        waiter = Future()
-        future.add_done_callback(lambda f: waiter.done() or waiter.set_result(True))
-
-        def expire() -> None:
-            if not waiter.done():
-                waiter.set_result(False)
-        timer = self.create_timer(timeout_s, expire, callback_group=self.reentrant_group)
-        try:
-            finished = await waiter
-        finally:
-            self.destroy_timer(timer)
-        if not finished:
+        if failure is not None:
             future.cancel()
-            raise ServiceCallError(message() if callable(message) else message)
-        return future.result()
+            raise failure
+        return future.result() if condition is None else None
 
 
 class NodeThreads:
@@ -171,7 +278,11 @@ class NodeThreads:
 
     def __init__(self, nodes: list[Node]) -> None:
         self.nodes = nodes
-        self.executors = [SingleThreadedExecutor(context=node.context) for node in nodes]
+        # A node that serves long requests next to short ones asks for threads (``executor_threads``):
+        # the taking, converting and answering of a large request then no longer blocks the others.
+        self.executors = [MultiThreadedExecutor(num_threads=node.executor_threads, context=node.context)
+                          if getattr(node, "executor_threads", 1) > 1 else SingleThreadedExecutor(context=node.context)
+                          for node in nodes]
         self.threads = []
         for node, executor in zip(nodes, self.executors):
             executor.add_node(node)
@@ -204,6 +315,7 @@ class NodeThreads:
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None:
     """Console-script entry: init rclpy (ROS arguments such as remaps apply), spin one node until
     Ctrl-C, then destroy the node before the context shuts down (the other order aborts in DDS)."""
+    use_fast_liveliness()
     context = Context()
     rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
     threads = NodeThreads([factory(context=context)])

@@ -21,18 +21,20 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from gls_calibration import discrepancy, procedure
+from gls_calibration import discrepancy, kinematics, procedure
 from gls_calibration.nodes import conversions, rviz
 from gls_calibration.calibration_record import (build_record, correction_from_record, record_fiducials,
                                                 record_models, save_candidate)
 from gls_calibration.correction import Correction
-from gls_calibration.nodes.base import GlsNode, ServiceCallError, answers_errors, run_node
+from gls_calibration.nodes.base import SERVER_WAIT_S, GlsNode, ServiceCallError, answers_errors, run_node
+from gls_calibration.nodes.deadlines import declare_deadlines
 from gls_calibration.nodes.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
 from gls_calibration.nodes.head_parameters import declare_head_geometry, declare_scanner_to_gls
 from gls_calibration.outcome import RunSummary, summarise
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.report import json_safe
 from gls_calibration.run_report import write_outcome_report
+from gls_calibration.sweep_plan import CellTimeModel, parse_plan, plan_label
 from gls_calibration_msgs.action import Calibrate as CalibrateAction
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints, EstimatePlatePose,
@@ -55,7 +57,7 @@ class ServiceCell:
         self.node = node
         self.candidate: Optional[Correction] = None
         self.timeout_s = node.service_timeout_s
-        self.sweep_timeout_s = node.sweep_timeout_s
+        self.deadlines = node.deadlines
         self.acquire = node.client(AcquireSweep, "scan/acquire")
         self.pose = node.client(EstimatePlatePose, "plate_pose/estimate")
         self.fiducials = node.client(MeasureFiducials, "fiducials/measure")
@@ -66,15 +68,28 @@ class ServiceCell:
         self.exchange = node.client(Trigger, node.plate_exchange_service) if node.plate_exchange_service else None
         self.truth = node.client(GetMarkedPaths, node.ground_truth_service) if node.ground_truth_service else None
 
-    async def _checked(self, client, request, timeout_s: Optional[float] = None):
-        response = await self.node.call(client, request, timeout_s or self.timeout_s)
+    async def _checked(self, client, request, timeout_s: Optional[float] = None, *, idempotent: bool = True):
+        # Only a request that may safely be served twice is sent again (not a sweep, a marking job
+        # or a plate exchange).
+        response = await self.node.call(client, request, timeout_s or self.timeout_s,
+                                        resend_after_s=self.node.resend_after_s if idempotent else None)
         if not response.success:
             raise procedure.CalibrationError(f"{client.srv_name}: {response.message}")
         return response
 
-    async def acquire_sweep(self, step_mm: float):
-        request = AcquireSweep.Request(timeout_s=self.sweep_timeout_s, step_mm=step_mm)
-        response = await self._checked(self.acquire, request, self.sweep_timeout_s + self.timeout_s)
+    async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0):
+        deadlines = self.deadlines
+        sweep_s = deadlines.sweep_s()
+        request = AcquireSweep.Request(timeout_s=sweep_s, length_mm=deadlines.sweep_length_mm,
+                                       speed_mm_s=deadlines.sweep_speed_mm_s, step_mm=step_mm,
+                                       direction=int(direction), orientation_deg=float(orientation_deg))
+        # scan_acquisition gives up at sweep_s and answers; the margin is for that answer.
+        response = await self._checked(self.acquire, request, sweep_s + deadlines.margin_s, idempotent=False)
+        if response.placed_by_pose != self.node.settings.profiles_placed_by_pose:
+            self.node.get_logger().warning(
+                f"profiles were placed {'by pose' if response.placed_by_pose else 'by time'} but "
+                f"sweep.placed_by_pose is {self.node.settings.profiles_placed_by_pose}: the error separation "
+                "trusts the wrong scale; set the parameter to match the scanner driver")
         return response.cloud  # forwarded as it came: the processing nodes convert it themselves
 
     async def estimate_plate_pose(self, cloud):
@@ -97,7 +112,9 @@ class ServiceCell:
     async def mark(self, alpha_x, alpha_y, focus_shift, polyline_starts):
         request = MarkPolylines.Request(alpha_x=alpha_x, alpha_y=alpha_y, focus_shift=focus_shift,
                                         polyline_starts=np.asarray(polyline_starts, dtype=np.uint32))
-        response = await self._checked(self.galvo, request, self.node.marking_timeout_s)
+        xy = np.column_stack(kinematics.forward(self.node.geometry, request.alpha_x, request.alpha_y))
+        response = await self._checked(self.galvo, request, self.deadlines.marking_s(xy, polyline_starts),
+                                       idempotent=False)
         return response.duration_s
 
     async def train(self, landed_xy, corrections):
@@ -115,16 +132,23 @@ class ServiceCell:
         """Correct through the active calibration again (the correction node's): drop the candidate."""
         self.candidate = None
 
-    async def reload_correction_node(self) -> str:
+    async def reload_correction_node(self, server_wait_s: float = SERVER_WAIT_S) -> str:
         """Make the correction node serve the store's (newly) active calibration; its answer."""
-        return (await self._checked(self.loader, LoadCalibration.Request(file=""))).message
+        response = await self.node.call(self.loader, LoadCalibration.Request(file=""), self.timeout_s,
+                                        server_wait_s=server_wait_s, resend_after_s=self.node.resend_after_s)
+        if not response.success:
+            raise procedure.CalibrationError(f"{self.loader.srv_name}: {response.message}")
+        return response.message
 
     async def exchange_plate(self) -> None:
         if self.exchange is None:
             raise procedure.CalibrationError(
                 "a fresh plate is needed (second iteration or validation) but no plate_exchange_service "
                 "is configured")
-        await self._checked(self.exchange, Trigger.Request())
+        await self._checked(self.exchange, Trigger.Request(), idempotent=False)
+
+    def intensities(self, cloud):
+        return conversions.cloud_arrays_from_msg(cloud)[1]
 
     async def true_marks(self):
         if self.truth is None:
@@ -142,6 +166,7 @@ class CalibrationManager(GlsNode):
         super().__init__("calibration_manager", **kwargs)
         self.geometry = declare_head_geometry(self)
         scanner_to_gls = declare_scanner_to_gls(self)
+        self.deadlines = declare_deadlines(self)
         defaults = procedure.ProcedureSettings()
         self.settings = procedure.ProcedureSettings(
             grid_per_side=self.declare("grid.per_side", defaults.grid_per_side,
@@ -167,15 +192,50 @@ class CalibrationManager(GlsNode):
             min_found_fraction=self.declare("min_found_fraction", defaults.min_found_fraction,
                                             "fail when fewer fiducials than this fraction are found",
                                             minimum=0.0, maximum=1.0),
+            max_outlying_points=self.declare(
+                "max_outlying_points", defaults.max_outlying_points, "a plain plate with more points than this "
+                "beyond mark_check_sigmas of its texture carries old marks: refused unless forced", minimum=0),
+            mark_check_sigmas=self.declare("mark_check_sigmas", defaults.mark_check_sigmas,
+                                           "robust standard deviations of the plate texture beyond which a "
+                                           "point looks like a mark", minimum=1.0, maximum=100.0),
+            measurement_uncertainty_mm=self.declare(
+                "measurement_uncertainty_mm", defaults.measurement_uncertainty_mm,
+                "uncertainty of one measured fiducial centre (mm): the margin a candidate must beat the "
+                "calibration in use by", minimum=1e-6, maximum=10.0),
+            max_cv_factor=self.declare("max_cv_factor", defaults.max_cv_factor,
+                                       "fail when the model's CV RMS exceeds this many measurement uncertainties",
+                                       minimum=1.0, maximum=1e6),
+            max_cv_fraction=self.declare("max_cv_fraction", defaults.max_cv_fraction,
+                                         "...and this fraction of the RMS deviation it was trained on",
+                                         minimum=0.01, maximum=100.0),
             default_iterations=self.declare("default_iterations", defaults.default_iterations,
-                                            "iterations when a request says 0", minimum=1, maximum=5),
+                                            "iterations when a request says 0", minimum=1, maximum=10),
+            max_iterations=self.declare("max_iterations", defaults.max_iterations,
+                                        "most iterations a request may ask for (each marks a fresh plate)",
+                                        minimum=1, maximum=10),
+            sweep_plan=parse_plan(self.declare(
+                "sweep.plan", plan_label(defaults.sweep_plan),
+                "passes over the marked plate, orientation (0|90 deg) and direction (+|-) each, e.g. "
+                "0+,0-,90+,90-: errors fixed to the scanner frame are separated from the marks")),
+            profiles_placed_by_pose=self.declare(
+                "sweep.placed_by_pose", defaults.profiles_placed_by_pose,
+                "the scanner driver publishes the robot's reported pose (scan/pose): the travel is trusted "
+                "for the scale; false: profiles placed by time, the sensor's line scale is trusted"),
+            # sweep length and speed are the ones sent to the scanner (declared with the deadlines)
+            cell_time=CellTimeModel(
+                sweep_length_mm=self.deadlines.sweep_length_mm,
+                sweep_speed_mm_s=self.deadlines.sweep_speed_mm_s,
+                robot_move_s=self.declare("sweep.robot_move_s", defaults.cell_time.robot_move_s,
+                                          "robot move between two sweeps, for the cell-time estimate (s)",
+                                          minimum=0.0, maximum=3600.0)),
         )
-        self.service_timeout_s = self.declare("service_timeout_s", 60.0, "timeout of one service call (s)",
-                                              minimum=0.1)
-        self.sweep_timeout_s = self.declare("sweep_timeout_s", 120.0,
-                                            "give up on a sweep after this long (s)", minimum=0.1)
-        self.marking_timeout_s = self.declare("marking_timeout_s", 600.0,
-                                              "give up on a marking job after this long (s)", minimum=0.1)
+        self.service_timeout_s = self.declare(
+            "service_timeout_s", 60.0, "time limit of one call to a processing node (plate pose, fiducials, "
+            "training, correction) (s)", minimum=0.1, maximum=3600.0)
+        self.resend_after_s = self.declare(
+            "resend_after_s", 15.0, "send an idempotent request (correction, plate pose, fiducials, training) "
+            "again when unanswered this long: a server that has just started may drop its first answers (s)",
+            minimum=1.0, maximum=3600.0)
         self.plate_exchange_service = self.declare(
             "plate_exchange_service", "", "Trigger service that loads a fresh plate (empty: none)")
         self.ground_truth_service = self.declare(
@@ -253,6 +313,10 @@ class CalibrationManager(GlsNode):
             response.success = False
             response.message = "a calibration is already running; request refused"
             return response
+        problem = self.settings.iterations_problem(request.iterations)
+        if problem:
+            response.success, response.message = False, f"request refused: {problem}"
+            return response
         self._running = True
         await self._run(request, response, None, lambda: False)
         return response
@@ -319,7 +383,9 @@ class CalibrationManager(GlsNode):
                                                                 self.arrow_scale, self.colour_full_scale_mm))
         summary = summarise(outcome)
         message = summary.message
-        if outcome.candidate is not None:
+        # Every file first, activation last: a failure before it leaves the old calibration in force.
+        response.report_dir = str(write_outcome_report(report_dir, outcome, summary))
+        if outcome.candidate is not None and not outcome.rejection:
             if cancel_requested():
                 raise CalibrationCanceled("activation")
             self.store.activate(outcome.candidate.path)
@@ -330,9 +396,11 @@ class CalibrationManager(GlsNode):
                 message += (f"; activated, but the correction node did not reload it ({error}): "
                             "call correction/load")
                 self.get_logger().error(message)
-        response.report_dir = str(write_outcome_report(report_dir, outcome, summary))
+        elif outcome.candidate is not None:
+            await self.cell.reload_active()   # a rejected candidate: the active calibration stays
         _fill_response(response, summary)
         response.message = message
+        response.success = not outcome.rejection
 
     @answers_errors(CalibrationFileError, ValueError)
     def on_explain(self, request, response):

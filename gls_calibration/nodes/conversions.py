@@ -347,6 +347,8 @@ def plate_pose_from_msg(msg: PlatePoseMsg) -> PlatePose:
     rotation = np.asarray(msg.rotation, dtype=float).reshape(3, 3)
     if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6) or np.linalg.det(rotation) < 0:
         raise ValueError("plate pose rotation is not a proper rotation matrix")
+    if not np.all(np.isfinite(msg.centre)):
+        raise ValueError(f"plate pose centre must be finite, got {list(msg.centre)}")
     return PlatePose(normal=rotation[:, 2].copy(), centre=np.asarray(msg.centre, dtype=float),
                      rotation=rotation, flatness_rms_mm=float(msg.flatness_rms_mm),
                      inlier_count=int(msg.inliers), inlier_fraction=float("nan"))

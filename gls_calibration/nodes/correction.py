@@ -7,39 +7,57 @@ names the calibration that gave it (content hash and creation time).
 """
 from __future__ import annotations
 
+from dataclasses import fields
 from datetime import datetime
 from pathlib import Path
 from typing import Any, Optional
 
+import numpy as np
+
 from gls_calibration.nodes import conversions
 from gls_calibration.calibration_record import correction_from_record, record_identity
-from gls_calibration.correction import Correction
+from gls_calibration.correction import CorrectedSetpoints, Correction
 from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
 from gls_calibration.nodes.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
 from gls_calibration.nodes.head_parameters import HEAD_PARAMETERS, declare_head_geometry, head_geometry_from
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
+from gls_calibration.validation import as_coordinate_arrays
 from gls_calibration_msgs.srv import CorrectSetpoints, LoadCalibration
 
 NOMINAL_ID = "nominal"
 
 
 class CorrectionNode(GlsNode):
-    """Corrects setpoints with the active calibration; the nominal model when there is none."""
+    """Corrects setpoints with the active calibration; the nominal model when there is none.
+
+    Requests are served by several executor threads and large ones are computed in chunks,
+    yielding between chunks, so that single-target requests of other clients are answered meanwhile.
+    """
 
     def __init__(self, **kwargs) -> None:
         super().__init__("correction", **kwargs)
         self.geometry = declare_head_geometry(self, dynamic=True)
         self.store = CalibrationStore(Path(self.declare("calibration_dir", "calibrations",
                                                         "folder of the calibration store")))
+        self.max_targets = self.declare(
+            "max_targets", 1_000_000, "most targets in one correct_setpoints request (about 300 bytes of "
+            "memory each while served)", minimum=1, maximum=10_000_000)
+        # See NodeThreads: with more than one thread, taking and answering a large batch does not hold up
+        # single-target requests (bench_concurrency.py).
+        self.executor_threads = self.declare("executor_threads", 4, "threads of the node's executor",
+                                             minimum=1, maximum=16)
+        self.chunk_targets = self.declare("chunk_targets", 20_000, "targets computed between two chances for "
+                                          "other requests to be served", minimum=100, maximum=10_000_000)
         self.correction: Optional[Correction] = Correction(self.geometry)
         self.file = ""
         self.problem = ""
         self.calibration_id, self.created = NOMINAL_ID, None
         self.summary: dict[str, object] = dict(NOMINAL_SUMMARY)
-        self._load()
+        self._load(keep_serving=False)
         # A new head geometry changes every answer: reload the active calibration with it.
         self.apply_parameter_changes(HEAD_PARAMETERS, self._apply_head)
-        self.create_service(CorrectSetpoints, "correct_setpoints", self.on_correct)
+        self.create_service(CorrectSetpoints, "correct_setpoints", self.on_correct,
+                            callback_group=self.reentrant_group)
         self.create_service(LoadCalibration, "correction/load", self.on_load)
         publish_diagnostics(self, self.health)
 
@@ -58,35 +76,38 @@ class CorrectionNode(GlsNode):
             return str(error)
         previous = self.geometry
         self.geometry = geometry
-        message = self._load()
-        if self.problem:
+        loaded, message = self._load(keep_serving=True)
+        if not loaded:
             self.geometry = previous
-            self._load()
             return f"head geometry refused: {message}"
         self.get_logger().info(f"head geometry changed: {geometry}; {message}")
         return None
 
-    def _load(self) -> str:
-        """Load the store's active calibration; on failure refuse corrections until a good load."""
+    def _load(self, *, keep_serving: bool) -> tuple[bool, str]:
+        """Load the store's active calibration; (loaded, message).
+
+        With ``keep_serving``, a refused file leaves the calibration that was serving in use; at
+        start-up (nothing serving yet) corrections are refused with the reason until a good load.
+        """
         try:
             path = self.store.active_path()
-        except CalibrationFileError as error:
-            self._serve(None, str(self.store.pointer_path), f"calibration store pointer is unusable: {error}")
-            return self.problem
-        if path is None:
-            self._serve(Correction(self.geometry), "", "")
-            self.get_logger().info("no calibration in the store: nominal model")
-            return "no calibration in the store: nominal model in use"
-        try:
+            if path is None:
+                self._serve(Correction(self.geometry), "", "")
+                self.get_logger().info("no calibration in the store: nominal model")
+                return True, "no calibration in the store: nominal model in use"
             record = self.store.load(path)
             correction = correction_from_record(record, self.geometry)
-        except (CalibrationFileError, ValueError, OSError) as error:
-            self._serve(None, str(path), f"calibration file {path} is unusable: {error}")
-            return self.problem
+        except (CalibrationFileError, ValueError, OSError, RecursionError, MemoryError) as error:
+            problem = f"active calibration refused: {error}"
+            self.get_logger().error(problem)
+            if keep_serving and self.correction is not None:
+                return False, f"{problem}; still serving {self.file or 'the nominal model'}"
+            self._serve(None, str(self.store.pointer_path), problem)
+            return False, problem
         self._serve(correction, str(path), "", *record_identity(record))
         self.summary = record_summary(record)
         self.get_logger().info(f"calibration {self.calibration_id} loaded from {path}")
-        return f"calibration {self.calibration_id} loaded from {path}"
+        return True, f"calibration {self.calibration_id} loaded from {path}"
 
     def _serve(self, correction: Optional[Correction], file: str, problem: str,
                calibration_id: str = NOMINAL_ID, created: Optional[datetime] = None) -> None:
@@ -109,22 +130,37 @@ class CorrectionNode(GlsNode):
                                     "only the active calibration is served (activate it first)")
                 response.file = self.file
                 return response
-        response.message = self._load()
-        response.success = not self.problem
+        response.success, response.message = self._load(keep_serving=True)
         response.file = self.file
         return response
 
     @answers_errors(ValueError)
-    def on_correct(self, request, response):
+    async def on_correct(self, request, response):
         """Correct the targets; ``success=false`` and a message naming the problem on bad input."""
-        response.calibration_id = self.calibration_id
-        if self.created is not None:
-            response.calibration_created = conversions.time_to_msg(self.created.timestamp())
-        if self.correction is None:
+        # One snapshot: a reload between chunks must not mix two calibrations in one answer.
+        correction, calibration_id, created = self.correction, self.calibration_id, self.created
+        response.calibration_id = calibration_id
+        if created is not None:
+            response.calibration_created = conversions.time_to_msg(created.timestamp())
+        if correction is None:
             response.success = False
             response.message = f"corrections refused: {self.problem}"
             return response
-        result = self.correction.correct(request.x, request.y, request.z if len(request.z) else None)
+        count = len(request.x)
+        if count > self.max_targets:
+            response.success = False
+            response.message = (f"{count} targets refused: at most {self.max_targets} per request "
+                                "(parameter max_targets); split the request")
+            return response
+        x, y, z = as_coordinate_arrays(request.x, request.y, request.z if len(request.z) else None)
+        parts = []
+        for start in range(0, max(count, 1), self.chunk_targets):
+            if start:
+                await self.yield_to_executor()
+            end = start + self.chunk_targets
+            parts.append(correction.correct(x[start:end], y[start:end], z[start:end]))
+        result = parts[0] if len(parts) == 1 else CorrectedSetpoints(
+            *(np.concatenate([getattr(part, field.name) for part in parts]) for field in fields(CorrectedSetpoints)))
         conversions.setpoints_to_response(result, response)
         unreachable = int((~result.within_limits).sum())
         if unreachable:

@@ -12,8 +12,8 @@ class FiducialMeasurementNode(GlsNode):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("fiducial_measurement", **kwargs)
-        self.ring_radii_mm = tuple(self.declare("ring_radii_mm", [2.5, 2.7],
-                                                "radii of the two rings of a fiducial (mm)"))
+        self.ring_radii_mm = tuple(self.declare_numbers("ring_radii_mm", [2.5, 2.7],
+                                                        "radii of the two rings of a fiducial (mm)"))
         self.pixel_size_mm = self.declare("pixel_size_mm", 0.1,
                                           "raster pixel for unorganized clouds (mm)", minimum=0.005, maximum=5.0)
         self.marks_darker = self.declare("marks_darker", True, "marks are darker than the plain plate")

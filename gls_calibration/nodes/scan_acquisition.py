@@ -1,26 +1,36 @@
 """scan_acquisition: serves ``scan/acquire``; starts a sweep, collects ``scan/points`` profiles and
-returns them assembled as one organized cloud, placed by their stamps and the sweep's known motion.
+returns them assembled as one organized cloud in the scanner base frame, each profile placed by the
+robot's reported sensor pose (``scan/pose``, PoseStamped, metres, interpolated at the profile's
+stamp) when that stream covers the sweep, else by its stamp and the sweep's nominal motion.
 
 Profiles come in the driver's moving sensor frame, in metres (REP 103; ``profile_unit`` "mm" takes a
 driver that publishes millimetres). The assembled cloud is in metres too, in the frame ``frame_id``
-(default ``scanner``: the sensor at the start of the sweep), stamped with the sweep's first profile.
+(default ``scanner``), stamped with the sweep's first profile.
 """
 from __future__ import annotations
 
+import math
+import time
 from typing import Optional
 
+from geometry_msgs.msg import PoseStamped
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
 
 from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
-from gls_calibration.sweep import SweepCollector, SweepMotion
+from gls_calibration.sweep import PoseTrack, SweepCollector, SweepMotion, nominal_start_pose
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, StartSweep
 
 
 PROFILE_UNITS_MM = {"m": conversions.MM_PER_M, "mm": 1.0}
+MAX_TIMEOUT_S = 3600.0     # an hour: longer than any sweep; bounds what a caller can make the node wait
+MAX_LENGTH_MM = 10000.0
+MAX_SPEED_MM_S = 10000.0
+MAX_STEP_MM = 100.0
+MALFORMED_GRACE_S = 2.0    # profiles still in flight after the end of sweep: wait this before giving up
+MAX_ENDS_KEPT = 16         # ends of sweep remembered during one acquisition (others' sweeps, spoofs)
 
 
 def profile_qos(depth: int) -> QoSProfile:
@@ -38,44 +48,91 @@ class ScanAcquisitionNode(GlsNode):
         self.max_points = self.declare("max_points_per_profile", 4096, "most points kept from one profile",
                                        minimum=1, maximum=100000)
         self.default_timeout_s = self.declare("timeout_s", 120.0, "default time limit of one sweep (s)",
-                                              minimum=0.1)
+                                              minimum=0.1, maximum=MAX_TIMEOUT_S)
         unit = self.declare("profile_unit", "m",
                             "unit of x, y, z in the driver's scan/points profiles: m (REP 103) or mm")
         if unit not in PROFILE_UNITS_MM:
             raise ValueError(f"profile_unit must be one of {', '.join(PROFILE_UNITS_MM)}, got {unit!r}")
         self.mm_per_unit = PROFILE_UNITS_MM[unit]
         self.frame_id = self.declare("frame_id", "scanner",
-                                     "frame of the assembled cloud: the sensor's pose at the start of the sweep")
+                                     "frame of the assembled cloud: the sensor's nominal pose at the start of a sweep")
+        self.use_poses = self.declare("use_pose_stream", True,
+                                      "place profiles by the reported sensor pose on scan/pose when it covers "
+                                      "the sweep (else by time at the nominal speed)")
         self.collector: Optional[SweepCollector] = None
-        self.first_stamp: Optional[Time] = None
-        self.done: Optional[SweepDone] = None
+        self.first_stamp: Optional[tuple[float, object]] = None   # (seconds, stamp message) of the first profile
+        self.poses: Optional[PoseTrack] = None
+        self.ends: dict[int, tuple] = {}       # (end of sweep, arrival) received while acquiring, by id
+        self.sweep_id: Optional[int] = None    # the sweep this node started; other ends of sweep are ignored
+        self.malformed = 0
         self.start_client = self.client(StartSweep, "scanner/start_sweep")
         self.create_subscription(PointCloud2, "scan/points", self.on_profile, profile_qos(self.max_profiles),
+                                 callback_group=self.reentrant_group)
+        self.create_subscription(PoseStamped, "scan/pose", self.on_pose, profile_qos(self.max_profiles),
                                  callback_group=self.reentrant_group)
         self.create_subscription(SweepDone, "scan/sweep_done", self.on_sweep_done, profile_qos(10),
                                  callback_group=self.reentrant_group)
         self.create_service(AcquireSweep, "scan/acquire", self.on_acquire, callback_group=self.reentrant_group)
 
     def on_profile(self, message: PointCloud2) -> None:
-        """Keep a profile of the running sweep; profiles outside a sweep are ignored."""
+        """Keep a profile of the running sweep; profiles outside a sweep are ignored.
+
+        A malformed profile (see ``sweep.profile_problem``, or a message that does not hold what
+        its header says) is dropped with a throttled warning and counted; it never stops the node.
+        """
         collector = self.collector
         if collector is None:
             return
         try:
-            profile = conversions.cloud_from_msg(message, self.mm_per_unit)
-        except ValueError as error:
-            self.get_logger().warning(f"profile dropped: {error}")
-            collector.dropped += 1
+            stamp = message.header.stamp
+            stamp_s = stamp.sec + stamp.nanosec * 1e-9
+            kept = collector.add(stamp_s, conversions.cloud_from_msg(message, self.mm_per_unit))
+        except (ValueError, TypeError, AttributeError) as error:
+            self.malformed += 1
+            self.get_logger().warning(f"malformed profile dropped ({self.malformed} in this sweep): {error}",
+                                      throttle_duration_sec=1.0)
             return
-        stamp = Time.from_msg(message.header.stamp)
-        if collector.add(stamp.nanoseconds * 1e-9, profile) and (
-                self.first_stamp is None or stamp < self.first_stamp):
-            self.first_stamp = stamp
+        if kept and (self.first_stamp is None or stamp_s < self.first_stamp[0]):
+            self.first_stamp = (stamp_s, stamp)
+
+    def on_pose(self, message: PoseStamped) -> None:
+        """Keep a reported sensor pose of the running sweep (metres -> mm)."""
+        poses = self.poses
+        if poses is None:
+            return
+        position, orientation = message.pose.position, message.pose.orientation
+        stamp = message.header.stamp
+        poses.add(stamp.sec + stamp.nanosec * 1e-9,
+                  (1000.0 * position.x, 1000.0 * position.y, 1000.0 * position.z),
+                  (orientation.x, orientation.y, orientation.z, orientation.w))
 
     def on_sweep_done(self, message: SweepDone) -> None:
-        """Remember the end of the sweep; the acquire coroutine waits for it."""
-        if self.collector is not None:
-            self.done = message
+        """Remember an end of sweep while acquiring; only the one of the sweep this node started counts.
+
+        Kept by id because it may arrive before the scanner's answer that tells the id.
+        """
+        if self.collector is None:
+            return
+        if len(self.ends) >= MAX_ENDS_KEPT:
+            self.ends.pop(next(iter(self.ends)))
+        self.ends[message.sweep_id] = (message, time.monotonic())
+
+    @property
+    def done(self) -> Optional[SweepDone]:
+        """The end of the sweep being acquired, once it came."""
+        end = None if self.sweep_id is None else self.ends.get(self.sweep_id)
+        return None if end is None else end[0]
+
+    def _sweep_over(self) -> bool:
+        """Every profile of the sweep kept (or over the bounds); or, once the end of the sweep is
+        ``MALFORMED_GRACE_S`` old, accounted for with the malformed ones (the sweep then fails)."""
+        end = None if self.sweep_id is None else self.ends.get(self.sweep_id)
+        if end is None:
+            return False
+        done, arrived = end
+        accounted = len(self.collector) + self.collector.dropped
+        return accounted >= done.profiles or (
+            accounted + self.malformed >= done.profiles and time.monotonic() - arrived >= MALFORMED_GRACE_S)
 
     async def on_acquire(self, request, response):
         """Start a sweep, wait for all its profiles, answer with the organized cloud."""
@@ -83,41 +140,80 @@ class ScanAcquisitionNode(GlsNode):
             response.success = False
             response.message = "a sweep is already being acquired; request refused"
             return response
+        problem = request_problem(request)
+        if problem:
+            response.success, response.message = False, f"request refused: {problem}"
+            return response
         timeout_s = request.timeout_s or self.default_timeout_s
-        self.collector, self.done = SweepCollector(self.max_profiles, self.max_points), None
+        direction = request.direction or 1
+        if direction not in (1, -1):
+            response.success = False
+            response.message = f"direction must be +1, -1 or 0 (+1), got {request.direction}"
+            return response
+        self.collector, self.sweep_id, self.malformed = SweepCollector(self.max_profiles, self.max_points), None, 0
+        self.poses = PoseTrack(self.max_profiles) if self.use_poses else None
+        self.ends.clear()
         self.first_stamp = None
         try:
             started = await self.call(self.start_client, StartSweep.Request(
-                length_mm=request.length_mm, speed_mm_s=request.speed_mm_s, step_mm=request.step_mm), timeout_s)
+                length_mm=request.length_mm, speed_mm_s=request.speed_mm_s, step_mm=request.step_mm,
+                direction=direction, orientation_deg=request.orientation_deg), timeout_s)
             if not started.success:
                 raise ServiceCallError(f"the scanner refused the sweep: {started.message}")
-            await self.wait_for(lambda: self.done is not None and self.done.sweep_id == started.sweep_id
-                                and len(self.collector) + self.collector.dropped >= self.done.profiles,
-                                timeout_s, self._timeout_message(timeout_s, started.expected_profiles))
+            self.sweep_id = started.sweep_id
+            # Complete when the end of this sweep came and each of its profiles was kept or dropped;
+            # the scanner is watched meanwhile, so a scanner that dies fails the sweep at once.
+            await self.wait_for(self._sweep_over, timeout_s,
+                                self._timeout_message(timeout_s, started.expected_profiles),
+                                watch=[self.start_client])
             done, collector = self.done, self.collector
             if not done.complete:
                 raise ServiceCallError(f"the sweep was cut short after {done.profiles} profiles")
-            if collector.dropped:
-                raise ServiceCallError(f"{collector.dropped} of {done.profiles} profiles were dropped "
-                                       f"(bounds: {self.max_profiles} profiles of {self.max_points} points)")
-            cloud = collector.assemble(SweepMotion(tuple(done.direction), done.speed_mm_s))
+            if done.profiles != started.expected_profiles:
+                raise ServiceCallError(f"the end of sweep {done.sweep_id} counts {done.profiles} profiles; the "
+                                       f"scanner announced {started.expected_profiles}")
+            if collector.dropped or len(collector) < done.profiles:
+                raise ServiceCallError(
+                    f"{len(collector)} of {done.profiles} profiles kept: {self.malformed} malformed, "
+                    f"{collector.dropped} over the bounds ({self.max_profiles} profiles of {self.max_points} points)")
+            length_mm = (done.profiles - 1) * done.step_mm
+            cloud, by_pose = collector.assemble(SweepMotion(tuple(done.direction), done.speed_mm_s),
+                                                nominal_start_pose(length_mm, direction, request.orientation_deg),
+                                                self.poses)
         except (ServiceCallError, ValueError) as error:
             response.success = False
             response.message = str(error)
             return response
         finally:
-            self.collector = None
-        response.cloud = conversions.cloud_to_msg(cloud, self.frame_id, self.first_stamp)
+            self.collector, self.poses, self.sweep_id = None, None, None
+        response.cloud = conversions.cloud_to_msg(cloud, self.frame_id,
+                                                  None if self.first_stamp is None else self.first_stamp[1])
+        response.placed_by_pose = by_pose
         response.success = True
-        response.message = f"{cloud.shape[0]} profiles of {cloud.shape[1]} points"
+        response.message = (f"{cloud.shape[0]} profiles of {cloud.shape[1]} points, placed "
+                            + ("by the reported pose" if by_pose else "by time at the nominal speed"))
+        if self.malformed:
+            response.message += f"; {self.malformed} malformed profile(s) dropped"
         return response
 
     def _timeout_message(self, timeout_s: float, expected: int):
         def message() -> str:
             received = len(self.collector) if self.collector is not None else 0
+            malformed = f" ({self.malformed} malformed dropped)" if self.malformed else ""
             return (f"sweep not complete after {timeout_s:g} s: {received} of {expected} profiles "
-                    "received and no end of sweep")
+                    f"received{malformed} and no end of sweep")
         return message
+
+
+def request_problem(request) -> str:
+    """Why an AcquireSweep request cannot be served (empty string when it can)."""
+    limits = (("timeout_s", MAX_TIMEOUT_S), ("length_mm", MAX_LENGTH_MM), ("speed_mm_s", MAX_SPEED_MM_S),
+              ("step_mm", MAX_STEP_MM))
+    for name, limit in limits:
+        value = getattr(request, name)
+        if not math.isfinite(value) or value < 0.0 or value > limit:
+            return f"{name} must be 0 (the default) or a positive number up to {limit:g}, got {value!r}"
+    return ""
 
 
 def main(args=None) -> None:

@@ -29,6 +29,8 @@ class SimGalvoNode(GlsNode):
         self.plates_loaded = 0
         self.landed: list[np.ndarray] = []
         self.times: list[np.ndarray] = []
+        self.max_points = self.declare("max_points", 5_000_000, "most points of one marking job",
+                                       minimum=1, maximum=100_000_000)
         self.create_service(MarkPolylines, "galvo/mark", self.on_mark)
         self.create_service(LandingPositions, "sim/landing_positions", self.on_landing_positions)
         self.create_service(GetMarkedPaths, "sim/marked_paths", self.on_marked_paths)
@@ -41,6 +43,8 @@ class SimGalvoNode(GlsNode):
         focus = conversions.float64_array(request.focus_shift)
         starts = np.asarray(request.polyline_starts, dtype=np.int64)
         problem = _polyline_problem(alpha_x, alpha_y, focus, starts, self.config.geometry)
+        if len(alpha_x) > self.max_points:
+            problem = f"{len(alpha_x)} points refused: at most {self.max_points} per job (parameter max_points)"
         if problem:
             response.success, response.message = False, problem
             return response
@@ -62,6 +66,13 @@ class SimGalvoNode(GlsNode):
         if len(alpha_x) != len(alpha_y) or (len(t) and len(t) != len(alpha_x)):
             response.success = False
             response.message = "alpha_x, alpha_y (and t when given) must have the same length"
+            return response
+        if not (np.all(np.isfinite(alpha_x)) and np.all(np.isfinite(alpha_y)) and np.all(np.isfinite(t))):
+            response.success, response.message = False, "alpha_x, alpha_y and t must be finite"
+            return response
+        if len(alpha_x) > self.max_points:
+            response.success = False
+            response.message = f"{len(alpha_x)} points refused: at most {self.max_points} (parameter max_points)"
             return response
         landed = self.head.land(alpha_x, alpha_y, t if len(t) else None)
         response.x, response.y, response.z = (conversions.float64_sequence(landed[:, i]) for i in range(3))

@@ -17,6 +17,7 @@ Hooks for placing profiles by pose and for sweep plans (see ``simulation/scanner
 """
 from __future__ import annotations
 
+import math
 from typing import Iterator, Optional
 
 import numpy as np
@@ -42,6 +43,8 @@ class SimScannerNode(GlsNode):
         super().__init__("sim_scanner", **kwargs)
         self.config = declare_sim_config(self)
         self.batch = self.declare("profiles_per_tick", 50, "profiles published per timer tick", minimum=1)
+        self.max_profiles = self.declare("max_profiles", 20000, "most profiles of one sweep", minimum=1,
+                                         maximum=1_000_000)
         depth = self.declare("queue_depth", 4000, "profiles the reliable publisher keeps for slow subscribers",
                              minimum=1)
         self.frame_id = self.declare("frame_id", "scanner_sensor", "frame of the profiles: the moving sensor")
@@ -68,8 +71,15 @@ class SimScannerNode(GlsNode):
             response.success, response.message = False, "a sweep is running; request refused"
             return response
         length = request.length_mm or self.config.sweep_length_mm   # 0 in the request: the default
-        profiles, speed, step = self.scanner.sweep_parameters(length, request.speed_mm_s or None,
-                                                              request.step_mm or None)
+        try:
+            profiles, speed, step = self.scanner.sweep_parameters(length, request.speed_mm_s or None,
+                                                                  request.step_mm or None)
+            if profiles > self.max_profiles or not math.isfinite(speed):
+                raise ValueError(f"a sweep of {length:g} mm at {speed:g} mm/s every {step:g} mm is refused: "
+                                 f"at most {self.max_profiles} profiles (parameter max_profiles) at a finite speed")
+        except (ValueError, OverflowError) as error:
+            response.success, response.message = False, f"request refused: {error}"
+            return response
         direction = request.direction or 1
         if direction not in (1, -1) or request.orientation_deg not in ORIENTATIONS_DEG:
             response.success = False

@@ -3,7 +3,7 @@
 Runs ``procedure.calibrate`` and ``procedure.run_plate`` in one process, with the same core steps
 the nodes wrap (plate pose, fiducial measurement, correction, training), so that tests and
 benchmarks exercise the real calibrate flow in seconds. What differs from the ROS cell: clouds stay
-numpy arrays (xyz, intensity) in the sweep-start scanner frame instead of PointCloud2 profiles.
+numpy arrays (xyz, intensity) in the scanner base frame instead of PointCloud2 profiles.
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from gls_calibration.registration import RigidTransform
 from gls_calibration.simulation.world import SimulatedCell
 from gls_calibration.training import TrainedModel, TrainingOptions, train_correction
 
-Cloud = tuple[np.ndarray, np.ndarray]   # organized xyz (H, W, 3) and intensity (H, W), scanner frame, mm
+Cloud = tuple[np.ndarray, np.ndarray]   # organized xyz (H, W, 3) and intensity (H, W), scanner base frame, mm
 
 
 class DirectCell:
@@ -32,12 +32,15 @@ class DirectCell:
     ``ring_radii_mm`` must be those of the settings the procedure runs with; ``physics_first`` and
     ``training`` choose what ``train`` trains (see ``training.train_correction``). ``correction`` is
     what ``correct`` uses (set by ``load_calibration``/``reload_active``; a benchmark may set it to
-    compare models); ``marks`` the polylines landed on the current plate.
+    compare models); ``marks`` the polylines landed on the current plate. Clouds are in the scanner
+    base frame, profiles placed by the robot's reported pose (``placed_by_pose``) or by time.
     """
 
     def __init__(self, sim: SimulatedCell, store: CalibrationStore, *, ring_radii_mm=(2.5, 2.7),
-                 physics_first: bool = False, training: TrainingOptions = TrainingOptions()) -> None:
+                 physics_first: bool = False, training: TrainingOptions = TrainingOptions(),
+                 placed_by_pose: bool = True) -> None:
         self.sim = sim
+        self.placed_by_pose = placed_by_pose
         self.store = store
         self.ring_radii_mm = tuple(ring_radii_mm)
         self.physics_first = physics_first
@@ -52,11 +55,18 @@ class DirectCell:
         mounting = self.sim.config.scanner_to_gls
         base = ProcedureSettings(scanner_to_gls=RigidTransform(mounting[:3, :3].copy(), mounting[:3, 3].copy()),
                                  ring_radii_mm=self.ring_radii_mm)
+        base = dataclasses.replace(base, profiles_placed_by_pose=self.placed_by_pose)
         return dataclasses.replace(base, **overrides)
 
-    async def acquire_sweep(self, step_mm: float) -> Cloud:
+    async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Cloud:
         self.sweeps += 1   # each sweep its own robot path error and noise, as on the ROS cell
-        return self.sim.sweep_cloud(step_mm=step_mm, seed=self.sim.config.seed * 100003 + self.sweeps)
+        data = _refusing(self.sim.sweep_data, step_mm=step_mm, seed=self.sim.config.seed * 100003 + self.sweeps,
+                         direction=direction, orientation_deg=orientation_deg)
+        xyz = data.placed_by_pose() if self.placed_by_pose else data.placed_by_time()
+        return xyz.astype(np.float32), data.intensity
+
+    def intensities(self, cloud: Cloud) -> np.ndarray:
+        return cloud[1]
 
     async def estimate_plate_pose(self, cloud: Cloud) -> PlatePose:
         return _refusing(estimate_plate_pose, cloud[0].reshape(-1, 3), head_direction=(0.0, 0.0, -1.0))

@@ -1,0 +1,88 @@
+"""Single-target latency of the correction node while a 1 000 000-target batch is being served.
+
+Four clients (each its own node) send single-target requests in a loop; p99 of their round trips
+without a batch, then while a fifth client sends 1 000 000-target requests back to back. The
+correction node computes a batch in chunks (parameter chunk_targets) and serves other requests
+between chunks. Goal (issue 16): p99 with the batch within 3x the p99 without.
+
+Run: .venv/bin/python benchmarks/bench_concurrency.py [--requests 300] [--batch 1000000]
+"""
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+
+import numpy as np
+
+from gls_calibration.nodes.conversions import float64_sequence
+from gls_calibration_msgs.srv import CorrectSetpoints
+
+from correction_peer import call, correction_peer
+
+CLIENTS = 4
+
+
+def round_trips(client, count: int, out: list) -> None:
+    request = CorrectSetpoints.Request(x=[10.0], y=[-20.0])
+    for _ in range(count):
+        began = time.perf_counter()
+        response = call(client, request)
+        out.append(time.perf_counter() - began)
+        assert response.success, response.message
+
+
+def concurrent_singles(clients, count: int) -> np.ndarray:
+    results: list[list[float]] = [[] for _ in clients]
+    threads = [threading.Thread(target=round_trips, args=(client, count, out)) for client, out in zip(clients, results)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    return np.concatenate(results)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--requests", type=int, default=300, help="single-target requests per client and phase")
+    parser.add_argument("--batch", type=int, default=1_000_000)
+    parser.add_argument("--threads", type=int, default=4, help="executor threads of the correction node")
+    args = parser.parse_args()
+    names = tuple(f"single_{index}" for index in range(CLIENTS)) + ("batch_client",)
+    with correction_peer(names, f"executor_threads:={args.threads}") as (_, nodes, expected):
+        clients = [node.create_client(CorrectSetpoints, "correct_setpoints") for node in nodes]
+        for client in clients:
+            if not client.wait_for_service(timeout_sec=60.0):
+                raise RuntimeError("the correction node did not come up")
+        singles, batch_client = clients[:CLIENTS], clients[CLIENTS]
+        concurrent_singles(singles, 20)                          # warm-up
+        alone = concurrent_singles(singles, args.requests)
+
+        xy = np.random.default_rng(0).uniform(-95.0, 95.0, (2, args.batch))
+        batch_request = CorrectSetpoints.Request(x=float64_sequence(xy[0]), y=float64_sequence(xy[1]))
+        stop, batch_times = threading.Event(), []
+
+        def batches() -> None:
+            while not stop.is_set():
+                began = time.perf_counter()
+                response = call(batch_client, batch_request)
+                batch_times.append(time.perf_counter() - began)
+                assert response.success and len(response.alpha_x) == args.batch, response.message
+        batcher = threading.Thread(target=batches)
+        batcher.start()
+        time.sleep(0.5)                                          # the first batch is being served
+        during = concurrent_singles(singles, args.requests)
+        stop.set()
+        batcher.join()
+        check = expected.correct(np.array([10.0]), np.array([-20.0]))
+        assert check.within_limits.all()
+    p99_alone, p99_during = np.percentile(alone, 99), np.percentile(during, 99)
+    print(f"correction node with {args.threads} executor thread(s)")
+    print(f"single target from {CLIENTS} clients, {args.requests} requests each: p99 {1e3 * p99_alone:.2f} ms alone, "
+          f"{1e3 * p99_during:.2f} ms while {args.batch}-target batches are served ({p99_during / p99_alone:.1f}x; "
+          f"goal <= 3x); median {1e3 * np.median(alone):.2f} / {1e3 * np.median(during):.2f} ms")
+    print(f"  {len(batch_times)} batches of {args.batch} targets, median {np.median(batch_times):.2f} s each")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,68 @@
+"""A correction node in a child process with a trained calibration, and a client node here (for benchmarks)."""
+from __future__ import annotations
+
+from contextlib import contextmanager
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from typing import Iterator
+
+import numpy as np
+import rclpy
+
+from gls_calibration.calibration_record import correction_from_record
+from gls_calibration.correction import Correction
+from gls_calibration.kinematics import HeadGeometry
+from gls_calibration.nodes.base import NodeThreads, use_fast_liveliness
+from gls_calibration.persistence import CalibrationStore
+
+from bench_services import synthetic_calibration
+
+
+def rss_bytes(pid: int) -> int:
+    """Resident set size of process ``pid`` (Linux /proc)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    raise RuntimeError(f"no VmRSS for process {pid}")
+
+
+def call(client, request):
+    """The answer to ``request`` (the client's node is spun by another thread)."""
+    future = client.call_async(request)
+    while not future.done():
+        time.sleep(0.0001)
+    return future.result()
+
+
+@contextmanager
+def correction_peer(client_names: tuple[str, ...] = ("bench_client",), *parameters: str) -> Iterator[tuple]:
+    """(child process, client nodes, the Correction it serves), all stopped afterwards; ``parameters``
+    (``name:=value``) go to the correction node."""
+    os.environ.setdefault("ROS_DOMAIN_ID", str(np.random.default_rng().integers(101, 200)))
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    use_fast_liveliness()
+    with tempfile.TemporaryDirectory() as store:
+        synthetic_calibration(Path(store))
+        expected: Correction = correction_from_record(CalibrationStore(store).load_active(), HeadGeometry())
+        child = subprocess.Popen(
+            [sys.executable, "-c", "from gls_calibration.nodes.correction import main; main()",
+             "--ros-args", "-p", f"calibration_dir:={store}", "--log-level", "warn",
+             *(argument for parameter in parameters for argument in ("-p", parameter))])
+        rclpy.init()
+        nodes = [rclpy.create_node(name, namespace="gls") for name in client_names]
+        threads = NodeThreads(nodes)
+        try:
+            yield child, nodes, expected
+        finally:
+            threads.stop()
+            rclpy.shutdown()
+            child.send_signal(signal.SIGINT)
+            try:
+                child.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                child.kill()

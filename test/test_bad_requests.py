@@ -1,0 +1,355 @@
+"""Every service of the package refuses bad requests with a message and keeps serving.
+
+For each service: NaN, infinite, negative, absurdly large values and empty lists get
+``success=false`` and a message naming the problem; a good request right after must succeed.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2, PointField
+
+from gls_calibration import kinematics
+from gls_calibration.nodes.conversions import array_to_pointcloud2, plate_pose_to_msg, xyzi_array
+from gls_calibration.nodes.calibration_manager import CalibrationManager
+from gls_calibration.nodes.correction import CorrectionNode
+from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
+from gls_calibration.nodes.plate_pose import PlatePoseNode
+from gls_calibration.nodes.rbf_trainer import RbfTrainerNode
+from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
+from gls_calibration.nodes.sim_galvo import SimGalvoNode
+from gls_calibration.nodes.sim_scanner import SimScannerNode
+from gls_calibration.persistence import CalibrationStore
+from gls_calibration.plate_pose import estimate_plate_pose
+from gls_calibration_msgs.msg import PlatePose, SweepDone
+from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints, EstimatePlatePose,
+                                      ExplainDeviations, LandingPositions, LoadCalibration, MarkPolylines,
+                                      MeasureFiducials, StartSweep, TrainCorrection)
+
+from rendering import render_plate_scan
+from ros_helpers import call_service
+from test_nodes import PROFILES, FakeScanner, trained_record
+from test_persistence import make_record
+
+NAMESPACE = "gls"
+TIMEOUT_S = 20.0
+GEOMETRY = kinematics.HeadGeometry()
+NAN, INF = math.nan, math.inf
+
+
+class Caller:
+    """Calls one service of a node under test from a client node."""
+
+    def __init__(self, node: Node, srv_type, name: str) -> None:
+        self.node, self.client = node, node.create_client(srv_type, name)
+
+    def __call__(self, request, timeout_s: float = TIMEOUT_S):
+        return call_service(self.node, self.client, request, timeout_s)
+
+    def refuses(self, request, match: str) -> str:
+        response = self(request)
+        assert not response.success, f"accepted: {request}"
+        assert match in response.message, response.message
+        return response.message
+
+
+@pytest.fixture
+def client(ros_context, add_node):
+    node = add_node(Node("bad_request_client", namespace=NAMESPACE, context=ros_context))
+    return lambda srv_type, name: Caller(node, srv_type, name)
+
+
+# --- correction -------------------------------------------------------------------------------------
+
+def test_correct_setpoints_refuses_bad_and_oversized_requests_and_keeps_serving(ros_context, add_node, client,
+                                                                              tmp_path):
+    add_node(CorrectionNode(context=ros_context, parameter_overrides=[
+        Parameter("calibration_dir", value=str(tmp_path / "store")), Parameter("max_targets", value=10)]))
+    correct = client(CorrectSetpoints, "correct_setpoints")
+    correct.refuses(CorrectSetpoints.Request(x=[NAN], y=[0.0]), "x")
+    correct.refuses(CorrectSetpoints.Request(x=[0.0], y=[INF]), "y")
+    correct.refuses(CorrectSetpoints.Request(x=[0.0, 1.0], y=[0.0]), "same length")
+    correct.refuses(CorrectSetpoints.Request(x=[0.0], y=[0.0], z=[-1e308, 2.0]), "z must be empty")
+    correct.refuses(CorrectSetpoints.Request(x=[0.0], y=[0.0], z=[NAN]), "z")
+    message = correct.refuses(CorrectSetpoints.Request(x=[0.0] * 11, y=[0.0] * 11), "11 targets refused")
+    assert "at most 10 per request" in message
+    beyond = correct(CorrectSetpoints.Request(x=[0.0, 1e6], y=[0.0, 0.0], z=[0.0, 0.0]))
+    assert not beyond.success and list(beyond.within_limits) == [True, False]
+    high = correct(CorrectSetpoints.Request(x=[0.0], y=[0.0], z=[100.0]))     # 4x the focus range
+    assert not high.success and list(high.within_limits) == [False]
+    good = correct(CorrectSetpoints.Request(x=[0.0] * 10, y=[1.0] * 10))
+    assert good.success, good.message
+
+
+def test_correct_setpoints_in_chunks_equals_one_piece(ros_context, add_node, client, tmp_path):
+    store_dir = tmp_path / "store"
+    record, _ = trained_record()
+    CalibrationStore(store_dir).save(record, activate=True)
+    add_node(CorrectionNode(context=ros_context, parameter_overrides=[
+        Parameter("calibration_dir", value=str(store_dir)), Parameter("chunk_targets", value=100)]))
+    x = np.linspace(-90.0, 90.0, 1001)
+    y = np.cos(x / 30.0) * 80.0
+    answer = client(CorrectSetpoints, "correct_setpoints")(CorrectSetpoints.Request(x=x, y=y))
+    assert answer.success, answer.message
+    from gls_calibration.calibration_record import correction_from_record
+    expected = correction_from_record(CalibrationStore(store_dir).load_active(), GEOMETRY).correct(x, y)
+    np.testing.assert_array_equal(np.asarray(answer.alpha_x), expected.alpha_x)
+    np.testing.assert_array_equal(np.asarray(answer.y), expected.y)
+    assert list(answer.inside_calibrated_field) == expected.inside_calibrated_field.tolist()
+
+
+def test_correction_load_refuses_hostile_files_and_keeps_the_serving_calibration(ros_context, add_node, client,
+                                                                                 tmp_path):
+    store = CalibrationStore(tmp_path / "store")
+    good = store.save(make_record(), activate=True)
+    other = store.save(make_record(seed=1), activate=False)
+    add_node(CorrectionNode(context=ros_context, parameter_overrides=[
+        Parameter("calibration_dir", value=str(store.directory))]))
+    load = client(LoadCalibration, "correction/load")
+    outside = tmp_path / "outside.yaml"
+    outside.write_text(good.read_text())
+    fifo = store.history_directory / "pipe.yaml"
+    os.mkfifo(fifo)
+    (store.history_directory / "bomb.yaml").write_text("a: &a [1, 1]\nb: [*a, *a]\n")
+    nan_text = re.sub(r"format_version: \d+", "format_version: .nan", good.read_text())
+    assert nan_text != good.read_text()
+    (store.history_directory / "nan.yaml").write_text(nan_text)
+    for path, problem in [(str(outside), "outside the calibration directory"),
+                          ("../../outside.yaml", "outside the calibration directory"),
+                          ("/dev/zero", "outside the calibration directory"),
+                          (str(fifo), "not a regular file"), ("bomb.yaml", "aliases are not allowed"),
+                          ("nan.yaml", "format_version"), (str(store.history_directory), "not a regular file")]:
+        message = load.refuses(LoadCalibration.Request(file=path), problem)
+        assert message.endswith(f"still serving {good}"), message
+    served = client(CorrectSetpoints, "correct_setpoints")(CorrectSetpoints.Request(x=[0.0], y=[0.0]))
+    assert served.success and served.message == "corrected"
+    switched = load(LoadCalibration.Request(file=other.name))
+    assert switched.success and switched.file == str(other.resolve()), switched.message
+
+
+def test_a_bad_active_file_at_start_leaves_the_node_up_and_refusing_with_the_reason(ros_context, add_node, client,
+                                                                                    tmp_path):
+    store = CalibrationStore(tmp_path / "store")
+    good = store.save(make_record(), activate=True)
+    good.write_text("[" * 100_000 + "]" * 100_000)      # deep nesting: once a RecursionError at start-up
+    add_node(CorrectionNode(context=ros_context, parameter_overrides=[
+        Parameter("calibration_dir", value=str(store.directory))]))
+    correct = client(CorrectSetpoints, "correct_setpoints")
+    message = correct.refuses(CorrectSetpoints.Request(x=[0.0], y=[0.0]), "corrections refused")
+    assert "nested deeper than" in message
+    replacement = store.save(make_record(seed=2), activate=True)
+    loaded = client(LoadCalibration, "correction/load")(LoadCalibration.Request(file=""))
+    assert loaded.success and loaded.file == str(replacement), loaded.message
+    assert correct(CorrectSetpoints.Request(x=[0.0], y=[0.0])).success
+
+
+# --- scan acquisition, plate pose, fiducials, trainer ------------------------------------------------------
+
+@pytest.mark.parametrize("field, value", [("timeout_s", -1.0), ("timeout_s", 1e10), ("timeout_s", 1e308),
+                                          ("timeout_s", NAN), ("timeout_s", INF), ("length_mm", -1.0),
+                                          ("speed_mm_s", NAN), ("step_mm", 1e308)])
+def test_scan_acquire_refuses_bad_numbers_and_then_acquires(ros_context, add_node, client, field, value):
+    add_node(ScanAcquisitionNode(context=ros_context))
+    FakeScanner(add_node(Node("fake_scanner", namespace=NAMESPACE, context=ros_context)), "complete")
+    acquire = client(AcquireSweep, "scan/acquire")
+    request = AcquireSweep.Request(timeout_s=5.0)
+    setattr(request, field, value)
+    acquire.refuses(request, f"request refused: {field} must be 0 (the default) or a positive number up to")
+    good = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))
+    assert good.success, good.message
+
+
+def plane_cloud(points: int = 2000) -> PointCloud2:
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-50.0, 50.0, (points, 2))
+    z = 300.0 + 0.01 * xy[:, 0] + rng.normal(0.0, 0.01, points)
+    return array_to_pointcloud2(xyzi_array(np.column_stack([xy, z]), rng.random(points)), "scanner")
+
+
+def malformed_clouds() -> dict[str, PointCloud2]:
+    good = plane_cloud()
+    clouds = {}
+    empty_huge = PointCloud2(height=1, width=2 ** 31, fields=good.fields, point_step=good.point_step,
+                             row_step=good.point_step * 2 ** 31 % 2 ** 32, data=[])
+    clouds["huge width, empty data"] = empty_huge
+    short = plane_cloud()
+    short.data = short.data[: len(short.data) // 2]
+    clouds["short data"] = short
+    step = plane_cloud()
+    step.point_step = 3
+    clouds["wrong point_step"] = step
+    fields = plane_cloud()
+    fields.fields = [field for field in fields.fields if field.name != "z"]
+    clouds["missing field"] = fields
+    nan_only = xyzi_array(np.full((50, 3), np.nan), np.zeros(50))
+    clouds["NaN only"] = array_to_pointcloud2(nan_only, "scanner")
+    counted = plane_cloud()
+    counted.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=2 if f.name == "x" else 1)
+                      for f in counted.fields]
+    clouds["field count 2"] = counted
+    return clouds
+
+
+def test_plate_pose_refuses_malformed_clouds_and_then_fits(ros_context, add_node, client):
+    add_node(PlatePoseNode(context=ros_context))
+    estimate = client(EstimatePlatePose, "plate_pose/estimate")
+    for name, cloud in malformed_clouds().items():
+        response = estimate(EstimatePlatePose.Request(cloud=cloud))
+        assert not response.success and response.message, name
+    good = estimate(EstimatePlatePose.Request(cloud=plane_cloud()))
+    assert good.success, good.message
+
+
+def test_fiducial_measurement_refuses_bad_clouds_and_poses_and_then_measures(ros_context, add_node, client):
+    add_node(FiducialMeasurementNode(context=ros_context))
+    measure = client(MeasureFiducials, "fiducials/measure")
+    centres = np.array([[-10.0, -10.0], [10.0, -10.0], [0.0, 10.0]])
+    xyz, intensity = render_plate_scan(centres, size_mm=(40.0, 40.0), offset_mm=(0.0, 0.0, 300.0))
+    pose = estimate_plate_pose(xyz)
+    scan = array_to_pointcloud2(xyzi_array(xyz, intensity), "scanner")
+    pose_msg = plate_pose_to_msg(pose)
+    for name, cloud in malformed_clouds().items():
+        response = measure(MeasureFiducials.Request(cloud=cloud, pose=pose_msg))
+        assert not response.success and response.message, name
+    nan_pose = PlatePose(normal=[NAN, 0.0, 1.0], centre=[0.0, 0.0, NAN], rotation=[NAN] * 9)
+    measure.refuses(MeasureFiducials.Request(cloud=scan, pose=nan_pose), "rotation")
+    bad_centre = plate_pose_to_msg(pose)
+    bad_centre.centre = [0.0, INF, 300.0]
+    measure.refuses(MeasureFiducials.Request(cloud=scan, pose=bad_centre), "centre")
+    good = measure(MeasureFiducials.Request(cloud=scan, pose=pose_msg, expected_count=3))
+    assert good.success and len(good.x) == 3, good.message
+
+
+def test_trainer_refuses_bad_training_data_and_then_trains(ros_context, add_node, client):
+    add_node(RbfTrainerNode(context=ros_context, parameter_overrides=[Parameter("max_points", value=100)]))
+    train = client(TrainCorrection, "rbf/train")
+    train.refuses(TrainCorrection.Request(), "")
+    train.refuses(TrainCorrection.Request(x=[0.0, 1.0], y=[0.0], dx=[0.0, 0.0], dy=[0.0, 0.0]), "same length")
+    train.refuses(TrainCorrection.Request(x=[NAN] * 3, y=[0.0] * 3, dx=[0.0] * 3, dy=[0.0] * 3), "")
+    train.refuses(TrainCorrection.Request(x=[0.0] * 3, y=[0.0] * 3, dx=[INF] * 3, dy=[0.0] * 3), "")
+    many = np.linspace(0.0, 1.0, 101)
+    train.refuses(TrainCorrection.Request(x=many, y=many, dx=many, dy=many), "101 points refused: at most 100")
+    grid = np.stack(np.meshgrid(np.linspace(-90, 90, 7), np.linspace(-90, 90, 7)), axis=-1).reshape(-1, 2)
+    field = 0.001 * grid[:, ::-1]
+    good = train(TrainCorrection.Request(x=grid[:, 0], y=grid[:, 1], dx=field[:, 0], dy=field[:, 1]))
+    assert good.success, good.message
+
+
+# --- simulated devices ----------------------------------------------------------------------------------
+
+def test_sim_scanner_refuses_absurd_sweeps_and_then_sweeps(ros_context, add_node, client):
+    add_node(SimScannerNode(context=ros_context))
+    start = client(StartSweep, "scanner/start_sweep")
+    for request in (StartSweep.Request(length_mm=-1.0), StartSweep.Request(length_mm=NAN),
+                    StartSweep.Request(length_mm=1e308), StartSweep.Request(speed_mm_s=INF),
+                    StartSweep.Request(length_mm=200.0, step_mm=1e-9)):
+        start.refuses(request, "")
+    # No galvo here: the marks cannot be loaded, which the scanner says (and it keeps serving).
+    started = start(StartSweep.Request(length_mm=10.0))
+    assert not started.success and "marks" in started.message
+
+
+def test_sim_galvo_refuses_bad_commands_and_then_marks(ros_context, add_node, client):
+    add_node(SimGalvoNode(context=ros_context))
+    mark = client(MarkPolylines, "galvo/mark")
+    mark.refuses(MarkPolylines.Request(), "no points to mark")
+    mark.refuses(MarkPolylines.Request(alpha_x=[NAN, 0.0], alpha_y=[0.0, 0.0], focus_shift=[0.0, 0.0],
+                                       polyline_starts=[0]), "NaN")
+    mark.refuses(MarkPolylines.Request(alpha_x=[0.0], alpha_y=[0.0, 0.0], focus_shift=[0.0],
+                                       polyline_starts=[0]), "same length")
+    mark.refuses(MarkPolylines.Request(alpha_x=[0.0, 0.01], alpha_y=[0.0, 0.0], focus_shift=[0.0, 0.0],
+                                       polyline_starts=[0, 5]), "polyline_starts")
+    landing = client(LandingPositions, "sim/landing_positions")
+    landing.refuses(LandingPositions.Request(alpha_x=[NAN], alpha_y=[0.0]), "")
+    landing.refuses(LandingPositions.Request(alpha_x=[0.0], alpha_y=[0.0], t=[-INF]), "")
+    good = mark(MarkPolylines.Request(alpha_x=[0.0, 0.01], alpha_y=[0.0, 0.0], focus_shift=[0.0, 0.0],
+                                      polyline_starts=[0]))
+    assert good.success, good.message
+    assert landing(LandingPositions.Request(alpha_x=[0.0], alpha_y=[0.0])).success
+
+
+# --- the manager: calibrate and explain_deviations ------------------------------------------------------------
+
+def test_manager_refuses_bad_requests_and_hostile_files_and_then_serves(start_cell, tmp_path):
+    cell = start_cell(grid=4, parameters={"sweep.plain_repeats": 1})   # explain needs >= 10 fiducials
+    for iterations in (255, 4):
+        refused = cell.call(Calibrate, "calibrate", Calibrate.Request(iterations=iterations), TIMEOUT_S)
+        assert not refused.success
+        assert refused.message == f"request refused: iterations must be 0 (the default, 1) or 1 to 3, got {iterations}"
+    good = cell.call(Calibrate, "calibrate", Calibrate.Request(iterations=1), 300.0)
+    assert good.success, good.message
+
+    history = CalibrationStore(cell.calibration_dir).history_directory
+    outside = tmp_path / "outside.yaml"
+    outside.write_text(Path(good.calibration_file).read_text())
+    os.mkfifo(history / "pipe.yaml")
+    (history / "bomb.yaml").write_text("a: &a [1, 1]\nb: [*a, *a]\n")
+    for path, problem in [(str(outside), "outside the calibration directory"), ("/dev/zero", "outside the"),
+                          ("pipe.yaml", "not a regular file"), ("bomb.yaml", "aliases are not allowed")]:
+        explained = cell.call(ExplainDeviations, "explain_deviations",
+                              ExplainDeviations.Request(calibration_file=path), TIMEOUT_S)
+        assert not explained.success and problem in explained.message, explained.message
+    explained = cell.call(ExplainDeviations, "explain_deviations", ExplainDeviations.Request(), 120.0)
+    assert explained.success, explained.message
+
+
+# --- parameters ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("node_type, name, value, match", [
+    (FiducialMeasurementNode, "ring_radii_mm", [-2.5, 2.7], "parameter ring_radii_mm"),
+    (RbfTrainerNode, "spreads_mm", [35.0, NAN], "parameter spreads_mm"),
+    (RbfTrainerNode, "mse_goals_mm2", [0.0], "parameter mse_goals_mm2"),
+    (RbfTrainerNode, "tps_smoothings", [-1.0], "parameter tps_smoothings"),
+    (CalibrationManager, "grid.ring_radii_mm", [2.7, 2.5], "ring_radii_mm must be one or more positive finite"),
+    (CalibrationManager, "grid.ring_radii_mm", [-2.5, 2.7], "ring_radii_mm must be one or more positive finite"),
+])
+def test_bad_list_parameters_stop_a_node_at_start_with_the_reason(ros_context, tmp_path, node_type, name, value,
+                                                                  match):
+    with pytest.raises(ValueError, match=match):
+        node_type(context=ros_context, parameter_overrides=[Parameter(name, value=value)])
+
+
+@pytest.mark.parametrize("name, value", [("max_iterations", 0), ("service_timeout_s", 1e308),
+                                         ("deadline_margin_s", -1.0), ("sweep.speed_mm_s", 0.0)])
+def test_out_of_range_manager_parameters_are_refused_at_start(ros_context, name, value):
+    from rclpy.exceptions import InvalidParameterValueException
+    with pytest.raises(InvalidParameterValueException):
+        CalibrationManager(context=ros_context, parameter_overrides=[Parameter(name, value=value)])
+
+
+# --- hostile topics: malformed profiles, spoofed ends of sweep -------------------------------------------------
+
+class HostileScanner(FakeScanner):
+    """Streams malformed profiles and a foreign end of sweep before the real sweep."""
+
+    def stream(self) -> None:
+        for cloud in malformed_clouds().values():
+            self.points.publish(cloud)
+        negative = array_to_pointcloud2(self.profiles[0], "scanner")
+        negative.header.stamp.sec = -5
+        self.points.publish(negative)
+        self.done.publish(SweepDone(sweep_id=99, profiles=3, step_mm=1.0, speed_mm_s=15.0,
+                                    direction=[0.0, 1.0, 0.0], complete=True))
+        time.sleep(0.2)
+        super().stream()
+
+
+def test_malformed_profiles_and_foreign_ends_of_sweep_are_dropped_counted_and_survived(ros_context, add_node,
+                                                                                      client):
+    add_node(ScanAcquisitionNode(context=ros_context))
+    HostileScanner(add_node(Node("fake_scanner", namespace=NAMESPACE, context=ros_context)), "complete")
+    acquire = client(AcquireSweep, "scan/acquire")
+    response = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))
+    assert response.success, response.message
+    assert response.cloud.height == PROFILES                      # all good profiles, none of the others
+    assert response.message.endswith(f"; {len(malformed_clouds()) + 1} malformed profile(s) dropped")
+    again = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))   # the node still serves
+    assert again.success, again.message
