@@ -25,7 +25,8 @@ What we know is used throughout: every fiducial is two concentric rings of known
    autocorrelation), propagated through the fit's normal matrix, plus ``MODEL_SIGMA_MM``.
 5. Status: candidates are rejected with a reason (``spurious``: coverage below ``SPURIOUS_COVERAGE``,
    no ring there; ``partial``: coverage below ``MIN_COVERAGE``;
-   ``radius``: ring radii off the nominal ones; ``fit``: too few usable rays or an ill-posed fit;
+   ``radius``: a ring's semi-axes (mean radius +- its second harmonic) off the nominal radius, which
+   also turns down two rings close enough to merge into one detection; ``fit``: too few usable rays or an ill-posed fit;
    ``uncertain``: stated uncertainty above ``MAX_SIGMA_MM``; ``duplicate``: the same fiducial as a
    better candidate). Accepted centres are returned in plate coordinates and, via
    ``PlatePose.from_plane``, as 3-D points on the fitted plane.
@@ -540,6 +541,9 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         sampled_at = centres
         centres = np.where(fit_ok[:, None], centres + shift, centres)
     final_residual = residual
+    # Second harmonic of the fitted ring (half the difference of its axes): a ring on the plate is a
+    # circle, so this is small; the envelope of two offset rings (a merged detection) is not.
+    ellipticity = np.hypot(at @ np.cos(2 * angles), at @ np.sin(2 * angles)) * (2.0 / RAY_COUNT)
     covariance = _centre_covariance(design, final_residual, used, sector_of_ray)
 
     # Each ring's radius about the final centre: darkness centroid in a window of +- half the ring
@@ -565,7 +569,7 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
                                        / np.maximum(counts, 1), np.nan)
     rms = np.sqrt((np.where(used, final_residual, 0.0) ** 2).sum(axis=1) / np.maximum(used.sum(axis=1), 1))
     return dict(centres=centres, covariance=covariance, radii=ring_radii, rms=rms, coverage=coverage,
-                fit_ok=fit_ok & np.isfinite(ring_radii).all(axis=1))
+                ellipticity=ellipticity, fit_ok=fit_ok & np.isfinite(ring_radii).all(axis=1))
 
 
 def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, inverse: np.ndarray,
@@ -610,8 +614,8 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=(2.5, 2.
     ``xyz`` is organized (H, W, 3) with ``intensity`` (H, W), or unorganized (N, 3) with (N,); NaNs
     are allowed. ``pose`` is the plate pose from ``estimate_plate_pose``. ``pixel_size_mm`` is the
     raster pitch for unorganized clouds. ``marks_darker`` None finds the polarity from the image.
-    A candidate is accepted when every fitted ring radius is within ``radius_tolerance_mm`` of its
-    nominal value (0.12 mm: an uncalibrated scanner marks rings a few percent too large, 2.78 mm
+    A candidate is accepted when both semi-axes of every fitted ring are within ``radius_tolerance_mm``
+    of its nominal radius (0.12 mm: an uncalibrated scanner marks rings a few percent too large, 2.78 mm
     for 2.7 mm on the simulated defective cell) and its quality checks pass (module docstring,
     step 5). Raises ValueError when no
     fiducial is accepted, unless ``allow_empty``.
@@ -649,11 +653,15 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=(2.5, 2.
     else:
         affine_ok = np.zeros(0, bool)
         fit = dict(centres=np.empty((0, 2)), covariance=np.empty((0, 2, 2)), radii=np.empty((0, len(radii_nominal))),
-                   rms=np.empty(0), coverage=np.empty(0), fit_ok=np.zeros(0, bool))
+                   rms=np.empty(0), coverage=np.empty(0), ellipticity=np.empty(0), fit_ok=np.zeros(0, bool))
     centres_uv = fit["centres"]
     sigma_plane = np.sqrt(np.stack([fit["covariance"][:, 0, 0], fit["covariance"][:, 1, 1]], axis=-1))
     sigma_xy = _plane_to_cloud_sigma(fit["covariance"], pose)
-    radius_ok = np.all(np.abs(fit["radii"] - radii_nominal) <= radius_tolerance_mm, axis=1)
+    # Both semi-axes of every ring (mean radius +- the second harmonic) within the tolerance: an
+    # uncalibrated scanner's anisotropic scale keeps them there, the envelope of two offset rings
+    # (a merged detection) does not.
+    radius_ok = np.all(np.abs(fit["radii"] - radii_nominal) + fit["ellipticity"][:, None] <= radius_tolerance_mm,
+                       axis=1)
     reasons = np.full(len(candidates), STATUS_OK, dtype=object)
     # The first failing check names the reason, most basic first.
     checks = (("fit", fit["fit_ok"] & affine_ok), ("spurious", fit["coverage"] >= SPURIOUS_COVERAGE),
