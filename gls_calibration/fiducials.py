@@ -20,9 +20,9 @@ What we know is used throughout: every fiducial is two concentric rings of known
    level, linear shading and the rings' blur.
 4. Quality per centre: the ring amplitude is measured on 24 angular sectors at the fitted circle;
    ``coverage`` is the share of sectors where the rings are seen, and rays of unseen sectors are
-   left out of the final fit. The standard uncertainty per axis comes from the fit: the residual
-   variance of the edge points, inflated by their correlation along the circumference (integrated
-   autocorrelation), propagated through the fit's normal matrix, plus ``MODEL_SIGMA_MM``.
+   left out of the final fit. The standard uncertainty per axis comes from the fit: a
+   delete-one-sector jackknife of the edge points' ring fit (neighbouring rays are correlated, whole
+   sectors much less), plus ``MODEL_SIGMA_MM``.
 5. Status: candidates are rejected with a reason (``spurious``: coverage below ``SPURIOUS_COVERAGE``,
    no ring there; ``partial``: coverage below ``MIN_COVERAGE``;
    ``radius``: a ring's semi-axes (mean radius +- its second harmonic) off the nominal radius, which
