@@ -448,6 +448,13 @@ def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, weight: np.ndarray):
     return solution[:, 1:3], solution[:, 0], edge_radius - residual, residual, used, fit_ok
 
 
+def _sector_sums(values: np.ndarray, sector_of_ray: np.ndarray) -> np.ndarray:
+    """Sums of ``values`` (M, A, ...) over the rays of each sector (M, SECTORS, ...); the rays of a
+    sector are contiguous and ``sector_of_ray`` is sorted, so this is one ``reduceat``."""
+    starts = np.searchsorted(sector_of_ray, np.arange(SECTORS))
+    return np.add.reduceat(values, starts, axis=1)
+
+
 def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarray,
                        sector_of_ray: np.ndarray) -> np.ndarray:
     """Covariance (M, 2, 2) of the fitted centre (plate axes, mm^2) from the radial residuals.
@@ -461,13 +468,9 @@ def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarra
     parameters = design.shape[-1]
     u = used.astype(float)
     design = np.broadcast_to(design, (count, rays, parameters))
-    sector_normal = np.zeros((count, SECTORS, parameters, parameters))
-    np.add.at(sector_normal, (slice(None), sector_of_ray),
-              np.einsum("mai,ma,maj->maij", design, u, design))
-    sector_score = np.zeros((count, SECTORS, parameters))
-    np.add.at(sector_score, (slice(None), sector_of_ray), design * np.where(used, residual, 0.0)[..., None])
-    per_sector = np.zeros((count, SECTORS))
-    np.add.at(per_sector, (slice(None), sector_of_ray), u)
+    sector_normal = _sector_sums(np.einsum("mai,ma,maj->maij", design, u, design), sector_of_ray)
+    sector_score = _sector_sums(design * np.where(used, residual, 0.0)[..., None], sector_of_ray)
+    per_sector = _sector_sums(u, sector_of_ray)
     present = per_sector > 0
     left_out = sector_normal.sum(axis=1, keepdims=True) - sector_normal          # (M, S, 3, 3)
     solvable = np.linalg.cond(left_out) < 1e10
@@ -510,8 +513,9 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         reach = half + (margin if refinement == 0 else 2 * margin) + step
         radial = (mid + np.arange(-np.ceil(reach / step), np.ceil(reach / step) + 1) * step).astype(np.float32)
         profiles = _ray_profiles(image, centres, offset, inverse, directions, radial)
-        inside = np.isfinite(profiles).all(axis=2)
-        profiles = np.nan_to_num(profiles)
+        finite = np.isfinite(profiles)
+        inside = finite.all(axis=2)
+        profiles = np.where(finite, profiles, np.float32(0.0))
         score = _correlate_rows(profiles, pair_template)
         # Search window (indices along the ray): +- margin about the nominal mid radius, then about
         # the last fitted one (rings of the wrong size stay in view and fail the radius check).
@@ -527,10 +531,8 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         # Ring amplitude of every ray at the fitted circle: erased arcs read about zero there.
         position = np.clip(np.rint((at - radial[0]) / step).astype(int), 0, len(radial) - 1)
         amplitude = np.where(inside, np.take_along_axis(score, position[..., None], -1)[..., 0], np.nan)
-        sector_sum = np.zeros((count, SECTORS))
-        sector_n = np.zeros((count, SECTORS))
-        np.add.at(sector_sum, (slice(None), sector_of_ray), np.nan_to_num(amplitude))
-        np.add.at(sector_n, (slice(None), sector_of_ray), np.isfinite(amplitude))
+        sector_sum = _sector_sums(np.where(np.isfinite(amplitude), amplitude, 0.0), sector_of_ray)
+        sector_n = _sector_sums(np.isfinite(amplitude).astype(float), sector_of_ray)
         with np.errstate(invalid="ignore", divide="ignore"):
             sector = np.where(sector_n > 0, sector_sum / sector_n, np.nan)
             reference = np.nanpercentile(np.where(np.isfinite(sector), sector, np.nan), 75, axis=1) \
