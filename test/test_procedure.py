@@ -24,8 +24,9 @@ FAST = dict(grid_per_side=5, grid_size_mm=90.0, plain_sweeps=1, plain_sweep_step
 
 
 def small_config():
-    """config/sim.yaml with a 120 mm scanner line and a 110 mm sweep centred on the head (mounting recomputed)."""
-    config = load_sim_config()
+    """config/sim.yaml with a 120 mm scanner line and a 110 mm sweep centred on the head (mounting
+    recomputed), on the ideal measurement chain: these tests check the procedure, not the measurement."""
+    config = load_sim_config(preset="ideal")
     return dataclasses.replace(config, scanner=dataclasses.replace(config.scanner, line_length_mm=120.0),
                                sweep_length_mm=110.0, scanner_to_gls=None)
 

@@ -303,7 +303,8 @@ def test_configuration_rejects_bad_values(tmp_path):
 
 # ---------------------------------------------------------------- scanned marks, measured with the core
 def measured_against_truth(per_side: int, size_mm: float) -> tuple[float, int]:
-    """Mark a double-ring grid with the default (defective) cell, sweep, measure with the core.
+    """Mark a double-ring grid with the default (defective) cell on the ``ideal`` measurement chain
+    (the algorithmic floor), sweep, measure with the core.
 
     Returns the RMS (mm) of measured centres against the true landed centres after a rigid
     alignment (no calibration involved), and the number of centres found.
@@ -314,7 +315,7 @@ def measured_against_truth(per_side: int, size_mm: float) -> tuple[float, int]:
     from gls_calibration.plate_pose import estimate_plate_pose
     from gls_calibration.registration import fit_rigid
 
-    config = load_sim_config()
+    config = load_sim_config(preset="ideal")
     span = size_mm + 20.0
     config = replace(config, scanner=replace(config.scanner, line_length_mm=span), sweep_length_mm=span,
                      scanner_to_gls=pose_matrix([0.0, span / 2, 325.0], [math.pi, 0.0, 0.0]))

@@ -2,6 +2,10 @@
 
 With ``--serve`` it only starts the nodes and serves until interrupted, so that external clients
 (``gls-calibrate``, ``gls-correct``, other machines on the same ROS_DOMAIN_ID) drive the cell.
+``--measurement ideal|careful|paper_like|custom`` picks the simulated measurement chain (default:
+the sim configuration's ``measurement.preset``, ``paper_like`` in the package's file); its name goes
+into summary.json (``measurement_preset``) and the report. ``--reference-plate`` runs the simulated
+reference-plate check instead of a calibration (no ROS) and writes ``DIR/summary.json``.
 """
 from __future__ import annotations
 
@@ -17,7 +21,10 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
 from gls_calibration.config_files import config_path
+from gls_calibration.simulation.measurement import PRESETS
+from gls_calibration.simulation.world import load_sim_config
 from gls_calibration.nodes.base import NodeThreads
+from gls_calibration.persistence import atomic_write_text
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
@@ -54,6 +61,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="start every node and serve until interrupted, without calibrating")
     parser.add_argument("--timeout", type=float, default=600.0, help="give up on calibrate after this (s)")
     parser.add_argument("--verbose", action="store_true", help="show the nodes' info logs")
+    parser.add_argument("--measurement", choices=None, default=None, metavar="|".join(PRESETS),
+                        help="measurement-chain preset of the simulated robot, scanner, marks and plate "
+                             "(default: the sim configuration's measurement.preset, paper_like)")
+    parser.add_argument("--reference-plate", action="store_true",
+                        help="run the simulated reference-plate check (no calibration) and write DIR/summary.json")
     parser.add_argument("--namespace", default=None,
                         help="namespace of the cell's nodes (default: 'gls' with --serve; otherwise a private "
                              "one, so that concurrent one-shot cells on the same ROS domain never meet)")
@@ -64,6 +76,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         parser.error("--iterations must be between 1 and 5")
     if args.sim_config is not None and not args.sim_config.is_file():
         parser.error(f"--sim-config {args.sim_config}: no such file")
+    if args.measurement is not None and args.measurement not in PRESETS:
+        parser.error(f"--measurement: unknown measurement preset {args.measurement!r}; known: {', '.join(PRESETS)}")
+    try:
+        # every node reads the same file: refuse a bad one before anything starts or is written
+        args.sim = load_sim_config(args.sim_config or config_path("sim.yaml"), args.measurement)
+    except ValueError as error:
+        parser.error(str(error))
     return args
 
 
@@ -80,6 +99,7 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
         "ground_truth_service": "sim/marked_paths",
         "physics_first": args.physics_first,
         "sim_config": str(sim_config),
+        "measurement_preset": args.measurement or "",
     }
     ros_args = ["--ros-args", "--log-level", "info" if args.verbose else "warn"]
     for path in (config_path("head.yaml"), config_path("gls.yaml"), sim_config):
@@ -93,6 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     """Run the simulated cell; exit 0 when the calibration succeeded."""
     args = parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.reference_plate:
+        return run_reference_plate(args)
     # The store lives beside the report, so the summary names the calibration file where it stays.
     # Every one-shot run is a new simulated cell and starts with an empty store; --serve keeps the
     # store so that successive external calibrations compose.
@@ -136,6 +158,8 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager) -> in
     if response is None:
         print(f"calibrate did not answer within {args.timeout:g} s", file=sys.stderr)
         return 1
+    if response.report_dir:
+        note_measurement(Path(response.report_dir), args.sim.measurement_preset)
     print(summary_table(response))
     if response.report_dir:
         truth = json.loads((Path(response.report_dir) / "summary.json").read_text())
@@ -146,6 +170,51 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager) -> in
         print(f"calibration failed: {response.message}", file=sys.stderr)
         return 1
     print(f"report: {Path(response.report_dir) / 'report.md'}")
+    return 0
+
+
+def note_measurement(report_dir: Path, preset: str) -> None:
+    """Say in summary.json and report.md which measurement chain produced the figures."""
+    summary_path = report_dir / "summary.json"
+    if summary_path.is_file():
+        summary = json.loads(summary_path.read_text())
+        summary["measurement_preset"] = preset
+        atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
+    report_path = report_dir / "report.md"
+    if report_path.is_file():
+        lines = report_path.read_text().splitlines()
+        note = (f"Simulated cell, measurement chain preset **{preset}**: `post_rms_mm` / `post_max_mm` are "
+                "MEASURED (as a real cell sees them), `true_post_*` are TRUE (simulation ground truth).")
+        atomic_write_text(report_path, "\n".join(lines[:1] + ["", note] + lines[1:]) + "\n")
+
+
+def run_reference_plate(args: argparse.Namespace) -> int:
+    """The simulated reference-plate check (no ROS): write ``summary.json`` and print the figures."""
+    from gls_calibration.simulation.reference_plate import (CALIBRATION_PLAN, PATTERN, PITCH_MM, POSITIONS_MM,
+                                                            RAW_PLAN, reference_plate_check)
+
+    raw = reference_plate_check(args.sim, RAW_PLAN, seed=args.seed)
+    planned = raw if CALIBRATION_PLAN == RAW_PLAN else reference_plate_check(args.sim, CALIBRATION_PLAN, seed=args.seed)
+    summary = {
+        "measurement_preset": args.sim.measurement_preset,
+        "reference_plate": (f"double-ring fiducials r = 2.5 / 2.7 mm, {PATTERN[0]} x {PATTERN[1]} at {PITCH_MM:g} mm "
+                            f"pitch, plate centre at {len(POSITIONS_MM)} positions {list(POSITIONS_MM)} mm"),
+        "reference_plate_raw_sigma_mm": list(raw.sigma_mm),
+        "reference_plate_raw_bias_mm": [list(b) for b in raw.bias_mm],
+        "reference_plate_sigma_mm": list(planned.sigma_mm),
+        "reference_plate_bias_mm": [list(b) for b in planned.bias_mm],
+        "reference_plate_plan": {"placement": CALIBRATION_PLAN.placement,
+                                 "sweeps": [list(sweep) for sweep in CALIBRATION_PLAN.sweeps]},
+        "reference_plate_found": planned.found,
+        "reference_plate_expected": planned.expected,
+        "seed": args.seed,
+    }
+    atomic_write_text(args.out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    print(f"reference plate, preset {summary['measurement_preset']} (MEASURED against the known centres, k = 1): "
+          f"raw sigma x {raw.sigma_mm[0]:.4f} mm, y {raw.sigma_mm[1]:.4f} mm (one sweep, placed by time); "
+          f"calibration plan x {planned.sigma_mm[0]:.4f} mm, y {planned.sigma_mm[1]:.4f} mm; "
+          f"{planned.found} of {planned.expected} centres")
+    print(f"summary: {args.out / 'summary.json'}")
     return 0
 
 

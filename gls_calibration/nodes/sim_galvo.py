@@ -13,7 +13,6 @@ from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
 from gls_calibration.nodes.sim_parameters import declare_sim_config
 from gls_calibration.simulation.head import TruthHead
-from gls_calibration.simulation.plate import Plate
 from gls_calibration_msgs.msg import MarkedPaths
 from gls_calibration_msgs.srv import GetMarkedPaths, LandingPositions, MarkPolylines
 
@@ -24,7 +23,7 @@ class SimGalvoNode(GlsNode):
     def __init__(self, **kwargs) -> None:
         super().__init__("sim_galvo", **kwargs)
         self.config = declare_sim_config(self)
-        self.plate = Plate(self.config.plate_settings, seed=self.config.seed)
+        self.plate = self.config.make_plate()
         self.head = TruthHead(self.config.geometry, self.config.effects, plate=self.plate,
                               mark_speed_mm_s=self.config.mark_speed_mm_s, jump_time_s=self.config.jump_time_s)
         self.plates_loaded = 0
@@ -64,7 +63,7 @@ class SimGalvoNode(GlsNode):
             response.success = False
             response.message = "alpha_x, alpha_y (and t when given) must have the same length"
             return response
-        landed = self.head.physical.land(alpha_x, alpha_y, t if len(t) else None)
+        landed = self.head.land(alpha_x, alpha_y, t if len(t) else None)
         response.x, response.y, response.z = (conversions.float64_sequence(landed[:, i]) for i in range(3))
         response.success, response.message = True, f"{len(landed)} landing positions"
         return response

@@ -15,7 +15,9 @@ def declare_sim_config(node: GlsNode) -> SimConfig:
     """Load ``sim_config`` (default: the package's config/sim.yaml) with the ``effects.*`` and ``seed``
     parameters applied; ValueError names a bad file or defect."""
     path = node.declare("sim_config", "", "sim configuration file (empty: the package's config/sim.yaml)")
-    config = load_sim_config(path or config_path("sim.yaml"))
+    preset = node.declare("measurement_preset", "", "measurement chain preset: ideal, careful, paper_like or "
+                          "custom (empty: the file's measurement.preset)")
+    config = load_sim_config(path or config_path("sim.yaml"), preset or None)
     values = {}
     for name, spec in EFFECT_TABLE.items():
         units = ", ".join(f"{p.name} [{p.unit}]" for p in spec.parameters)

@@ -4,6 +4,16 @@ Serves ``scanner/start_sweep``; each sweep's profiles go out on ``scan/points`` 
 x, y, z, intensity in the moving sensor frame, y = 0 on the line, stamped with the time each
 profile was taken), then ``scan/sweep_done``. The plate's marks come from the simulated galvo
 (``sim/marked_paths``) at the start of each sweep, as a real scanner sees the real plate.
+
+Hooks for placing profiles by pose and for sweep plans (see ``simulation/scanner.py``):
+
+- ``StartSweep.direction`` (+1 / -1, 0 means +1) and ``StartSweep.orientation_deg`` (0 or 90);
+  ``SweepDone.direction`` is then ``(0, direction, 0)`` in the sensor frame.
+- ``scan/pose`` (``geometry_msgs/PoseStamped``, frame ``scanner_base``): for every profile, published
+  just before it with the SAME stamp, the sensor pose the robot reports (its encoder pose: it
+  follows the speed error and ripple, not the path wander). Position in METRES (REP 103), the
+  sensor frame -> the scanner base frame (the frame the CAD mounting maps to the gls frame). A
+  point ``(x, 0, z)`` of a profile (mm) lies at ``R @ (x, 0, z) + 1000 * p`` mm in the base frame.
 """
 from __future__ import annotations
 
@@ -17,10 +27,11 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, answers_errors, run_node
 from gls_calibration.nodes.sim_parameters import declare_sim_config
-from gls_calibration.simulation.plate import Plate
-from gls_calibration.simulation.scanner import LaserLineScanner, Profile
+from gls_calibration.simulation.scanner import ORIENTATIONS_DEG, Profile
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import GetMarkedPaths, StartSweep
+from geometry_msgs.msg import PoseStamped
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 
 
@@ -33,12 +44,13 @@ class SimScannerNode(GlsNode):
         self.batch = self.declare("profiles_per_tick", 50, "profiles published per timer tick", minimum=1)
         depth = self.declare("queue_depth", 4000, "profiles the reliable publisher keeps for slow subscribers",
                              minimum=1)
-        self.scanner = LaserLineScanner(self.config.scanner, self.config.scanner_to_gls, self.config.mounting_error)
-        self.plate = Plate(self.config.plate_settings, seed=self.config.seed)
+        self.scanner = self.config.make_scanner()
+        self.plate = self.config.make_plate()
         self.sweep_id = 0
         self.job: Optional[Iterator[Profile]] = None
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE)
         self.points = self.create_publisher(PointCloud2, "scan/points", qos)
+        self.poses = self.create_publisher(PoseStamped, "scan/pose", qos)
         self.done = self.create_publisher(SweepDone, "scan/sweep_done",
                                           QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
         self.marks_client = self.client(GetMarkedPaths, "sim/marked_paths")
@@ -57,15 +69,22 @@ class SimScannerNode(GlsNode):
         length = request.length_mm or self.config.sweep_length_mm   # 0 in the request: the default
         profiles, speed, step = self.scanner.sweep_parameters(length, request.speed_mm_s or None,
                                                               request.step_mm or None)
+        direction = request.direction or 1
+        if direction not in (1, -1) or request.orientation_deg not in ORIENTATIONS_DEG:
+            response.success = False
+            response.message = (f"direction must be +1 or -1 (got {request.direction}) and orientation_deg 0 or 90 "
+                                f"(got {request.orientation_deg:g})")
+            return response
         try:
             await self._load_marks()
         except ServiceCallError as error:
             response.success, response.message = False, f"cannot see the plate's marks: {error}"
             return response
         self.sweep_id += 1
-        self.sweep = (self.sweep_id, speed, step, self.get_clock().now())
+        self.sweep = (self.sweep_id, speed, step, self.get_clock().now(), direction)
         self.published = 0
-        self.job = self.scanner.sweep(self.plate, length, speed, step, seed=self.config.seed * 100003 + self.sweep_id)
+        self.job = self.scanner.sweep(self.plate, length, speed, step, seed=self.config.seed * 100003 + self.sweep_id,
+                                      direction=direction, orientation_deg=request.orientation_deg)
         response.sweep_id = self.sweep_id
         response.expected_profiles = profiles
         response.success, response.message = True, f"sweep {self.sweep_id} started"
@@ -87,23 +106,36 @@ class SimScannerNode(GlsNode):
         if self.job is None:
             self.timer.cancel()
             return
-        sweep_id, speed, step, began = self.sweep
+        sweep_id, speed, step, began, direction = self.sweep
         for _ in range(self.batch):
             profile = next(self.job, None)
             if profile is None:
                 self.job = None
                 self.timer.cancel()
                 done = SweepDone(sweep_id=sweep_id, profiles=self.published, step_mm=step, speed_mm_s=speed,
-                                 direction=[0.0, 1.0, 0.0], complete=True)
+                                 direction=[0.0, float(direction), 0.0], complete=True)
                 done.stamp = self.get_clock().now().to_msg()
                 self.done.publish(done)
                 return
             points = profile.points
             # A real sensor measures each profile in its own moving frame: take the travel out again.
-            points["y"] -= np.float32(profile.stamp_s * speed)
+            points["y"] -= np.float32(direction * profile.stamp_s * speed)
             stamp = (began + Duration(nanoseconds=int(round(profile.stamp_s * 1e9)))).to_msg()
+            self.poses.publish(reported_pose_message(profile.reported_pose, stamp))
             self.points.publish(conversions.array_to_pointcloud2(points, frame_id="scanner", stamp=stamp))
             self.published += 1
+
+
+def reported_pose_message(pose: np.ndarray, stamp) -> PoseStamped:
+    """A 4x4 sensor pose (mm) as a PoseStamped in the scanner base frame (metres)."""
+    message = PoseStamped()
+    message.header.stamp = stamp
+    message.header.frame_id = "scanner_base"
+    message.pose.position.x, message.pose.position.y, message.pose.position.z = (float(v) * 1e-3 for v in pose[:3, 3])
+    qx, qy, qz, qw = Rotation.from_matrix(pose[:3, :3]).as_quat()
+    message.pose.orientation.x, message.pose.orientation.y = float(qx), float(qy)
+    message.pose.orientation.z, message.pose.orientation.w = float(qz), float(qw)
+    return message
 
 
 def main(args=None) -> None:

@@ -4,6 +4,15 @@ The clock advances per polyline by a jump time plus the polyline's nominal lengt
 marking speed; each vertex gets its own time, which the ``thermal_drift`` effect uses. The head's
 work plane is the plate: when a plate is given, its pose sets the ``plate_tilt`` and
 ``working_distance`` effects.
+
+Straight rays (``straight_rays``, on unless switched off): the beam is a straight line after the
+last mirror. The head's in-plane terms (today ``radial_distortion``, which the physical model
+applies in the plate plane) are turned into a deviation of that ray: the ray runs from the X
+mirror's reflection point (the exit point) through the distorted landing point on the calibration
+plane (the configured plate plane), so a target above or below that plane lands where a real beam
+would. The plane actually marked may differ from the calibration plane: by the plate's
+``marking_pose_error`` (the robot-held head's repeatability; height and tilts) or by
+:meth:`TruthHead.land` ``plane_offset_mm``.
 """
 from __future__ import annotations
 
@@ -14,7 +23,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from gls_calibration.kinematics import HeadGeometry, forward
-from gls_calibration.optics import HeadEffects, PhysicalHead
+from gls_calibration.optics import HeadEffects, PhysicalHead, plate_frame
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.validation import as_finite_array
 
@@ -36,7 +45,8 @@ class TruthHead:
 
     def __init__(self, geometry: HeadGeometry | None = None,
                  effects: HeadEffects | Mapping[str, object] | None = None, *,
-                 plate: Plate | None = None, mark_speed_mm_s: float = 500.0, jump_time_s: float = 0.005) -> None:
+                 plate: Plate | None = None, mark_speed_mm_s: float = 500.0, jump_time_s: float = 0.005,
+                 straight_rays: bool | None = None) -> None:
         if not (math.isfinite(mark_speed_mm_s) and mark_speed_mm_s > 0.0):
             raise ValueError(f"mark_speed_mm_s must be positive, got {mark_speed_mm_s!r}")
         if not (math.isfinite(jump_time_s) and jump_time_s >= 0.0):
@@ -53,6 +63,9 @@ class TruthHead:
             effects = effects.replace(**plate.settings.pose_effects)
         self.physical = PhysicalHead(self.geometry, effects)
         self.plate = plate
+        if straight_rays is None:
+            straight_rays = bool(plate.chain.straight_rays) if plate is not None else True
+        self.straight_rays = bool(straight_rays)
         self.mark_speed_mm_s = float(mark_speed_mm_s)
         self.jump_time_s = float(jump_time_s)
         self.clock_s = 0.0
@@ -80,7 +93,7 @@ class TruthHead:
         travelled = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
         start = self.clock_s + self.jump_time_s
         times = start + travelled / self.mark_speed_mm_s
-        landed = self.physical.land(alpha_x, alpha_y, times)
+        landed = self.land(alpha_x, alpha_y, times)
         self.clock_s = float(times[-1])
         plate_id = None
         if self.plate is not None:
@@ -88,6 +101,29 @@ class TruthHead:
             plate_id = self.plate.plate_id
         self.log.append(MarkRecord(len(self.log), float(start), self.clock_s, int(alpha_x.size), plate_id, times))
         return landed
+
+    def land(self, alpha_x, alpha_y, t=None, plane_offset_mm: float = 0.0) -> np.ndarray:
+        """Where commanded mechanical angles (rad) land (N, 3), gls, on the plane marked now: the
+        calibration plane moved by the plate's marking-pose error and by ``plane_offset_mm`` along
+        gls z (towards the head when > 0)."""
+        height, tilt_x, tilt_y = self.plate.marking_pose_error if self.plate is not None else (0.0, 0.0, 0.0)
+        height += plane_offset_mm
+        if not self.straight_rays:
+            if height or tilt_x or tilt_y:
+                raise ValueError("landing off the calibration plane needs straight_rays")
+            return self.physical.land(alpha_x, alpha_y, t)
+        reference = self.physical.land(alpha_x, alpha_y, t).T            # on the calibration plane
+        if not (height or tilt_x or tilt_y):
+            return np.ascontiguousarray(reference.T)
+        _, exit_points, _ = self.physical._trace(alpha_x, alpha_y, t)   # reflection points on the X mirror
+        base_tilt_x, base_tilt_y = self.effects.get("plate_tilt")
+        rotation, origin = plate_frame(base_tilt_x + tilt_x, base_tilt_y + tilt_y,
+                                       self.effects.get("working_distance")[0] - height)
+        normal = rotation[:, 2:3]
+        direction = reference - exit_points
+        gap = np.sum((origin[:, None] - exit_points) * normal, axis=0)
+        hits = exit_points + direction * (gap / np.sum(direction * normal, axis=0))
+        return np.ascontiguousarray(hits.T)
 
     def mark_polylines(self, polylines: Iterable) -> list[np.ndarray]:
         """Mark joint-space polylines in order, each (M, 2) of (alpha_x, alpha_y); returns landed (M, 3) each."""

@@ -9,6 +9,16 @@ line profile across the path, ``reflectivity * (1 - depth * exp(-dist^2 / (2 sig
 ``sigma = line_width_fwhm_mm / 2.3548`` (the line width is the full width at half maximum of the
 darkening). A negative depth brightens instead. Distances come from a KD-tree over the polylines
 resampled at ``sigma / 4``, queried only for sample points in cells near a mark.
+
+The measurement chain (:class:`~gls_calibration.simulation.measurement.MeasurementChain`) makes
+marks as a laser makes them -- each resampled point of a path gets its own width and darkness (smooth
+relative variations), the burnt line wanders off the beam path, each mark starts and ends with a dark
+blob, and the spot size blurs the line (wider, less deep) -- and gives each plate (drawn anew on
+:meth:`Plate.load_clean`) the robot-held head's marking-pose error (``marking_pose_error``: height in
+mm, tilts about x and y in rad, used by the truth head), a thermal scale between marking and
+scanning (marks burnt on the warm plate shrink with it) and a warp (``warp``: height above the plane
+along its normal). A mark's random draws depend on the plate's seed and the mark's order only, so a
+plate rebuilt from the same landed paths (the simulated scanner's copy) looks the same.
 """
 from __future__ import annotations
 
@@ -21,6 +31,7 @@ from scipy.ndimage import binary_dilation, gaussian_filter, map_coordinates
 from scipy.spatial import cKDTree
 
 from gls_calibration.optics import plate_frame
+from gls_calibration.simulation.measurement import MeasurementChain, smooth_process
 from gls_calibration.validation import as_finite_array, as_points, as_positive_number
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
@@ -64,8 +75,12 @@ class PlateSettings:
 class Plate:
     """A steel plate with a textured reflectivity and vector marks (stateful: marks accumulate)."""
 
-    def __init__(self, settings: PlateSettings | None = None, seed: int | np.random.Generator = 0) -> None:
+    def __init__(self, settings: PlateSettings | None = None, seed: int | np.random.Generator = 0,
+                 chain: MeasurementChain | None = None, beam_distance_mm: float = 490.0) -> None:
         self.settings = settings if settings is not None else PlateSettings()
+        self.chain = chain if chain is not None else MeasurementChain()
+        # distance of the beam's exit point from the plate: a warped surface meets the beam early
+        self.beam_distance_mm = as_positive_number(beam_distance_mm, "beam_distance_mm")
         self.rotation, self.origin = plate_frame(
             self.settings.tilt_x_rad, self.settings.tilt_y_rad, self.settings.delta_d_mm)
         self.normal = self.rotation[:, 2].copy()
@@ -79,7 +94,33 @@ class Plate:
         self._texture = self._make_texture(rng)
         self._marks: list[np.ndarray] = []
         self._index = None
+        # per-plate draws of the measurement chain, from a stream of their own
+        c = self.chain
+        self._mark_seed = int(rng.integers(2 ** 62))
+        draws = np.random.default_rng(self._mark_seed).standard_normal(6)
+        self.marking_pose_error = (c.marking_height_mm * draws[0], c.marking_tilt_rad * draws[1],
+                                   c.marking_tilt_rad * draws[2])
+        self.thermal_scale = 1e-6 * c.thermal_scale_ppm * draws[3]
+        bowl_saddle = draws[4:6]
+        self._warp = None
+        if c.plate_warp_mm > 0.0:
+            corners = self._warp_shape(np.array([[1.0, 1.0], [1.0, -1.0], [1.0, 0.0], [0.0, 1.0]]) * 0.5 * self.settings.size_mm,
+                                       bowl_saddle)
+            peak = max(np.abs(corners).max(), 1e-12)
+            self._warp = bowl_saddle * c.plate_warp_mm / peak
         return self.plate_id
+
+    def _warp_shape(self, uv: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
+        """Bowl and saddle heights (mm per unit coefficient) at plate coordinates (..., 2)."""
+        half = 0.5 * self.settings.size_mm
+        u, v = uv[..., 0] / half, uv[..., 1] / half
+        return coefficients[0] * 0.5 * (u * u + v * v) + coefficients[1] * 0.5 * (u * u - v * v)
+
+    def warp(self, uv) -> np.ndarray | None:
+        """Height (mm) of the surface above the plate plane along its normal at (..., 2), None when flat."""
+        if self._warp is None:
+            return None
+        return self._warp_shape(np.asarray(uv, dtype=float), self._warp)
 
     def _make_texture(self, rng: np.random.Generator) -> np.ndarray:
         s = self.settings
@@ -110,7 +151,13 @@ class Plate:
     def add_mark(self, points_gls) -> None:
         """Burn a landed polyline (M, 3) in gls coordinates (M >= 1) into the plate."""
         points = as_points(points_gls, "points_gls", 3)
-        self._marks.append(self.to_plate(points))
+        uv = self.to_plate(points)
+        height = self.warp(uv)
+        if height is not None:
+            # the beam meets the raised surface before the plane: closer to the field centre
+            uv = uv * (1.0 - height / self.beam_distance_mm)[:, None]
+        # burnt on the warm plate, measured on the cooled one
+        self._marks.append(uv * (1.0 + self.thermal_scale))
         self._index = None
 
     def add_mark_plate(self, uv) -> None:
@@ -119,13 +166,35 @@ class Plate:
         self._index = None
 
     def _mark_index(self):
-        """Resampled mark points, their KD-tree and a coarse occupancy grid (built lazily)."""
+        """Resampled mark points with their width and darkness, their KD-trees and a coarse occupancy grid."""
         if self._index is None:
-            s = self.settings
+            s, c = self.settings, self.chain
             sigma = s.line_width_fwhm_mm / _FWHM_PER_SIGMA
             spacing = sigma / 4.0
-            samples = np.concatenate([_resample(polyline, spacing) for polyline in self._marks])
-            cutoff = 4.0 * sigma
+            samples, widths, darkness, blobs = [], [], [], []
+            for number, polyline in enumerate(self._marks):
+                points = _resample(polyline, spacing)
+                rng = np.random.default_rng([self._mark_seed, number])
+                along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(points, axis=0).T))])
+                if c.mark_wander_mm and len(points) > 1:
+                    tangent = np.gradient(points, axis=0)
+                    tangent /= np.maximum(np.hypot(tangent[:, 0], tangent[:, 1]), 1e-12)[:, None]
+                    offset = smooth_process(rng, along, c.mark_wander_mm, c.mark_wander_correlation_mm)
+                    points = points + offset[:, None] * np.column_stack([-tangent[:, 1], tangent[:, 0]])
+                width = 1.0 + smooth_process(rng, along, c.mark_width_variation, c.mark_variation_correlation_mm)
+                dark = 1.0 + smooth_process(rng, along, c.mark_darkness_variation, c.mark_variation_correlation_mm)
+                samples.append(points)
+                widths.append(np.maximum(width, 0.2) * sigma)
+                darkness.append(np.maximum(dark, 0.0))
+                blobs += [points[0], points[-1]]
+            samples = np.concatenate(samples)
+            widths = np.concatenate(widths)
+            darkness = np.concatenate(darkness)
+            # the spot's blur widens the line and lowers its peak by the same factor
+            blurred = np.sqrt(widths ** 2 + c.spot_blur_mm ** 2)
+            darkness = darkness * widths / blurred
+            blob_sigma = math.hypot(c.mark_blob_mm, sigma) if c.mark_blob_mm else 0.0
+            cutoff = 4.0 * max(float(blurred.max()), blob_sigma)
             cell = max(cutoff, 0.25)
             half = 0.5 * s.size_mm
             cells = int(math.ceil(s.size_mm / cell)) + 1
@@ -134,7 +203,8 @@ class Plate:
             keep = np.all((idx >= 0) & (idx < cells), axis=1)
             occupied[idx[keep, 0], idx[keep, 1]] = True
             occupied = binary_dilation(occupied, iterations=1)
-            self._index = (cKDTree(samples), occupied, cell, cutoff, sigma)
+            blob_tree = cKDTree(np.array(blobs)) if blob_sigma else None
+            self._index = (cKDTree(samples), occupied, cell, cutoff, blurred, darkness, blob_tree, blob_sigma)
         return self._index
 
     # ------------------------------------------------------------ rendering
@@ -145,14 +215,14 @@ class Plate:
         return (np.abs(uv[..., 0]) <= half) & (np.abs(uv[..., 1]) <= half)
 
     def mark_darkening(self, uv) -> np.ndarray:
-        """Mark profile in [0, 1] at plate coordinates (..., 2): 1 on a path's centre line, 0 far away."""
+        """Mark profile at plate coordinates (..., 2): 1 on a path's centre line (of a nominal mark), 0 far away."""
         uv = np.asarray(uv, dtype=float)
         shape = uv.shape[:-1]
         flat = uv.reshape(-1, 2)
         result = np.zeros(flat.shape[0], dtype=np.float32)
         if not self._marks:
             return result.reshape(shape)
-        tree, occupied, cell, cutoff, sigma = self._mark_index()
+        tree, occupied, cell, cutoff, sigma, darkness, blob_tree, blob_sigma = self._mark_index()
         half = 0.5 * self.settings.size_mm
         with np.errstate(invalid="ignore"):
             idx = np.floor((flat + half) / cell)
@@ -160,9 +230,16 @@ class Plate:
         candidates = np.flatnonzero(inside)
         candidates = candidates[occupied[idx[candidates, 0].astype(int), idx[candidates, 1].astype(int)]]
         if candidates.size:
-            distance, _ = tree.query(flat[candidates], distance_upper_bound=cutoff, workers=-1)
+            distance, nearest = tree.query(flat[candidates], distance_upper_bound=cutoff, workers=-1)
             near = np.isfinite(distance)
-            result[candidates[near]] = np.exp(-0.5 * (distance[near] / sigma) ** 2)
+            which = nearest[near]
+            result[candidates[near]] = darkness[which] * np.exp(-0.5 * (distance[near] / sigma[which]) ** 2)
+            if blob_tree is not None:
+                # a mark starts and ends with a dark blob (the laser dwells while switching)
+                distance, _ = blob_tree.query(flat[candidates], distance_upper_bound=cutoff, workers=-1)
+                near = np.isfinite(distance)
+                blob = np.exp(-0.5 * (distance[near] / blob_sigma) ** 2)
+                result[candidates[near]] = np.maximum(result[candidates[near]], blob)
         return result.reshape(shape)
 
     def reflectivity(self, uv) -> np.ndarray:
@@ -174,7 +251,7 @@ class Plate:
         base = map_coordinates(self._texture, [grid[..., 0].ravel(), grid[..., 1].ravel()],
                                order=1, mode="nearest", output=np.float32).reshape(shape)
         if self._marks:
-            base *= 1.0 - np.float32(s.mark_depth) * self.mark_darkening(uv)
+            base *= np.maximum(1.0 - np.float32(s.mark_depth) * self.mark_darkening(uv), 0.0)
         base[~self.contains(uv)] = np.nan
         return base
 

@@ -1,19 +1,32 @@
 """Simulated laser-line scanner swept over the plate by the robot.
 
-Scanner frame (the sensor's pose at the start of a sweep): x along the laser line (0 on the
-sensor axis), y along the travel direction (the distance travelled), z along the viewing
-direction from the sensor towards the plate, so z is the measured distance (about 325 mm).
-Right-handed. Every profile holds W points ``x, y, z, intensity`` (float32) at a fixed spacing
-along the line; invalid points (off the plate, out of range, dropouts) are NaN in every field.
+Frames. The *base* frame B is the sensor's nominal pose at the start of a default sweep (the frame
+the CAD mounting ``scanner_to_gls`` maps to the gls frame): x along the laser line (0 on the
+sensor axis), y along the default travel, z along the viewing direction from the sensor towards the
+plate (z is the measured distance, about 325 mm). Right-handed. The true mounting may differ by a
+small unknown error (``mounting_error``, applied in B), and each sweep's path may be off by the
+robot's repeatability (a constant per sweep) and wander along it (``MeasurementChain``).
 
-The scanner's pose relative to the head comes from CAD (``scanner_to_gls``, 4x4); the true
-mounting may differ by a small unknown error (``mounting_error``, applied in the scanner frame),
-and each sweep's path may be off by the robot's repeatability. Measurement rays are modelled
-parallel to z (the fan angle of the line is neglected).
+Sweeps (the hooks of the error-separation work). ``direction`` +1 moves the sensor along its +y,
+-1 along its -y (the sensor does not turn); ``orientation_deg`` 0 or 90 turns the sensor about its
+viewing axis (B's z) before the sweep, so a 90 deg sweep runs along B's x. Either way the sweep
+covers ``length_mm`` centred on ``(0, length_mm / 2, 0)`` of B. The sweep's *start frame* is the
+nominal sensor pose at its first profile (:meth:`LaserLineScanner.start_pose`, a 4x4 in B).
 
-Noise model: z noise (Gaussian), a smooth linearity error across the line, intensity =
-reflectivity * gain * speckle (multiplicative Gaussian, clipped at 0), saturation at 1.0 then
-quantisation to ``intensity_bits``, and random dropouts.
+Profiles. Every profile holds W points ``x, y, z, intensity`` (float32) placed *by time* in the
+start frame (y = direction * index * step, what a scanner without an encoder assumes: constant
+nominal speed); the sensor itself measures y = 0. Invalid points (off the plate, out of range,
+dropouts) are NaN in every field. Each profile also carries ``reported_pose`` (4x4, sensor -> B):
+the pose the robot REPORTS at the profile's stamp (its encoder pose): it follows the true travel
+(speed-scale error and speed ripple) but not the structural path wander nor the per-sweep
+repeatability offset, which the robot cannot see. A consumer places a profile by pose as
+``reported_pose @ (x, 0, z, 1)`` of its sensor-frame points.
+
+Noise model: z noise (Gaussian), a smooth z linearity error across the line, and the measurement
+chain (:mod:`gls_calibration.simulation.measurement`): placement errors of the robot, the lateral
+linearity of the sensor, fan geometry (points on rays from the fan apex, so lateral position and
+pitch follow the measured range), white and correlated speckle, saturation with blooming along the
+line, quantisation to ``intensity_bits`` and random dropouts.
 """
 from __future__ import annotations
 
@@ -24,12 +37,18 @@ from typing import Iterator
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from scipy.ndimage import gaussian_filter, gaussian_filter1d
+
+from gls_calibration.simulation.measurement import MeasurementChain, lateral_linearity_shape, smooth_process
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.validation import as_finite_array, as_non_negative_number, as_positive_number
 
 PROFILE_DTYPE = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32), ("intensity", np.float32)])
 _CHUNK_ROWS = 128
 _PATH_STREAM = 2 ** 31 - 1      # random stream of the robot path error, apart from the chunk streams
+_CHAIN_STREAM = 2 ** 31 - 2     # robot placement processes of one sweep
+_SPECKLE_STREAM = 2 ** 31 - 3   # correlated speckle, one sub-stream per profile
+ORIENTATIONS_DEG = (0.0, 90.0)
 
 
 def pose_matrix(xyz_mm, rpy_rad) -> np.ndarray:
@@ -80,13 +99,50 @@ class Profile:
     index: int
     stamp_s: float
     points: np.ndarray
+    reported_pose: np.ndarray = None    # 4x4 sensor -> base frame B, as the robot's encoder reports it
+
+
+@dataclass(frozen=True)
+class SweepData:
+    """A whole sweep: profiles placed by time (start frame), intensity, stamps, reported poses."""
+
+    xyz: np.ndarray               # (H, W, 3) float32, placed by time in the start frame
+    intensity: np.ndarray         # (H, W) float32
+    stamps_s: np.ndarray          # (H,) s from the first profile
+    reported_poses: np.ndarray    # (H, 4, 4) sensor -> B, the encoder's
+    start_pose: np.ndarray        # (4, 4) nominal start frame -> B
+    direction: int
+    orientation_deg: float
+    step_mm: float
+
+    def sensor_points(self) -> np.ndarray:
+        """(H, W, 3) points in each profile's own sensor frame (y = 0)."""
+        xyz = self.xyz.astype(float)
+        xyz[..., 1] -= self.direction * self.step_mm * np.arange(xyz.shape[0])[:, None]
+        return xyz
+
+    def placed_by_time(self) -> np.ndarray:
+        """(H, W, 3) in the base frame B, profiles placed by time at the nominal speed."""
+        return _apply(self.start_pose, self.xyz.astype(float))
+
+    def placed_by_pose(self) -> np.ndarray:
+        """(H, W, 3) in the base frame B, each profile placed by its reported (encoder) pose."""
+        points = self.sensor_points()
+        return (np.einsum("hij,hwj->hwi", self.reported_poses[:, :3, :3], points)
+                + self.reported_poses[:, None, :3, 3])
+
+
+def _apply(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ matrix[:3, :3].T + matrix[:3, 3]
 
 
 class LaserLineScanner:
     """Generates the profiles a laser-line scanner records while swept over a plate."""
 
-    def __init__(self, settings: ScannerSettings | None = None, scanner_to_gls=None, mounting_error=None) -> None:
+    def __init__(self, settings: ScannerSettings | None = None, scanner_to_gls=None, mounting_error=None,
+                 chain: MeasurementChain | None = None) -> None:
         self.settings = settings if settings is not None else ScannerSettings()
+        self.chain = chain if chain is not None else MeasurementChain()
         if scanner_to_gls is None:
             # looking straight down from the standoff, travelling towards -y of the head
             scanner_to_gls = pose_matrix([0.0, 100.0, self.settings.standoff_mm], [math.pi, 0.0, 0.0])
@@ -118,44 +174,100 @@ class LaserLineScanner:
         step = as_positive_number(self.settings.step_mm if step_mm is None else step_mm, "step_mm")
         return int(math.floor(length / step + 1e-9)) + 1, speed, step
 
+    def start_pose(self, length_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> np.ndarray:
+        """Nominal sensor pose at the first profile of a sweep (4x4, start frame -> B)."""
+        rotation = _turn(orientation_deg)
+        pose = np.eye(4)
+        pose[:3, :3] = rotation
+        pose[:3, 3] = np.array([0.0, 0.5 * length_mm, 0.0]) - rotation @ np.array([0.0, direction * 0.5 * length_mm, 0.0])
+        return pose
+
     def _path_error(self, seed: int) -> np.ndarray:
         bound = self.settings.path_repeatability_mm
         return np.random.default_rng([seed, _PATH_STREAM]).uniform(-bound, bound, 3)
 
+    def _placement(self, seed: int, rows: int, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """True travel (rows,), across wander (rows,) and height wander (rows,) of one sweep (mm)."""
+        c = self.chain
+        nominal = np.arange(rows) * step
+        rng = np.random.default_rng([seed, _CHAIN_STREAM])
+        ripple = smooth_process(rng, nominal, c.speed_ripple_mm, c.speed_ripple_correlation_mm)
+        across = smooth_process(rng, nominal, c.path_wander_mm, c.path_wander_correlation_mm)
+        height = smooth_process(rng, nominal, c.path_wander_mm, c.path_wander_correlation_mm)
+        return nominal * (1.0 + c.speed_scale_error) + ripple, across, height
+
+    def _correlated_speckle(self, seed: int, first: int, count: int, width: int, step: float) -> np.ndarray:
+        """Multiplicative speckle (count, width) of rows first .. first + count - 1, continuous across chunks."""
+        c = self.chain
+        sigma_rows = c.speckle_correlation_mm / math.sqrt(2.0) / step
+        sigma_cols = c.speckle_correlation_mm / math.sqrt(2.0) / self.settings.point_spacing_mm
+        margin = int(math.ceil(4.0 * sigma_rows)) + 1
+        noise = np.stack([np.random.default_rng([seed, _SPECKLE_STREAM, row + 2 ** 20]).standard_normal(width)
+                          for row in range(first - margin, first + count + margin)])
+        field = gaussian_filter(noise, (sigma_rows, sigma_cols), mode="nearest")[margin:margin + count]
+        norm = _kernel_norm(sigma_rows) * _kernel_norm(sigma_cols)
+        return np.maximum(1.0 + c.speckle_contrast / norm * field, 0.0)
+
     def _rows(self, plate: Plate, first: int, count: int, step: float, path_error: np.ndarray,
+              placement, direction: int, orientation_deg: float, start: np.ndarray, seed: int,
               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """Measured xyz (count, W, 3) and intensity (count, W) of profiles first .. first + count - 1."""
-        s = self.settings
+        """Measured xyz (count, W, 3), placed by time in the start frame, and intensity (count, W)."""
+        s, c = self.settings, self.chain
         x = self.line_x()
-        y = (first + np.arange(count)) * step
+        rows = slice(first, first + count)
+        travel, across, height = (part[rows] for part in placement)
+        turn = start[:3, :3]
+        # true sensor origin of each profile in B; ray origins and directions of each point
+        local = np.column_stack([across, direction * travel, height])
+        sensor = start[:3, 3] + local @ turn.T + path_error
+        if c.fan_geometry:
+            tangent = x / s.standoff_mm
+            ray_origin = np.zeros((x.size, 3))
+            ray_direction = np.column_stack([tangent, np.zeros_like(x), np.ones_like(x)])
+        else:
+            tangent = None
+            ray_origin = np.column_stack([x, np.zeros_like(x), np.zeros_like(x)])
+            ray_direction = np.tile([0.0, 0.0, 1.0], (x.size, 1))
+        ray_origin, ray_direction = ray_origin @ turn.T, ray_direction @ turn.T
         rotation = self.true_scanner_to_gls[:3, :3]
         translation = self.true_scanner_to_gls[:3, 3]
-        # the plate plane in the true scanner frame; the ray from (x, y, 0) + error along z meets it at
-        # z = z0 + zx x + zy y, an affine map, and so are the plate coordinates of the hit point
         normal = rotation.T @ plate.normal
         origin = rotation.T @ (plate.origin - translation)
-        if abs(normal[2]) < 1e-6:
+        facing = ray_direction @ normal                                    # (W,)
+        if np.any(np.abs(facing) < 1e-6):
             raise ValueError("the scanner looks along the plate; no profile can be measured")
-        z0 = normal @ (origin - path_error) / normal[2]
-        zx, zy = -normal[0] / normal[2], -normal[1] / normal[2]
-        depth = z0 + zx * x[None, :] + zy * y[:, None]
-        hit_origin = rotation @ (path_error + np.array([0.0, 0.0, z0])) + translation
-        hit_x = rotation @ np.array([1.0, 0.0, zx])
-        hit_y = rotation @ np.array([0.0, 1.0, zy])
-        uv0, uvx, uvy = plate.to_plate(hit_origin), hit_x @ plate.rotation[:, :2], hit_y @ plate.rotation[:, :2]
-        uv = uv0 + x[None, :, None] * uvx + y[:, None, None] * uvy
+        origins = sensor[:, None, :] + ray_origin[None, :, :]               # (count, W, 3)
+        depth = ((origin - origins) @ normal) / facing
+        hits = origins + depth[..., None] * ray_direction
+        uv = plate.to_plate(hits @ rotation.T + translation)
+        warp = plate.warp(uv)
+        if warp is not None:
+            # the surface stands off the plane along its normal: one correction step is plenty
+            depth = depth + warp / facing
+            hits = origins + depth[..., None] * ray_direction
+            uv = plate.to_plate(hits @ rotation.T + translation)
         reflectivity = plate.reflectivity(uv)
 
         shape = depth.shape
-        z = depth + s.z_noise_mm * rng.standard_normal(shape) + self._linearity(x)[None, :]
+        noise = s.z_noise_mm * rng.standard_normal(shape)
+        z = depth + noise + self._linearity(x)[None, :]
         speckle = np.maximum(1.0 + s.speckle * rng.standard_normal(shape, dtype=np.float32), 0.0)
+        raw = reflectivity * np.float32(s.gain) * speckle
+        if c.speckle_contrast:
+            raw = raw * self._correlated_speckle(seed, first, count, x.size, step).astype(np.float32)
+        if c.blooming_mm:
+            # saturated light spills along the line into the neighbouring pixels
+            excess = np.nan_to_num(np.maximum(raw - 1.0, 0.0))
+            raw = raw + gaussian_filter1d(excess, c.blooming_mm / s.point_spacing_mm, axis=1, mode="constant")
         levels = float(2 ** s.intensity_bits - 1)
-        intensity = np.round(np.clip(reflectivity * np.float32(s.gain) * speckle, 0.0, 1.0) * levels) / levels
+        intensity = np.round(np.clip(raw, 0.0, 1.0) * levels) / levels
         invalid = (~np.isfinite(reflectivity) | (rng.random(shape, dtype=np.float32) < s.dropout_fraction)
                    | (depth < s.depth_min_mm) | (depth > s.depth_max_mm))
+        lateral = c.lateral_linearity_mm * lateral_linearity_shape(x, 0.5 * s.line_length_mm)
         xyz = np.empty(shape + (3,), dtype=np.float32)
-        xyz[..., 0] = x[None, :]
-        xyz[..., 1] = y[:, None]
+        # the sensor reports the point on its pixel's ray at the measured range
+        xyz[..., 0] = (x[None, :] if tangent is None else (depth + noise) * tangent[None, :]) + lateral[None, :]
+        xyz[..., 1] = (direction * step * np.arange(first, first + count))[:, None]
         xyz[..., 2] = z
         xyz[invalid] = np.nan
         intensity = intensity.astype(np.float32)
@@ -167,35 +279,74 @@ class LaserLineScanner:
         half = 0.5 * self.settings.line_length_mm
         return self.settings.linearity_mm * np.sin(1.5 * np.pi * x / half)
 
-    def _chunks(self, plate, length_mm, speed_mm_s, step_mm, seed):
+    def _chunks(self, plate, length_mm, speed_mm_s, step_mm, seed, direction=1, orientation_deg=0.0):
         rows, speed, step = self.sweep_parameters(length_mm, speed_mm_s, step_mm)
+        if direction not in (1, -1):
+            raise ValueError(f"direction must be +1 or -1, got {direction!r}")
+        if orientation_deg not in ORIENTATIONS_DEG:
+            raise ValueError(f"orientation_deg must be 0 or 90, got {orientation_deg!r}")
         path_error = self._path_error(seed)
+        placement = self._placement(seed, rows, step)
+        start = self.start_pose(float(length_mm), direction, orientation_deg)
         for number, first in enumerate(range(0, rows, _CHUNK_ROWS)):
             count = min(_CHUNK_ROWS, rows - first)
             rng = np.random.default_rng([seed, number])
-            xyz, intensity = self._rows(plate, first, count, step, path_error, rng)
-            yield first, step / speed, xyz, intensity
+            xyz, intensity = self._rows(plate, first, count, step, path_error, placement, direction,
+                                        orientation_deg, start, seed, rng)
+            reported = np.repeat(start[None], count, axis=0)
+            reported[:, :3, 3] += (direction * placement[0][first:first + count])[:, None] * start[:3, 1]
+            yield first, step / speed, xyz, intensity, reported
 
     def sweep(self, plate: Plate, length_mm: float = 200.0, speed_mm_s: float | None = None,
-              step_mm: float | None = None, seed: int = 0) -> Iterator[Profile]:
+              step_mm: float | None = None, seed: int = 0, direction: int = 1,
+              orientation_deg: float = 0.0) -> Iterator[Profile]:
         """Profiles of one sweep over ``length_mm`` at ``speed_mm_s``, one every ``step_mm``, in order."""
-        for first, period, xyz, intensity in self._chunks(plate, length_mm, speed_mm_s, step_mm, seed):
+        for first, period, xyz, intensity, reported in self._chunks(plate, length_mm, speed_mm_s, step_mm, seed,
+                                                                     direction, orientation_deg):
             for row in range(xyz.shape[0]):
                 points = np.empty(xyz.shape[1], dtype=PROFILE_DTYPE)
                 points["x"], points["y"], points["z"] = xyz[row, :, 0], xyz[row, :, 1], xyz[row, :, 2]
                 points["intensity"] = intensity[row]
-                yield Profile(first + row, (first + row) * period, points)
+                yield Profile(first + row, (first + row) * period, points, reported[row])
 
     def sweep_cloud(self, plate: Plate, length_mm: float = 200.0, speed_mm_s: float | None = None,
-                    step_mm: float | None = None, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """The whole sweep as an organized cloud: xyz (H, W, 3) and intensity (H, W), float32, scanner frame.
+                    step_mm: float | None = None, seed: int = 0, direction: int = 1,
+                    orientation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """The whole sweep as an organized cloud placed by time: xyz (H, W, 3) and intensity (H, W),
+        float32, in the sweep's start frame (B for the default sweep). Same numbers as :meth:`sweep`."""
+        data = self.sweep_data(plate, length_mm, speed_mm_s, step_mm, seed, direction, orientation_deg)
+        return data.xyz, data.intensity
 
-        Same numbers as :meth:`sweep` with the same arguments.
-        """
-        parts = list(self._chunks(plate, length_mm, speed_mm_s, step_mm, seed))
-        return (np.concatenate([part[2] for part in parts]), np.concatenate([part[3] for part in parts]))
+    def sweep_data(self, plate: Plate, length_mm: float = 200.0, speed_mm_s: float | None = None,
+                   step_mm: float | None = None, seed: int = 0, direction: int = 1,
+                   orientation_deg: float = 0.0) -> SweepData:
+        """The whole sweep with its stamps and reported poses (see :class:`SweepData`)."""
+        parts = list(self._chunks(plate, length_mm, speed_mm_s, step_mm, seed, direction, orientation_deg))
+        rows = sum(part[2].shape[0] for part in parts)
+        _, speed, step = self.sweep_parameters(length_mm, speed_mm_s, step_mm)
+        return SweepData(np.concatenate([part[2] for part in parts]), np.concatenate([part[3] for part in parts]),
+                         np.arange(rows) * step / speed, np.concatenate([part[4] for part in parts]),
+                         self.start_pose(float(length_mm), direction, orientation_deg), direction,
+                         float(orientation_deg), step)
 
     def to_gls(self, points) -> np.ndarray:
-        """Scanner-frame points (..., 3) to the gls frame with the CAD mounting (what a calibration knows)."""
+        """Base-frame points (..., 3) to the gls frame with the CAD mounting (what a calibration knows)."""
         points = np.asarray(points, dtype=float)
         return points @ self.scanner_to_gls[:3, :3].T + self.scanner_to_gls[:3, 3]
+
+
+def _turn(orientation_deg: float) -> np.ndarray:
+    """Rotation of the sensor about its viewing axis (B's z)."""
+    angle = math.radians(orientation_deg)
+    cos, sin = round(math.cos(angle), 15), round(math.sin(angle), 15)
+    return np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _kernel_norm(sigma: float) -> float:
+    """Root sum of squares of the discrete Gaussian kernel (unit-variance scaling of filtered noise)."""
+    if sigma <= 0.0:
+        return 1.0
+    size = 2 * int(math.ceil(4.0 * sigma)) + 1
+    impulse = np.zeros(size)
+    impulse[size // 2] = 1.0
+    return math.sqrt(float(np.sum(gaussian_filter1d(impulse, sigma, mode="constant") ** 2)))

@@ -12,6 +12,10 @@ The file is a ROS 2 parameter file; nested blocks are the dotted parameter names
         scanner: {standoff_mm: 325.0, ..., mounting_xyz_mm: [...], mounting_rpy_rad: [...],
                   mounting_error_xyz_mm: [...], mounting_error_rpy_rad: [...]}
         sweep: {length_mm: 200.0}
+        measurement: {preset: paper_like}          # the measurement chain (simulation.measurement)
+
+``measurement.preset`` is one of ``ideal``, ``careful``, ``paper_like`` (default) or ``custom``;
+other keys of the block name single error sources (see :class:`MeasurementChain`).
 """
 from __future__ import annotations
 
@@ -28,8 +32,9 @@ from gls_calibration.head_config import effects_from_mapping, head_config_from_d
 from gls_calibration.kinematics import HeadGeometry, inverse
 from gls_calibration.optics import HeadEffects
 from gls_calibration.simulation.head import TruthHead
+from gls_calibration.simulation.measurement import PRESET_CHAINS, MeasurementChain, measurement_from_mapping
 from gls_calibration.simulation.plate import Plate, PlateSettings
-from gls_calibration.simulation.scanner import LaserLineScanner, ScannerSettings, pose_matrix
+from gls_calibration.simulation.scanner import LaserLineScanner, ScannerSettings, SweepData, pose_matrix
 
 _PLATE_KEYS = tuple(f.name for f in fields(PlateSettings) if f.name not in ("tilt_x_rad", "tilt_y_rad", "delta_d_mm"))
 _SCANNER_KEYS = tuple(f.name for f in fields(ScannerSettings))
@@ -52,6 +57,8 @@ class SimConfig:
     scanner_to_gls: np.ndarray = None          # 4x4 CAD mounting, scanner -> gls
     mounting_error: np.ndarray = None          # 4x4 unknown error in the scanner frame
     sweep_length_mm: float = 200.0
+    measurement_preset: str = "ideal"
+    measurement: MeasurementChain = PRESET_CHAINS["ideal"]
 
     def __post_init__(self) -> None:
         if self.scanner_to_gls is None:
@@ -65,6 +72,15 @@ class SimConfig:
                 raise ValueError(f"{name} must be positive, got {value!r}")
         if not (math.isfinite(self.jump_time_s) and self.jump_time_s >= 0.0):
             raise ValueError(f"jump_time_s must be non-negative, got {self.jump_time_s!r}")
+
+    def make_plate(self) -> Plate:
+        """A plate of this configuration (with the measurement chain's mark and plate effects)."""
+        return Plate(self.plate_settings, seed=self.seed, chain=self.measurement,
+                     beam_distance_mm=self.geometry.working_distance_mm + self.effects.get("working_distance")[0])
+
+    def make_scanner(self) -> LaserLineScanner:
+        """The scanner of this configuration (with the measurement chain's robot and sensor effects)."""
+        return LaserLineScanner(self.scanner, self.scanner_to_gls, self.mounting_error, self.measurement)
 
     @property
     def plate_settings(self) -> PlateSettings:
@@ -103,10 +119,12 @@ def _triple(value: Any, key: str) -> np.ndarray:
     return np.array([_number(item, key) for item in value])
 
 
-def sim_config_from_dict(document: Any) -> SimConfig:
-    """SimConfig from a parsed sim configuration (see the module docstring); missing keys take defaults."""
+def sim_config_from_dict(document: Any, preset: str | None = None) -> SimConfig:
+    """SimConfig from a parsed sim configuration (see the module docstring); missing keys take defaults.
+
+    ``preset`` overrides ``measurement.preset`` of the document (e.g. from a command line)."""
     parameters = parameters_block(document)
-    known_blocks = ("seed", "head", "effects", "marking", "plate", "scanner", "sweep")
+    known_blocks = ("seed", "head", "effects", "marking", "plate", "scanner", "sweep", "measurement")
     unknown = sorted(set(parameters) - set(known_blocks))
     if unknown:
         raise ValueError(f"unknown sim parameter(s) {', '.join(map(repr, unknown))}; known: {', '.join(known_blocks)}")
@@ -131,6 +149,7 @@ def sim_config_from_dict(document: Any) -> SimConfig:
     scanner = ScannerSettings(**scanner_values)
     sweep = {key: _number(value, f"sweep.{key}") for key, value in _block(parameters, "sweep", _SWEEP_KEYS).items()}
     length = sweep.get("length_mm", 200.0)
+    preset, chain = measurement_from_mapping(parameters.get("measurement"), preset)
 
     cad = None
     if "mounting_xyz_mm" in mounting or "mounting_rpy_rad" in mounting:
@@ -141,17 +160,19 @@ def sim_config_from_dict(document: Any) -> SimConfig:
     return SimConfig(seed=seed, geometry=geometry, effects=effects,
                      mark_speed_mm_s=marking.get("mark_speed_mm_s", 500.0),
                      jump_time_s=marking.get("jump_time_s", 0.005), plate=plate, scanner=scanner,
-                     scanner_to_gls=cad, mounting_error=error, sweep_length_mm=length)
+                     scanner_to_gls=cad, mounting_error=error, sweep_length_mm=length,
+                     measurement_preset=preset, measurement=chain)
 
 
-def load_sim_config(path: str | Path | None = None) -> SimConfig:
+def load_sim_config(path: str | Path | None = None, preset: str | None = None) -> SimConfig:
     """Read a sim configuration file (default: the package's ``config/sim.yaml``).
 
     Raises ValueError with the file name for unreadable YAML, unknown keys or effect names, and
-    non-positive speeds or step sizes.
+    non-positive speeds or step sizes, unknown measurement presets, negative magnitudes and keys that
+    conflict with the preset. ``preset`` overrides the file's ``measurement.preset``.
     """
     return read_config_file(path if path is not None else default_sim_config_path(), "sim configuration",
-                            sim_config_from_dict)
+                            lambda document: sim_config_from_dict(document, preset))
 
 
 class SimulatedCell:
@@ -159,10 +180,10 @@ class SimulatedCell:
 
     def __init__(self, config: SimConfig | None = None) -> None:
         self.config = config if config is not None else SimConfig()
-        self.plate = Plate(self.config.plate_settings, seed=self.config.seed)
+        self.plate = self.config.make_plate()
         self.head = TruthHead(self.config.geometry, self.config.effects, plate=self.plate,
                               mark_speed_mm_s=self.config.mark_speed_mm_s, jump_time_s=self.config.jump_time_s)
-        self.scanner = LaserLineScanner(self.config.scanner, self.config.scanner_to_gls, self.config.mounting_error)
+        self.scanner = self.config.make_scanner()
         self._plates_loaded = 0
 
     def exchange_plate(self) -> int:
@@ -180,7 +201,16 @@ class SimulatedCell:
             landed.append(self.head.mark(setpoints.alpha_x, setpoints.alpha_y))
         return landed
 
-    def sweep_cloud(self, step_mm: float | None = None, seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """One sweep over the configured length: organized xyz (H, W, 3) and intensity (H, W), scanner frame."""
+    def sweep_cloud(self, step_mm: float | None = None, seed: int | None = None, direction: int = 1,
+                    orientation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """One sweep over the configured length placed by time: organized xyz (H, W, 3) and intensity
+        (H, W), in the sweep's start frame (the scanner base frame for the default sweep)."""
+        data = self.sweep_data(step_mm, seed, direction, orientation_deg)
+        return data.xyz, data.intensity
+
+    def sweep_data(self, step_mm: float | None = None, seed: int | None = None, direction: int = 1,
+                   orientation_deg: float = 0.0) -> SweepData:
+        """One sweep with stamps and the robot's reported poses (see :class:`SweepData`)."""
         seed = self.config.seed if seed is None else seed
-        return self.scanner.sweep_cloud(self.plate, self.config.sweep_length_mm, step_mm=step_mm, seed=seed)
+        return self.scanner.sweep_data(self.plate, self.config.sweep_length_mm, step_mm=step_mm, seed=seed,
+                                       direction=direction, orientation_deg=orientation_deg)

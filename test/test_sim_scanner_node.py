@@ -1,0 +1,43 @@
+"""sim_scanner's hooks for sweep plans: direction, orientation and the reported pose per profile."""
+from __future__ import annotations
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+
+from gls_calibration.nodes.sim_galvo import SimGalvoNode
+from gls_calibration.nodes.sim_scanner import SimScannerNode
+from gls_calibration_msgs.msg import SweepDone
+from gls_calibration_msgs.srv import StartSweep
+
+from ros_helpers import wait_for
+
+
+def test_sweep_direction_orientation_and_reported_pose_stream(start_cell):
+    cell = start_cell(node_types=(SimGalvoNode, SimScannerNode), parameters={"measurement_preset": "paper_like"})
+    poses, stamps, done = [], [], []
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    cell.client_node.create_subscription(PoseStamped, "scan/pose", poses.append, qos)
+    cell.client_node.create_subscription(PointCloud2, "scan/points", lambda m: stamps.append(m.header.stamp), qos)
+    cell.client_node.create_subscription(SweepDone, "scan/sweep_done", done.append, qos)
+    refused = cell.call(StartSweep, "scanner/start_sweep", StartSweep.Request(length_mm=2.0, orientation_deg=45.0), 10.0)
+    assert not refused.success and "orientation_deg 0 or 90" in refused.message
+    refused = cell.call(StartSweep, "scanner/start_sweep", StartSweep.Request(length_mm=2.0, direction=2), 10.0)
+    assert not refused.success and "direction must be +1 or -1" in refused.message
+    started = cell.call(StartSweep, "scanner/start_sweep",
+                        StartSweep.Request(length_mm=2.0, step_mm=0.1, direction=-1, orientation_deg=90.0), 10.0)
+    assert started.success and started.expected_profiles == 21
+    wait_for(lambda: done and len(poses) == 21 and len(stamps) == 21, 20.0, what="the sweep, its poses and profiles")
+    assert list(done[0].direction) == [0.0, -1.0, 0.0]
+    # one pose per profile, stamped like it, in the scanner base frame (metres)
+    assert [(p.header.stamp.sec, p.header.stamp.nanosec) for p in poses] == [(s.sec, s.nanosec) for s in stamps]
+    assert all(p.header.frame_id == "scanner_base" for p in poses)
+    x = np.array([p.pose.position.x for p in poses]) * 1e3
+    y = np.array([p.pose.position.y for p in poses]) * 1e3
+    # turned 90 deg and running backwards: the sensor moves along base +x, about 0.1 mm per profile
+    # (the paper_like robot's speed error and ripple make the reported steps uneven)
+    assert np.allclose(y, 1.0, atol=1e-9) and abs(x[0] + 1.0) < 0.4
+    assert np.all(np.diff(x) > 0.05) and abs(x[-1] - x[0] - 2.0) < 0.2
+    q = poses[0].pose.orientation
+    assert np.allclose([q.x, q.y, abs(q.z), abs(q.w)], [0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)])
