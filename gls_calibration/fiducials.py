@@ -20,12 +20,13 @@ What we know is used throughout: every fiducial is two concentric rings of known
    level, linear shading and the rings' blur.
 4. Quality per centre: the ring amplitude is measured on 24 angular sectors at the fitted circle;
    ``coverage`` is the share of sectors where the rings are seen, and rays of unseen sectors are
-   left out of the final fit. The standard uncertainty per axis comes from the fit: the residual
-   variance of the edge points, inflated by their correlation along the circumference (integrated
-   autocorrelation), propagated through the fit's normal matrix, plus ``MODEL_SIGMA_MM``.
+   left out of the final fit. The standard uncertainty per axis comes from the fit: a
+   delete-one-sector jackknife of the edge points' ring fit (neighbouring rays are correlated, whole
+   sectors much less), plus ``MODEL_SIGMA_MM``.
 5. Status: candidates are rejected with a reason (``spurious``: coverage below ``SPURIOUS_COVERAGE``,
    no ring there; ``partial``: coverage below ``MIN_COVERAGE``;
-   ``radius``: ring radii off the nominal ones; ``fit``: too few usable rays or an ill-posed fit;
+   ``radius``: a ring's semi-axes (mean radius +- its second harmonic) off the nominal radius, which
+   also turns down two rings close enough to merge into one detection; ``fit``: too few usable rays or an ill-posed fit;
    ``uncertain``: stated uncertainty above ``MAX_SIGMA_MM``; ``duplicate``: the same fiducial as a
    better candidate). Accepted centres are returned in plate coordinates and, via
    ``PlatePose.from_plane``, as 3-D points on the fitted plane.
@@ -447,6 +448,13 @@ def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, weight: np.ndarray):
     return solution[:, 1:3], solution[:, 0], edge_radius - residual, residual, used, fit_ok
 
 
+def _sector_sums(values: np.ndarray, sector_of_ray: np.ndarray) -> np.ndarray:
+    """Sums of ``values`` (M, A, ...) over the rays of each sector (M, SECTORS, ...); the rays of a
+    sector are contiguous and ``sector_of_ray`` is sorted, so this is one ``reduceat``."""
+    starts = np.searchsorted(sector_of_ray, np.arange(SECTORS))
+    return np.add.reduceat(values, starts, axis=1)
+
+
 def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarray,
                        sector_of_ray: np.ndarray) -> np.ndarray:
     """Covariance (M, 2, 2) of the fitted centre (plate axes, mm^2) from the radial residuals.
@@ -460,13 +468,9 @@ def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarra
     parameters = design.shape[-1]
     u = used.astype(float)
     design = np.broadcast_to(design, (count, rays, parameters))
-    sector_normal = np.zeros((count, SECTORS, parameters, parameters))
-    np.add.at(sector_normal, (slice(None), sector_of_ray),
-              np.einsum("mai,ma,maj->maij", design, u, design))
-    sector_score = np.zeros((count, SECTORS, parameters))
-    np.add.at(sector_score, (slice(None), sector_of_ray), design * np.where(used, residual, 0.0)[..., None])
-    per_sector = np.zeros((count, SECTORS))
-    np.add.at(per_sector, (slice(None), sector_of_ray), u)
+    sector_normal = _sector_sums(np.einsum("mai,ma,maj->maij", design, u, design), sector_of_ray)
+    sector_score = _sector_sums(design * np.where(used, residual, 0.0)[..., None], sector_of_ray)
+    per_sector = _sector_sums(u, sector_of_ray)
     present = per_sector > 0
     left_out = sector_normal.sum(axis=1, keepdims=True) - sector_normal          # (M, S, 3, 3)
     solvable = np.linalg.cond(left_out) < 1e10
@@ -509,8 +513,9 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         reach = half + (margin if refinement == 0 else 2 * margin) + step
         radial = (mid + np.arange(-np.ceil(reach / step), np.ceil(reach / step) + 1) * step).astype(np.float32)
         profiles = _ray_profiles(image, centres, offset, inverse, directions, radial)
-        inside = np.isfinite(profiles).all(axis=2)
-        profiles = np.nan_to_num(profiles)
+        finite = np.isfinite(profiles)
+        inside = finite.all(axis=2)
+        profiles = np.where(finite, profiles, np.float32(0.0))
         score = _correlate_rows(profiles, pair_template)
         # Search window (indices along the ray): +- margin about the nominal mid radius, then about
         # the last fitted one (rings of the wrong size stay in view and fail the radius check).
@@ -526,10 +531,8 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         # Ring amplitude of every ray at the fitted circle: erased arcs read about zero there.
         position = np.clip(np.rint((at - radial[0]) / step).astype(int), 0, len(radial) - 1)
         amplitude = np.where(inside, np.take_along_axis(score, position[..., None], -1)[..., 0], np.nan)
-        sector_sum = np.zeros((count, SECTORS))
-        sector_n = np.zeros((count, SECTORS))
-        np.add.at(sector_sum, (slice(None), sector_of_ray), np.nan_to_num(amplitude))
-        np.add.at(sector_n, (slice(None), sector_of_ray), np.isfinite(amplitude))
+        sector_sum = _sector_sums(np.where(np.isfinite(amplitude), amplitude, 0.0), sector_of_ray)
+        sector_n = _sector_sums(np.isfinite(amplitude).astype(float), sector_of_ray)
         with np.errstate(invalid="ignore", divide="ignore"):
             sector = np.where(sector_n > 0, sector_sum / sector_n, np.nan)
             reference = np.nanpercentile(np.where(np.isfinite(sector), sector, np.nan), 75, axis=1) \
@@ -540,6 +543,9 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         sampled_at = centres
         centres = np.where(fit_ok[:, None], centres + shift, centres)
     final_residual = residual
+    # Second harmonic of the fitted ring (half the difference of its axes): a ring on the plate is a
+    # circle, so this is small; the envelope of two offset rings (a merged detection) is not.
+    ellipticity = np.hypot(at @ np.cos(2 * angles), at @ np.sin(2 * angles)) * (2.0 / RAY_COUNT)
     covariance = _centre_covariance(design, final_residual, used, sector_of_ray)
 
     # Each ring's radius about the final centre: darkness centroid in a window of +- half the ring
@@ -565,7 +571,7 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
                                        / np.maximum(counts, 1), np.nan)
     rms = np.sqrt((np.where(used, final_residual, 0.0) ** 2).sum(axis=1) / np.maximum(used.sum(axis=1), 1))
     return dict(centres=centres, covariance=covariance, radii=ring_radii, rms=rms, coverage=coverage,
-                fit_ok=fit_ok & np.isfinite(ring_radii).all(axis=1))
+                ellipticity=ellipticity, fit_ok=fit_ok & np.isfinite(ring_radii).all(axis=1))
 
 
 def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, inverse: np.ndarray,
@@ -610,8 +616,8 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=(2.5, 2.
     ``xyz`` is organized (H, W, 3) with ``intensity`` (H, W), or unorganized (N, 3) with (N,); NaNs
     are allowed. ``pose`` is the plate pose from ``estimate_plate_pose``. ``pixel_size_mm`` is the
     raster pitch for unorganized clouds. ``marks_darker`` None finds the polarity from the image.
-    A candidate is accepted when every fitted ring radius is within ``radius_tolerance_mm`` of its
-    nominal value (0.12 mm: an uncalibrated scanner marks rings a few percent too large, 2.78 mm
+    A candidate is accepted when both semi-axes of every fitted ring are within ``radius_tolerance_mm``
+    of its nominal radius (0.12 mm: an uncalibrated scanner marks rings a few percent too large, 2.78 mm
     for 2.7 mm on the simulated defective cell) and its quality checks pass (module docstring,
     step 5). Raises ValueError when no
     fiducial is accepted, unless ``allow_empty``.
@@ -649,11 +655,15 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=(2.5, 2.
     else:
         affine_ok = np.zeros(0, bool)
         fit = dict(centres=np.empty((0, 2)), covariance=np.empty((0, 2, 2)), radii=np.empty((0, len(radii_nominal))),
-                   rms=np.empty(0), coverage=np.empty(0), fit_ok=np.zeros(0, bool))
+                   rms=np.empty(0), coverage=np.empty(0), ellipticity=np.empty(0), fit_ok=np.zeros(0, bool))
     centres_uv = fit["centres"]
     sigma_plane = np.sqrt(np.stack([fit["covariance"][:, 0, 0], fit["covariance"][:, 1, 1]], axis=-1))
     sigma_xy = _plane_to_cloud_sigma(fit["covariance"], pose)
-    radius_ok = np.all(np.abs(fit["radii"] - radii_nominal) <= radius_tolerance_mm, axis=1)
+    # Both semi-axes of every ring (mean radius +- the second harmonic) within the tolerance: an
+    # uncalibrated scanner's anisotropic scale keeps them there, the envelope of two offset rings
+    # (a merged detection) does not.
+    radius_ok = np.all(np.abs(fit["radii"] - radii_nominal) + fit["ellipticity"][:, None] <= radius_tolerance_mm,
+                       axis=1)
     reasons = np.full(len(candidates), STATUS_OK, dtype=object)
     # The first failing check names the reason, most basic first.
     checks = (("fit", fit["fit_ok"] & affine_ok), ("spurious", fit["coverage"] >= SPURIOUS_COVERAGE),
