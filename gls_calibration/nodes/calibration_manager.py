@@ -207,7 +207,6 @@ class CalibrationManager(GlsNode):
         self.service_timeout_s = self.declare(
             "service_timeout_s", 60.0, "time limit of one call to a processing node (plate pose, fiducials, "
             "training, correction) (s)", minimum=0.1, maximum=3600.0)
-        self.deadlines = declare_deadlines(self)
         self.resend_after_s = self.declare(
             "resend_after_s", 15.0, "send an idempotent request (correction, plate pose, fiducials, training) "
             "again when unanswered this long: a server that has just started may drop its first answers (s)",
