@@ -280,6 +280,8 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
         report("sweep_marked", 0.45 + 0.4 * number / len(plan),
                f"scanning the marked plate ({number + 1} of {len(plan)}: {item.label})")
         cloud = await cell.acquire_sweep(settings.marked_sweep_step_mm, item.direction, item.orientation_deg)
+        report("measurement", 0.45 + 0.4 * (number + 0.5) / len(plan),
+               f"measuring the fiducials of sweep {number + 1} of {len(plan)}")
         found = await cell.measure_fiducials(cloud, pose_scanner, len(grid_xy))
         if len(found.centres) < needed:
             which = f" (sweep {item.label} of {plan_label(plan)})" if len(plan) > 1 else ""

@@ -18,7 +18,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2, PointField
 
 from gls_calibration import kinematics
-from gls_calibration.nodes.conversions import array_to_pointcloud2, plate_pose_to_msg, xyzi_array
+from gls_calibration.nodes.conversions import cloud_to_msg, plate_pose_to_msg, xyzi_array
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
@@ -122,17 +122,27 @@ def test_correction_load_refuses_hostile_files_and_keeps_the_serving_calibration
     nan_text = re.sub(r"format_version: \d+", "format_version: .nan", good.read_text())
     assert nan_text != good.read_text()
     (store.history_directory / "nan.yaml").write_text(nan_text)
-    for path, problem in [(str(outside), "outside the calibration directory"),
-                          ("../../outside.yaml", "outside the calibration directory"),
-                          ("/dev/zero", "outside the calibration directory"),
-                          (str(fifo), "not a regular file"), ("bomb.yaml", "aliases are not allowed"),
-                          ("nan.yaml", "format_version"), (str(store.history_directory), "not a regular file")]:
-        message = load.refuses(LoadCalibration.Request(file=path), problem)
-        assert message.endswith(f"still serving {good}"), message
+    # Only the active calibration is ever served: any other file named is refused, hostile or not.
+    for path in [str(outside), "../../outside.yaml", "/dev/zero", str(fifo), "bomb.yaml", "nan.yaml",
+                 str(store.history_directory), other.name]:
+        message = load.refuses(LoadCalibration.Request(file=path), "is not the active calibration")
     served = client(CorrectSetpoints, "correct_setpoints")(CorrectSetpoints.Request(x=[0.0], y=[0.0]))
     assert served.success and served.message == "corrected"
-    switched = load(LoadCalibration.Request(file=other.name))
-    assert switched.success and switched.file == str(other.resolve()), switched.message
+    # A hostile ACTIVE file (the pointer written behind the node's back): the reload is refused with the
+    # reason, within the bounds of the one reading function, and the serving calibration stays.
+    pointer = store.pointer_path.read_text()
+    for content, problem in [("a: &a [1, 1]\nb: [*a, *a]\n", "aliases are not allowed"), (nan_text, "format_version")]:
+        hostile = store.history_directory / "calibration_20991231T000000Z_9999.yaml"
+        hostile.write_text(content)
+        store.pointer_path.write_text(f"active: {hostile.name}\n")
+        message = load.refuses(LoadCalibration.Request(file=""), problem)
+        assert message.endswith(f"still serving {good}"), message
+        kept = client(CorrectSetpoints, "correct_setpoints")(CorrectSetpoints.Request(x=[0.0], y=[0.0]))
+        assert kept.success and kept.calibration_id not in ("", "nominal"), kept.message
+    store.pointer_path.write_text(pointer)
+    store.activate(other)
+    switched = load(LoadCalibration.Request(file=""))
+    assert switched.success and Path(switched.file).resolve() == other.resolve(), switched.message
 
 
 def test_a_bad_active_file_at_start_leaves_the_node_up_and_refusing_with_the_reason(ros_context, add_node, client,
@@ -171,7 +181,7 @@ def plane_cloud(points: int = 2000) -> PointCloud2:
     rng = np.random.default_rng(3)
     xy = rng.uniform(-50.0, 50.0, (points, 2))
     z = 300.0 + 0.01 * xy[:, 0] + rng.normal(0.0, 0.01, points)
-    return array_to_pointcloud2(xyzi_array(np.column_stack([xy, z]), rng.random(points)), "scanner")
+    return cloud_to_msg(xyzi_array(np.column_stack([xy, z]), rng.random(points)), "scanner")
 
 
 def malformed_clouds() -> dict[str, PointCloud2]:
@@ -190,7 +200,7 @@ def malformed_clouds() -> dict[str, PointCloud2]:
     fields.fields = [field for field in fields.fields if field.name != "z"]
     clouds["missing field"] = fields
     nan_only = xyzi_array(np.full((50, 3), np.nan), np.zeros(50))
-    clouds["NaN only"] = array_to_pointcloud2(nan_only, "scanner")
+    clouds["NaN only"] = cloud_to_msg(nan_only, "scanner")
     counted = plane_cloud()
     counted.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=2 if f.name == "x" else 1)
                       for f in counted.fields]
@@ -214,7 +224,7 @@ def test_fiducial_measurement_refuses_bad_clouds_and_poses_and_then_measures(ros
     centres = np.array([[-10.0, -10.0], [10.0, -10.0], [0.0, 10.0]])
     xyz, intensity = render_plate_scan(centres, size_mm=(40.0, 40.0), offset_mm=(0.0, 0.0, 300.0))
     pose = estimate_plate_pose(xyz)
-    scan = array_to_pointcloud2(xyzi_array(xyz, intensity), "scanner")
+    scan = cloud_to_msg(xyzi_array(xyz, intensity), "scanner")
     pose_msg = plate_pose_to_msg(pose)
     for name, cloud in malformed_clouds().items():
         response = measure(MeasureFiducials.Request(cloud=cloud, pose=pose_msg))
@@ -333,7 +343,7 @@ class HostileScanner(FakeScanner):
     def stream(self) -> None:
         for cloud in malformed_clouds().values():
             self.points.publish(cloud)
-        negative = array_to_pointcloud2(self.profiles[0], "scanner")
+        negative = cloud_to_msg(self.profiles[0], "scanner")
         negative.header.stamp.sec = -5
         self.points.publish(negative)
         self.done.publish(SweepDone(sweep_id=99, profiles=3, step_mm=1.0, speed_mm_s=15.0,
