@@ -25,6 +25,16 @@ from gls_calibration.validation import (as_integer_at_least, as_matching_points,
 LN2 = math.log(2.0)
 _CHUNK_ROWS = 2048           # rows per block when evaluating many points: bounds memory, stays in cache
 _SMALL_BATCH = 64            # up to this many points, plain differences beat any set-up
+
+
+def _query_points(points) -> np.ndarray:
+    """``points`` as a finite (M, 2) float array; the full check (exact message) only when the quick one fails."""
+    points = np.asarray(points, dtype=float)
+    if points.ndim != 2 or points.shape[1] != 2 or not np.isfinite(points).all():
+        points = as_points(points, "points", 2, min_length=0)
+    return points
+
+
 _USABLE_FRACTION = 1e-6      # squared-norm share a candidate must keep outside the chosen span
 _TINY = np.finfo(float).tiny
 
@@ -182,9 +192,7 @@ class OLSRBFNetwork:
 
     def __call__(self, points) -> np.ndarray:
         """Predicted deviations (M, 2) in mm at ``points`` (M, 2) in mm."""
-        points = np.asarray(points, dtype=float)
-        if points.ndim != 2 or points.shape[1] != 2 or not np.isfinite(points).all():
-            points = as_points(points, "points", 2, min_length=0)
+        points = _query_points(points)
         if points.shape[0] <= _SMALL_BATCH:
             squared = np.sum((points[:, None, :] - self.centres) ** 2, axis=2)
             return np.exp(-self._scale * squared) @ self.weights + self.bias
@@ -360,9 +368,7 @@ class ThinPlateSplineModel:
 
     def __call__(self, points) -> np.ndarray:
         """Predicted deviations (M, 2) in mm at ``points`` (M, 2) in mm."""
-        points = np.asarray(points, dtype=float)
-        if points.ndim != 2 or points.shape[1] != 2 or not np.isfinite(points).all():
-            points = as_points(points, "points", 2, min_length=0)
+        points = _query_points(points)
         result = points @ self.affine[1:]
         result += self.affine[0]
         if points.shape[0] <= _SMALL_BATCH:
