@@ -449,7 +449,8 @@ def narrow_scanner_config(path: Path) -> Path:
 
 
 def test_calibration_fails_when_too_few_fiducials_are_found(start_cell, tmp_path):
-    cell = start_cell(grid=3, sim_config=narrow_scanner_config(tmp_path / "narrow_sim.yaml"))
+    cell = start_cell(grid=3, sim_config=narrow_scanner_config(tmp_path / "narrow_sim.yaml"),
+                      parameters={"sweep.plan": "0+,0-,90+,90-"})   # the plan of config/gls.yaml
     response = cell.call(Calibrate, "calibrate", Calibrate.Request(), timeout_s=240.0)
     assert not response.success
     # config/gls.yaml sweeps the marked plate four times; the first sweep already finds too few
