@@ -22,7 +22,6 @@ import math
 from pathlib import Path
 from typing import Any, Mapping
 
-import yaml
 
 from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.kinematics import HeadGeometry

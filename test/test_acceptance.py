@@ -8,26 +8,20 @@ must beat the calibration in use; the report is written before activation, activ
 from __future__ import annotations
 
 import shutil
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from rclpy.node import Node
-from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
-from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.persistence import CalibrationStore
 from gls_calibration.training import TrainedModel
 from gls_calibration.procedure import (CalibrationError, ProcedureSettings, acceptance_problem,
                                        check_clean_plate, check_model_explains)
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
-from gls_calibration_msgs.srv import Calibrate, CorrectSetpoints, LoadCalibration
+from gls_calibration_msgs.srv import Calibrate, CorrectSetpoints
 
-from ros_helpers import call_service, wait_for
 from test_procedure import FAST, new_cell, run_calibrate
-from test_persistence import make_record
 
 SETTINGS = ProcedureSettings()
 TIMEOUT_S = 20.0

@@ -22,7 +22,6 @@ from pathlib import Path
 import pytest
 from std_srvs.srv import Trigger
 
-from gls_calibration.cli import sim_cell
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.plate_pose import PlatePoseNode
 from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
@@ -31,7 +30,7 @@ from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import (Calibrate, CorrectSetpoints, GetMarkedPaths, MeasureFiducials, StartSweep,
                                       TrainCorrection)
 
-from ros_helpers import call_service, cell_ros_arguments, running_cell, stop_process, wait_for, wait_for_peer_service
+from ros_helpers import cell_ros_arguments, running_cell, stop_process, wait_for, wait_for_peer_service
 
 pytestmark = pytest.mark.slow
 

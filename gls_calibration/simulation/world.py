@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
-import yaml
 
 from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.head_config import effects_from_mapping, head_config_from_dict, parameters_block
