@@ -14,13 +14,31 @@ from typing import Iterator
 import numpy as np
 import rclpy
 
-from gls_calibration.calibration_record import correction_from_record
+from gls_calibration.calibration_record import calibrated_region, correction_from_record
 from gls_calibration.correction import Correction
 from gls_calibration.kinematics import HeadGeometry
 from gls_calibration.nodes.base import NodeThreads, use_fast_liveliness
-from gls_calibration.persistence import CalibrationStore
+from gls_calibration.persistence import CalibrationStore, new_record
+from gls_calibration.procedure import ProcedureSettings
+from gls_calibration.rbf import OLSRBFNetwork
+from gls_calibration.targets import grid_targets
 
-from bench_services import synthetic_calibration
+
+def synthetic_calibration(directory: Path) -> None:
+    """A store whose active calibration is an OLS network on a smooth 0.85 mm field."""
+    targets = grid_targets(19, 190.0)
+    x, y = targets.T / 95.0
+    field = np.column_stack([0.9 * x + 0.3 * x * y ** 2, 0.3 * y - 0.2 * x ** 2])
+    model = OLSRBFNetwork(targets, field, 35.0, 0.0005)
+    zeros = np.zeros(len(targets))
+    record = new_record(
+        head=HeadGeometry(), plate_pose={"normal": [0, 0, 1], "centre": [0, 0, 0], "rotation": np.eye(3),
+                                         "flatness_rms_mm": 0.0},
+        models=[model.to_dict()], calibrated_region=calibrated_region(ProcedureSettings()).to_dict(),
+        hyper_parameters={}, metrics={}, fiducials={"target_x": targets[:, 0], "target_y": targets[:, 1],
+                                                     "measured_x": targets[:, 0], "measured_y": targets[:, 1],
+                                                     "measured_z": zeros, "dx": field[:, 0], "dy": field[:, 1]})
+    CalibrationStore(directory).save(record)
 
 
 def rss_bytes(pid: int) -> int:
