@@ -6,6 +6,7 @@ answers, the calibration store and the reports.
 """
 from __future__ import annotations
 
+import array
 import json
 import math
 from pathlib import Path
@@ -25,6 +26,7 @@ from sensor_msgs.msg import PointCloud2
 
 from gls_calibration import kinematics
 from gls_calibration.config_files import config_path
+from gls_calibration.nodes import conversions
 from gls_calibration.nodes.conversions import cloud_from_msg, cloud_to_msg, pointcloud2_to_array, xyzi_array
 from gls_calibration.correction import CalibratedRegion, Correction
 from gls_calibration.nodes.calibration_manager import CalibrationManager
@@ -168,6 +170,37 @@ def test_correction_flags_targets_beyond_the_mirror_limits(ros_context, add_node
     expected = kinematics.inverse(GEOMETRY, x, y)
     np.testing.assert_array_equal(np.asarray(response.within_limits), expected.within_limits)
     assert len(response.alpha_x) == x.size      # the setpoints are still there for the reachable ones
+
+
+def test_correction_flags_are_uint8_and_chunks_join_exactly(ros_context, add_node, tmp_path):
+    """The flags travel as uint8[] (1 true, 0 false) and an answer computed in many chunks equals the
+    calibration evaluated here, bit for bit, flags included."""
+    store_dir = tmp_path / "store"
+    record, expected = trained_record(region_half_mm=50.0)
+    CalibrationStore(store_dir).save(record, activate=True)
+    add_node(CorrectionNode(context=ros_context, parameter_overrides=[
+        Parameter("calibration_dir", value=str(store_dir)), Parameter("chunk_targets", value=100)]))
+    node = client_node(ros_context, add_node)
+    rng = np.random.default_rng(16)
+    # Inside the calibrated box, outside it but reachable, and beyond the mirror limits (~188 mm).
+    x = np.concatenate([rng.uniform(-45, 45, 150), rng.uniform(60, 150, 80), rng.uniform(250, 300, 20)])
+    y = np.concatenate([rng.uniform(-45, 45, 150), rng.uniform(-40, 40, 80), rng.uniform(-10, 10, 20)])
+    order = rng.permutation(x.size)
+    x, y = x[order], y[order]
+    response = correct(node, x, y)
+    assert not response.success and response.message.startswith("20 target(s) beyond the mirror limits")
+    reference = expected.correct(x, y)
+    for name in ("inside_calibrated_field", "within_limits"):
+        flags = getattr(response, name)
+        assert isinstance(flags, array.array) and flags.typecode == "B", type(flags)
+        assert set(flags) == {0, 1}
+        np.testing.assert_array_equal(np.frombuffer(flags, np.uint8), getattr(reference, name).astype(np.uint8))
+    assert int(np.sum(np.frombuffer(response.inside_calibrated_field, np.uint8))) == 150
+    for name in ("x", "y", "alpha_x", "alpha_y", "focus_shift"):
+        np.testing.assert_array_equal(np.asarray(getattr(response, name)), getattr(reference, name))
+    returned = conversions.setpoints_from_response(response)
+    np.testing.assert_array_equal(returned.within_limits, reference.within_limits)
+    assert returned.within_limits.dtype == bool
 
 
 def test_correction_refuses_corrections_when_the_active_file_is_broken(ros_context, add_node, tmp_path):

@@ -71,7 +71,7 @@ def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: S
     """The same from the running cell's ``correct_setpoints`` (``ros_arguments``: remaps, namespace);
     RuntimeError when it gives no usable answer."""
     from gls_calibration.cli.client import call_and_wait, client_node
-    from gls_calibration.nodes.conversions import float64_sequence
+    from gls_calibration.nodes.conversions import flag_array, float64_sequence
     from gls_calibration_msgs.srv import CorrectSetpoints
     with client_node("gls_correct_client", namespace, ros_arguments) as (node, executor):
         print(f"gls-correct: service {node.resolve_service_name('correct_setpoints')}", file=sys.stderr)
@@ -91,7 +91,7 @@ def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: S
         raise RuntimeError(f"correct_setpoints: {response.message}")
     return (np.asarray(response.x), np.asarray(response.y), np.asarray(response.alpha_x),
             np.asarray(response.alpha_y), np.asarray(response.focus_shift),
-            np.asarray(response.inside_calibrated_field, bool), np.asarray(response.within_limits, bool),
+            flag_array(response.inside_calibrated_field), flag_array(response.within_limits),
             f"service: {response.message}")
 
 

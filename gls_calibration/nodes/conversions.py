@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import array
 from collections.abc import Sequence
+from dataclasses import fields
 
 import numpy as np
 import numpy.lib.recfunctions as recfunctions
@@ -322,6 +323,13 @@ def uint32_sequence(values: npt.ArrayLike) -> array.array:
     return sequence
 
 
+def flag_array(sequence) -> np.ndarray:
+    """A bool array from a uint8[] flag field (0 = false, anything else = true)."""
+    if isinstance(sequence, (array.array, bytes)):
+        return np.frombuffer(sequence, dtype=np.uint8) != 0
+    return np.asarray(sequence, dtype=np.uint8).reshape(-1) != 0
+
+
 def float64_array(sequence) -> np.ndarray:
     """A float64 numpy array over a float64[] field's buffer (a copy when it is a list)."""
     if isinstance(sequence, array.array):
@@ -389,15 +397,27 @@ def fiducials_from_response(response, pose: PlatePose) -> FiducialMeasurement:
         rejected_reasons=tuple(str(reason) for reason in response.rejected_reason))
 
 
+def setpoints_response_views(response, count: int) -> dict[str, np.ndarray]:
+    """Give every array field of a CorrectSetpoints response ``count`` zeroed elements and return
+    writable numpy views on them, by ``CorrectedSetpoints`` field name (flags as uint8 0/1).
+
+    A result computed in chunks is written straight into the message: no concatenation, no
+    conversion copy of the whole answer while the interpreter lock is held.
+    """
+    views = {}
+    for field in fields(CorrectedSetpoints):
+        flag = field.name in ("inside_calibrated_field", "within_limits")
+        setattr(response, field.name, array.array("B" if flag else "d", bytes(count * (1 if flag else 8))))
+        sequence = getattr(response, field.name)   # the setter may have copied it
+        views[field.name] = np.frombuffer(sequence, dtype=np.uint8 if flag else np.float64) if count else (
+            np.empty(0, dtype=np.uint8 if flag else np.float64))
+    return views
+
+
 def setpoints_to_response(result, response) -> None:
     """Fill a CorrectSetpoints response from a ``correction.CorrectedSetpoints``."""
-    response.x = float64_sequence(result.x)
-    response.y = float64_sequence(result.y)
-    response.alpha_x = float64_sequence(result.alpha_x)
-    response.alpha_y = float64_sequence(result.alpha_y)
-    response.focus_shift = float64_sequence(result.focus_shift)
-    response.inside_calibrated_field = np.asarray(result.inside_calibrated_field, dtype=bool).tolist()
-    response.within_limits = np.asarray(result.within_limits, dtype=bool).tolist()
+    for name, view in setpoints_response_views(response, len(result.x)).items():
+        view[:] = getattr(result, name)
 
 
 def setpoints_from_response(response) -> CorrectedSetpoints:
@@ -405,8 +425,8 @@ def setpoints_from_response(response) -> CorrectedSetpoints:
     return CorrectedSetpoints(x=float64_array(response.x), y=float64_array(response.y),
                      alpha_x=float64_array(response.alpha_x), alpha_y=float64_array(response.alpha_y),
                      focus_shift=float64_array(response.focus_shift),
-                     inside_calibrated_field=np.asarray(response.inside_calibrated_field, dtype=bool),
-                     within_limits=np.asarray(response.within_limits, dtype=bool))
+                     inside_calibrated_field=flag_array(response.inside_calibrated_field),
+                     within_limits=flag_array(response.within_limits))
 
 
 def trained_model_from_response(response) -> TrainedModel:

@@ -7,7 +7,6 @@ names the calibration that gave it (content hash and creation time).
 """
 from __future__ import annotations
 
-from dataclasses import fields
 from datetime import datetime
 from pathlib import Path
 from typing import Any, Optional
@@ -16,7 +15,7 @@ import numpy as np
 
 from gls_calibration.nodes import conversions
 from gls_calibration.calibration_record import correction_from_record, record_identity
-from gls_calibration.correction import CorrectedSetpoints, Correction
+from gls_calibration.correction import Correction
 from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
 from gls_calibration.nodes.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
 from gls_calibration.nodes.head_parameters import HEAD_PARAMETERS, declare_head_geometry, head_geometry_from
@@ -153,18 +152,19 @@ class CorrectionNode(GlsNode):
                                 "(parameter max_targets); split the request")
             return response
         x, y, z = as_coordinate_arrays(request.x, request.y, request.z if len(request.z) else None)
-        parts = []
-        for start in range(0, max(count, 1), self.chunk_targets):
+        # Each chunk goes straight into the answer's arrays: nothing of the whole size is converted at once.
+        answer = conversions.setpoints_response_views(response, count)
+        for start in range(0, count, self.chunk_targets):
             if start:
                 await self.yield_to_executor()
             end = start + self.chunk_targets
-            parts.append(correction.correct(x[start:end], y[start:end], z[start:end]))
-        result = parts[0] if len(parts) == 1 else CorrectedSetpoints(
-            *(np.concatenate([getattr(part, field.name) for part in parts]) for field in fields(CorrectedSetpoints)))
-        conversions.setpoints_to_response(result, response)
-        unreachable = int((~result.within_limits).sum())
+            part = correction.correct(x[start:end], y[start:end], z[start:end])
+            for name, view in answer.items():
+                view[start:end] = getattr(part, name)
+        reachable = answer["within_limits"]
+        unreachable = count - int(np.count_nonzero(reachable))
         if unreachable:
-            first = int((~result.within_limits).argmax())
+            first = int(np.argmin(reachable))
             response.success = False
             response.message = (f"{unreachable} target(s) beyond the mirror limits or the focus range "
                                  f"(first at index {first}); see within_limits")
