@@ -49,10 +49,14 @@ def rss_bytes(pid: int) -> int:
     raise RuntimeError(f"no VmRSS for process {pid}")
 
 
-def call(client, request):
-    """The answer to ``request`` (the client's node is spun by another thread)."""
+def call(client, request, timeout_s: float = 120.0):
+    """The answer to ``request`` (the client's node is spun by another thread); RuntimeError after
+    ``timeout_s`` (a benchmark must fail, not hang)."""
     future = client.call_async(request)
+    deadline = time.perf_counter() + timeout_s
     while not future.done():
+        if time.perf_counter() > deadline:
+            raise RuntimeError(f"no answer from {client.srv_name} within {timeout_s} s")
         time.sleep(0.0001)
     return future.result()
 
