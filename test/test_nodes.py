@@ -201,6 +201,11 @@ def test_correction_flags_are_uint8_and_chunks_join_exactly(ros_context, add_nod
     returned = conversions.setpoints_from_response(response)
     np.testing.assert_array_equal(returned.within_limits, reference.within_limits)
     assert returned.within_limits.dtype == bool
+    batch = call_service(node, node.create_client(CorrectSetpoints, "correct_setpoints_batch"),
+                         CorrectSetpoints.Request(x=x.tolist(), y=y.tolist()), TIMEOUT_S)
+    assert (batch.success, batch.message) == (response.success, response.message)
+    for name in ("x", "alpha_x", "alpha_y", "focus_shift", "inside_calibrated_field", "within_limits"):
+        assert getattr(batch, name) == getattr(response, name), name
 
 
 def test_correction_refuses_corrections_when_the_active_file_is_broken(ros_context, add_node, tmp_path):

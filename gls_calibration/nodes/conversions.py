@@ -397,27 +397,30 @@ def fiducials_from_response(response, pose: PlatePose) -> FiducialMeasurement:
         rejected_reasons=tuple(str(reason) for reason in response.rejected_reason))
 
 
-def setpoints_response_views(response, count: int) -> dict[str, np.ndarray]:
-    """Give every array field of a CorrectSetpoints response ``count`` zeroed elements and return
-    writable numpy views on them, by ``CorrectedSetpoints`` field name (flags as uint8 0/1).
+SETPOINT_FLAGS = ("inside_calibrated_field", "within_limits")   # uint8[] fields, 1 = true
 
-    A result computed in chunks is written straight into the message: no concatenation, no
-    conversion copy of the whole answer while the interpreter lock is held.
-    """
-    views = {}
+
+def start_setpoints_response(response) -> dict[str, array.array]:
+    """Empty the array fields of a CorrectSetpoints response and return them by ``CorrectedSetpoints``
+    field name, to be extended chunk by chunk (``append_setpoints``): nothing of the whole answer's
+    size is allocated, concatenated or converted at once while the interpreter lock is held."""
+    sequences = {}
     for field in fields(CorrectedSetpoints):
-        flag = field.name in ("inside_calibrated_field", "within_limits")
-        setattr(response, field.name, array.array("B" if flag else "d", bytes(count * (1 if flag else 8))))
-        sequence = getattr(response, field.name)   # the setter may have copied it
-        views[field.name] = np.frombuffer(sequence, dtype=np.uint8 if flag else np.float64) if count else (
-            np.empty(0, dtype=np.uint8 if flag else np.float64))
-    return views
+        setattr(response, field.name, array.array("B" if field.name in SETPOINT_FLAGS else "d"))
+        sequences[field.name] = getattr(response, field.name)   # the setter copies: extend the stored one
+    return sequences
+
+
+def append_setpoints(sequences: dict[str, array.array], part: CorrectedSetpoints) -> None:
+    """Append a ``CorrectedSetpoints`` (flags as 0/1) to the arrays of ``start_setpoints_response``."""
+    for name, sequence in sequences.items():
+        dtype = np.uint8 if name in SETPOINT_FLAGS else np.float64
+        sequence.frombytes(np.ascontiguousarray(getattr(part, name), dtype=dtype).tobytes())
 
 
 def setpoints_to_response(result, response) -> None:
     """Fill a CorrectSetpoints response from a ``correction.CorrectedSetpoints``."""
-    for name, view in setpoints_response_views(response, len(result.x)).items():
-        view[:] = getattr(result, name)
+    append_setpoints(start_setpoints_response(response), result)
 
 
 def setpoints_from_response(response) -> CorrectedSetpoints:

@@ -1,5 +1,6 @@
-"""correction: serves ``correct_setpoints`` with the store's ACTIVE calibration, and ``correction/load``
-(reload the active calibration, e.g. after an activation).
+"""correction: serves ``correct_setpoints`` (and the same as ``correct_setpoints_batch`` for large
+requests) with the store's ACTIVE calibration, and ``correction/load`` (reload the active calibration,
+e.g. after an activation).
 
 It never serves anything else: a calibration run evaluates its candidate inside the calibration
 manager, so other nodes are never corrected by a calibration that has not passed. Every answer
@@ -55,8 +56,12 @@ class CorrectionNode(GlsNode):
         self._load(keep_serving=False)
         # A new head geometry changes every answer: reload the active calibration with it.
         self.apply_parameter_changes(HEAD_PARAMETERS, self._apply_head)
-        self.create_service(CorrectSetpoints, "correct_setpoints", self.on_correct,
-                            callback_group=self.reentrant_group)
+        # The same service twice: Fast DDS hands every answer of a service to all of its clients (each
+        # drops those not its own) in order, so a 42 MB answer on correct_setpoints would hold up the
+        # single-target answers of every other client for up to seconds (bench_concurrency.py).
+        # Large requests go to correct_setpoints_batch, whose answers travel on their own writer.
+        for name in ("correct_setpoints", "correct_setpoints_batch"):
+            self.create_service(CorrectSetpoints, name, self.on_correct, callback_group=self.reentrant_group)
         self.create_service(LoadCalibration, "correction/load", self.on_load)
         publish_diagnostics(self, self.health)
 
@@ -152,16 +157,14 @@ class CorrectionNode(GlsNode):
                                 "(parameter max_targets); split the request")
             return response
         x, y, z = as_coordinate_arrays(request.x, request.y, request.z if len(request.z) else None)
-        # Each chunk goes straight into the answer's arrays: nothing of the whole size is converted at once.
-        answer = conversions.setpoints_response_views(response, count)
+        # Each chunk is appended to the answer's arrays: nothing of the whole size is converted at once.
+        answer = conversions.start_setpoints_response(response)
         for start in range(0, count, self.chunk_targets):
             if start:
                 await self.yield_to_executor()
             end = start + self.chunk_targets
-            part = correction.correct(x[start:end], y[start:end], z[start:end])
-            for name, view in answer.items():
-                view[start:end] = getattr(part, name)
-        reachable = answer["within_limits"]
+            conversions.append_setpoints(answer, correction.correct(x[start:end], y[start:end], z[start:end]))
+        reachable = conversions.flag_array(answer["within_limits"])
         unreachable = count - int(np.count_nonzero(reachable))
         if unreachable:
             first = int(np.argmin(reachable))
