@@ -153,8 +153,8 @@ class ServiceCell:
                 "is configured")
         await self._checked(self.exchange, Trigger.Request(), idempotent=False)
 
-    def intensities(self, cloud):
-        return conversions.cloud_arrays_from_msg(cloud)[1]
+    def points_and_intensities(self, cloud):
+        return conversions.cloud_arrays_from_msg(cloud)
 
     async def true_marks(self):
         if self.truth is None:
@@ -204,6 +204,12 @@ class CalibrationManager(GlsNode):
             mark_check_sigmas=self.declare("mark_check_sigmas", defaults.mark_check_sigmas,
                                            "robust standard deviations of the plate texture beyond which a "
                                            "point looks like a mark", minimum=1.0, maximum=100.0),
+            max_cluster_points=self.declare(
+                "max_cluster_points", defaults.max_cluster_points, "a plain plate with more points than this "
+                "beyond mark_cluster_sigmas within one fiducial's extent carries old marks", minimum=0),
+            mark_cluster_sigmas=self.declare("mark_cluster_sigmas", defaults.mark_cluster_sigmas,
+                                             "robust standard deviations of the plate texture beyond which a "
+                                             "point counts towards a cluster of marks", minimum=1.0, maximum=100.0),
             measurement_uncertainty_mm=self.declare(
                 "measurement_uncertainty_mm", defaults.measurement_uncertainty_mm,
                 "uncertainty of one measured fiducial centre (mm): the margin a candidate must beat the "
