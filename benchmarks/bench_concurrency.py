@@ -8,9 +8,8 @@ written after it). The correction node computes a batch in chunks (parameter chu
 serves other requests between chunks. Goal (issue 16): p99 with the batch within 3x the p99 without.
 
 The batch client has its own process because receiving a 42 MB answer is work of the client: in
-the single clients' process it held their interpreter and flooded their DDS participant's socket
-(lost single answers waited for the reliable protocol's resend, up to seconds), which the node
-cannot change.
+the single clients' process it held their interpreter (gaps up to ~300 ms measured there), which
+the node cannot change.
 
 Run: .venv/bin/python benchmarks/bench_concurrency.py [--requests 300] [--batch 1000000] [--same-service]
 """
