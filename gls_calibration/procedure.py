@@ -85,9 +85,10 @@ class Cell(Protocol):
         """Simulation only: the polylines really marked on the current plate ((M, 3) each, gls frame,
         mm), in marking order; None on a real cell."""
 
-    def intensities(self, cloud: Any) -> np.ndarray:
-        """The intensity of every point of a cloud from ``acquire_sweep`` (any shape; NaN: no return),
-        for the check that the plain plate carries no old marks. Not a coroutine: the cloud is here."""
+    def points_and_intensities(self, cloud: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The points (..., 3) (mm, any frame a rigid motion from the plate's) and the intensity (...)
+        of every point of a cloud from ``acquire_sweep`` (NaN: no return), for the check that the
+        plain plate carries no old marks. Not a coroutine: the cloud is here."""
 
 
 @dataclass(frozen=True)
@@ -107,7 +108,9 @@ class ProcedureSettings:
     max_iterations: int = 3             # each iteration marks and measures a fresh plate
     validation_offset_half_pitch: bool = True
     mark_check_sigmas: float = 6.0      # plain-plate points this far outside the texture look like marks...
-    max_outlying_points: int = 10       # ...and more of them than this mean the plate is not clean
+    max_outlying_points: int = 10       # ...and more of them than this mean the plate is not clean;
+    mark_cluster_sigmas: float = 4.0    # or points this far outside it...
+    max_cluster_points: int = 8         # ...more than this many within one fiducial's extent (see plate_marks)
     measurement_uncertainty_mm: float = 0.005   # of one fiducial centre (3-4 um RMS measured against the truth)
     max_cv_factor: float = 20.0         # a CV RMS above this many uncertainties...
     max_cv_fraction: float = 0.5        # ...and above this fraction of the deviations' RMS: the model explains little
@@ -124,10 +127,12 @@ class ProcedureSettings:
                 or np.any(np.diff(radii) <= 0.0):
             raise ValueError(f"ring_radii_mm must be one or more positive finite radii in increasing order, "
                              f"got {list(self.ring_radii_mm)}")
-        for name in ("mark_check_sigmas", "measurement_uncertainty_mm", "max_cv_factor", "max_cv_fraction"):
+        for name in ("mark_check_sigmas", "mark_cluster_sigmas", "measurement_uncertainty_mm", "max_cv_factor",
+                     "max_cv_fraction"):
             as_positive_number(getattr(self, name), name)
-        if self.max_outlying_points < 0:
-            raise ValueError(f"max_outlying_points must not be negative, got {self.max_outlying_points}")
+        for name in ("max_outlying_points", "max_cluster_points"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must not be negative, got {getattr(self, name)}")
         if not 1 <= self.default_iterations <= self.max_iterations:
             raise ValueError(f"default_iterations must be between 1 and max_iterations ({self.max_iterations}), "
                              f"got {self.default_iterations}")
@@ -194,14 +199,19 @@ def true_fiducial_centres(ring_marks: list[np.ndarray], rings_per_fiducial: int)
 Progress = Callable[[str, float, str], None]
 
 
-def check_clean_plate(intensity: np.ndarray, settings: ProcedureSettings) -> None:
-    """CalibrationError when the plain-plate sweep shows marks beyond the plate's texture."""
-    evidence = existing_marks(intensity, settings.mark_check_sigmas)
-    if evidence.marked(settings.max_outlying_points):
+def check_clean_plate(points: np.ndarray, intensity: np.ndarray, settings: ProcedureSettings) -> None:
+    """CalibrationError when the plain-plate sweep (points (..., 3) mm, intensity (...)) shows marks
+    beyond the plate's texture: many points far outside it, or a fiducial-sized cluster of them."""
+    evidence = existing_marks(intensity, settings.mark_check_sigmas, points=points,
+                              cluster_sigmas=settings.mark_cluster_sigmas,
+                              cluster_radius_mm=2.0 * max(settings.ring_radii_mm) + 0.5)
+    if evidence.marked(settings.max_outlying_points, settings.max_cluster_points):
         raise CalibrationError(
             f"the plate already carries marks: {evidence.outlying_points} of {evidence.finite_points} points of "
             f"the plain-plate sweep lie beyond {evidence.sigmas:g} sigma of its texture (at most "
-            f"{settings.max_outlying_points} allowed); exchange the plate, or give a plate region that avoids "
+            f"{settings.max_outlying_points} allowed), {evidence.largest_cluster} beyond "
+            f"{evidence.cluster_sigmas:g} sigma within {evidence.cluster_radius_mm:g} mm of one another (at most "
+            f"{settings.max_cluster_points} allowed); exchange the plate, or give a plate region that avoids "
             "the old marks (force marks over them anyway)")
 
 
@@ -268,7 +278,7 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
                f"scanning the plain plate ({repeat + 1} of {settings.plain_sweeps})")
         cloud = await cell.acquire_sweep(settings.plain_sweep_step_mm)
         if repeat == 0 and not allow_marked:
-            check_clean_plate(cell.intensities(cloud), settings)
+            check_clean_plate(*cell.points_and_intensities(cloud), settings)
         poses.append(await cell.estimate_plate_pose(cloud))
     pose_scanner = mean_plate_pose(poses)
     pose_gls = pose_in_frame(pose_scanner, settings.scanner_to_gls)

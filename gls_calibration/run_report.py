@@ -24,15 +24,22 @@ def measurement_lines(summary: RunSummary) -> tuple[str, ...]:
     return tuple(lines)
 
 
+def _deviation_field(correction):
+    """The trained deviation (dx, dy) at (N, 2) points, for the plots; None without a trained model."""
+    if correction is None or not correction.models:
+        return None
+
+    def field(points):
+        dx, dy, _ = correction.deviation(points[:, 0], points[:, 1])
+        return np.column_stack([dx, dy])
+    return field
+
+
 def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: RunSummary) -> Path:
     """Write report.md, plots, fiducials.csv and summary.json and training.csv for ``outcome``; the folder's path."""
     first, validation = outcome.runs[0], outcome.validation
-    field = None
     correction = outcome.candidate.correction if outcome.candidate else None
-    if correction is not None and correction.models:
-        def field(points):
-            dx, dy, _ = correction.deviation(points[:, 0], points[:, 1])
-            return np.column_stack([dx, dy])
+    field = _deviation_field(correction)
 
     def plain(metrics):
         return metrics.to_dict() if metrics is not None else None

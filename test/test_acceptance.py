@@ -15,6 +15,7 @@ import pytest
 from std_srvs.srv import Trigger
 
 from gls_calibration.persistence import CalibrationStore
+from gls_calibration.plate_marks import existing_marks
 from gls_calibration.training import TrainedModel
 from gls_calibration.procedure import (CalibrationError, ProcedureSettings, acceptance_problem,
                                        check_clean_plate, check_model_explains)
@@ -28,25 +29,37 @@ TIMEOUT_S = 20.0
 CALIBRATE_TIMEOUT_S = 300.0
 
 
-def plain_sweep_intensity(rings_per_side: int, seed: int) -> np.ndarray:
-    """Intensity of a 1 mm-step sweep of the simulated plate carrying a grid of old fiducials."""
-    # The thresholds were set on the ideal measurement chain (see plate_marks); with simchain's
-    # paper_like default a single old fiducial is no longer found (a full grid still is).
-    cell = SimulatedCell(load_sim_config(preset="ideal"))
+def plain_sweep(rings_per_side: int, seed: int, preset: str):
+    """Points and intensity of a 1 mm-step sweep of the simulated plate carrying a grid of old fiducials."""
+    cell = SimulatedCell(load_sim_config(preset=preset))
     if rings_per_side:
         angles = np.linspace(0.0, 2.0 * np.pi, 361)
         offsets = np.linspace(-95.0, 95.0, rings_per_side) if rings_per_side > 1 else [0.0]
         cell.mark_cartesian([np.column_stack([cx + r * np.cos(angles), cy + r * np.sin(angles)])
                              for cy in offsets for cx in offsets for r in (2.5, 2.7)])
-    return cell.sweep_cloud(step_mm=1.0, seed=seed)[1]
+    return cell.sweep_cloud(step_mm=1.0, seed=seed)[:2]
 
 
+@pytest.mark.parametrize("preset", ["ideal", "paper_like"])
 @pytest.mark.parametrize("seed", [1, 2])
-def test_a_clean_plate_passes_and_one_old_fiducial_is_found(seed):
-    check_clean_plate(plain_sweep_intensity(0, seed), SETTINGS)
+def test_a_clean_plate_passes_and_one_old_fiducial_is_found(seed, preset):
+    check_clean_plate(*plain_sweep(0, seed, preset), SETTINGS)
     with pytest.raises(CalibrationError, match="the plate already carries marks: .* exchange the plate, or give a "
                                                "plate region that avoids the old marks"):
-        check_clean_plate(plain_sweep_intensity(1, seed), SETTINGS)
+        check_clean_plate(*plain_sweep(1, seed, preset), SETTINGS)
+
+
+def test_the_cluster_evidence_finds_one_fiducial_the_global_count_misses():
+    """paper_like: one old fiducial leaves few points beyond 6 sigma but a cluster beyond 4 sigma."""
+    points, intensity = plain_sweep(1, 1, "paper_like")
+    evidence = existing_marks(intensity, points=points, cluster_radius_mm=5.9)
+    assert not evidence.marked(SETTINGS.max_outlying_points)
+    assert evidence.marked(SETTINGS.max_outlying_points, SETTINGS.max_cluster_points)
+    clean_points, clean_intensity = plain_sweep(0, 1, "paper_like")
+    clean = existing_marks(clean_intensity, points=clean_points, cluster_radius_mm=5.9)
+    assert clean.largest_cluster <= 2
+    with pytest.raises(ValueError, match=r"points must have the intensity's shape \(201, 2101\) \+ \(3,\)"):
+        existing_marks(intensity, points=points[:, :5])
 
 
 def model(cv_rms_mm: float) -> TrainedModel:

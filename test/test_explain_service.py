@@ -42,7 +42,7 @@ def store_with_hidden_gain_error(directory, seed: int = 3) -> None:
 
 def test_explain_deviations_names_the_hidden_effect_and_refuses_a_bad_file(add_node, ros_context, tmp_path):
     store_with_hidden_gain_error(tmp_path / "store")
-    manager = add_node(CalibrationManager(context=ros_context, parameter_overrides=[
+    add_node(CalibrationManager(context=ros_context, parameter_overrides=[
         Parameter("calibration_dir", value=str(tmp_path / "store")),
         Parameter("report_dir", value=str(tmp_path / "reports"))]))
     client_node = add_node(Node("explain_client", context=ros_context))

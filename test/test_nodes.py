@@ -30,7 +30,7 @@ from gls_calibration.correction import CalibratedRegion, Correction
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
-from gls_calibration.persistence import FIDUCIAL_KEYS, CalibrationFileError, CalibrationStore, new_record
+from gls_calibration.persistence import FIDUCIAL_KEYS, CalibrationStore, new_record
 from gls_calibration.rbf import OLSRBFNetwork
 from gls_calibration.targets import grid_targets
 from gls_calibration_msgs.msg import SweepDone

@@ -85,6 +85,6 @@ def observability_report(geometry: HeadGeometry | None = None, *, per_side: int 
     similarity = np.eye(len(names))
     for i, a in enumerate(names):
         for j in range(i + 1, len(names)):
-            value = float(np.cos(np.min(subspace_angles(spans[a], spans[b := names[j]]))))
+            value = float(np.cos(np.min(subspace_angles(spans[a], spans[names[j]]))))
             similarity[i, j] = similarity[j, i] = value
     return ObservabilityReport(names, tuple(rows), similarity)

@@ -163,9 +163,11 @@ class GlsNode(Node):
         The server is watched while the call runs: when it leaves the node graph (a crashed or
         stopped node), the call fails within about ``SERVER_GONE_CONFIRM_S`` of the graph noticing,
         naming the service and its node, instead of waiting for the deadline.
-        ``resend_after_s`` (idempotent requests only): send the request again when no answer came
-        within that time. A server that has just started may not yet know this client's reader and
-        then drops its answer (DDS discovery is not symmetric); the copy gets through.
+        ``resend_after_s`` (only for requests a server may receive twice: idempotent ones, or ones
+        carrying a request id, see ``request_ids``): when no answer came within that time, send the
+        request again, then after twice that time, and so on; the first answer to any copy counts.
+        A server that has just started may not yet know this client's reader and then drops its
+        answer (DDS discovery is not symmetric); a later copy gets through.
         """
         if not math.isfinite(timeout_s) or timeout_s <= 0.0:
             raise ServiceCallError(f"invalid time limit {timeout_s!r} s for {client.srv_name}")
@@ -174,19 +176,24 @@ class GlsNode(Node):
                                 f"service {client.srv_name} is not available (no server within "
                                 f"{min(timeout_s, server_wait_s):g} s)")
         deadline = time.monotonic() + timeout_s
-        while True:
-            remaining = deadline - time.monotonic()
-            attempt_s = remaining if resend_after_s is None else min(remaining, resend_after_s)
-            future = client.call_async(request)
-            try:
-                return await self._await(future, max(attempt_s, 1e-3),
-                                         f"service {client.srv_name} did not answer within {timeout_s:g} s",
-                                         watch=[client])
-            except DeadlineExpired:
-                if attempt_s >= remaining:
-                    raise
+        sent: list[Future] = []
+        wait_s = resend_after_s
+        try:
+            while True:
+                sent.append(client.call_async(request))
+                remaining = deadline - time.monotonic()
+                attempt_s = remaining if wait_s is None else min(remaining, wait_s)
+                try:
+                    return await self._await(_first_answer(sent), max(attempt_s, 1e-3),
+                                             f"service {client.srv_name} did not answer within {timeout_s:g} s",
+                                             watch=[client])
+                except DeadlineExpired:
+                    if attempt_s >= remaining:
+                        raise
                 self.get_logger().warning(f"no answer from {client.srv_name} after {attempt_s:g} s: request sent again")
-            finally:
+                wait_s *= 2.0
+        finally:
+            for future in sent:
                 if not future.done():
                     client.remove_pending_request(future)
 
@@ -265,6 +272,18 @@ class GlsNode(Node):
             future.cancel()
             raise failure
         return future.result() if condition is None else None
+
+
+def _first_answer(futures: Sequence[Future]) -> Future:
+    """A future done with the result of the first of ``futures`` to be done."""
+    first = Future()
+
+    def take(future: Future) -> None:
+        if not first.done() and not future.cancelled():
+            first.set_result(future.result())
+    for future in futures:
+        future.add_done_callback(take)
+    return first
 
 
 class NodeThreads:

@@ -28,6 +28,7 @@ from gls_calibration.calibration_record import (build_record, correction_from_re
 from gls_calibration.correction import Correction
 from gls_calibration.nodes.base import SERVER_WAIT_S, GlsNode, ServiceCallError, answers_errors, run_node
 from gls_calibration.nodes.deadlines import declare_deadlines
+from gls_calibration.nodes.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
 from gls_calibration.nodes.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
 from gls_calibration.nodes.head_parameters import declare_head_geometry, declare_scanner_to_gls
 from gls_calibration.outcome import RunSummary, summarise
@@ -68,11 +69,14 @@ class ServiceCell:
         self.exchange = node.client(Trigger, node.plate_exchange_service) if node.plate_exchange_service else None
         self.truth = node.client(GetMarkedPaths, node.ground_truth_service) if node.ground_truth_service else None
 
-    async def _checked(self, client, request, timeout_s: Optional[float] = None, *, idempotent: bool = True):
-        # Only a request that may safely be served twice is sent again (not a sweep, a marking job
-        # or a plate exchange).
-        response = await self.node.call(client, request, timeout_s or self.timeout_s,
-                                        resend_after_s=self.node.resend_after_s if idempotent else None)
+    async def _checked(self, client, request, timeout_s: Optional[float] = None, *, idempotent: bool = True,
+                       resend_after_s: Optional[float] = None):
+        # Only a request that may safely be served twice is sent again: an idempotent one, or one whose
+        # id lets its server answer a repeat without doing the work again (``resend_after_s``); never
+        # a sweep request (scan_acquisition sends the scanner's request itself) or a plate exchange.
+        if resend_after_s is None and idempotent:
+            resend_after_s = self.node.resend_after_s
+        response = await self.node.call(client, request, timeout_s or self.timeout_s, resend_after_s=resend_after_s)
         if not response.success:
             raise procedure.CalibrationError(f"{client.srv_name}: {response.message}")
         return response
@@ -111,10 +115,12 @@ class ServiceCell:
 
     async def mark(self, alpha_x, alpha_y, focus_shift, polyline_starts):
         request = MarkPolylines.Request(alpha_x=alpha_x, alpha_y=alpha_y, focus_shift=focus_shift,
-                                        polyline_starts=np.asarray(polyline_starts, dtype=np.uint32))
+                                        polyline_starts=np.asarray(polyline_starts, dtype=np.uint32),
+                                        request_id=new_request_id())
         xy = np.column_stack(kinematics.forward(self.node.geometry, request.alpha_x, request.alpha_y))
+        # The job's id lets the driver tell a repeat from a new job: it is sent again, never marked twice.
         response = await self._checked(self.galvo, request, self.deadlines.marking_s(xy, polyline_starts),
-                                       idempotent=False)
+                                       resend_after_s=RESEND_WITH_ID_AFTER_S)
         return response.duration_s
 
     async def train(self, landed_xy, corrections):
@@ -147,8 +153,8 @@ class ServiceCell:
                 "is configured")
         await self._checked(self.exchange, Trigger.Request(), idempotent=False)
 
-    def intensities(self, cloud):
-        return conversions.cloud_arrays_from_msg(cloud)[1]
+    def points_and_intensities(self, cloud):
+        return conversions.cloud_arrays_from_msg(cloud)
 
     async def true_marks(self):
         if self.truth is None:
@@ -198,6 +204,12 @@ class CalibrationManager(GlsNode):
             mark_check_sigmas=self.declare("mark_check_sigmas", defaults.mark_check_sigmas,
                                            "robust standard deviations of the plate texture beyond which a "
                                            "point looks like a mark", minimum=1.0, maximum=100.0),
+            max_cluster_points=self.declare(
+                "max_cluster_points", defaults.max_cluster_points, "a plain plate with more points than this "
+                "beyond mark_cluster_sigmas within one fiducial's extent carries old marks", minimum=0),
+            mark_cluster_sigmas=self.declare("mark_cluster_sigmas", defaults.mark_cluster_sigmas,
+                                             "robust standard deviations of the plate texture beyond which a "
+                                             "point counts towards a cluster of marks", minimum=1.0, maximum=100.0),
             measurement_uncertainty_mm=self.declare(
                 "measurement_uncertainty_mm", defaults.measurement_uncertainty_mm,
                 "uncertainty of one measured fiducial centre (mm): the margin a candidate must beat the "

@@ -104,18 +104,21 @@ class CorrectionNode(GlsNode):
                 return False, f"{problem}; still serving {self.file or 'the nominal model'}"
             self._serve(None, str(self.store.pointer_path), problem)
             return False, problem
-        self._serve(correction, str(path), "", *record_identity(record))
-        self.summary = record_summary(record)
+        self._serve(correction, str(path), "", *record_identity(record), summary=record_summary(record))
         self.get_logger().info(f"calibration {self.calibration_id} loaded from {path}")
         return True, f"calibration {self.calibration_id} loaded from {path}"
 
     def _serve(self, correction: Optional[Correction], file: str, problem: str,
-               calibration_id: str = NOMINAL_ID, created: Optional[datetime] = None) -> None:
+               calibration_id: str = NOMINAL_ID, created: Optional[datetime] = None,
+               summary: Optional[dict] = None) -> None:
+        """Serve ``correction`` (None: refuse corrections with ``problem``); ``summary`` describes it
+        in the diagnostics (default: the nominal model's)."""
         self.correction, self.file, self.problem = correction, file, problem
-        self.summary = dict(NOMINAL_SUMMARY) if correction is not None else {"active_calibration_id": "none"}
+        if correction is None:
+            self.summary = {"active_calibration_id": "none"}
+        else:
+            self.summary = summary if summary is not None else dict(NOMINAL_SUMMARY)
         self.calibration_id, self.created = (calibration_id, created) if correction is not None else ("", None)
-        if problem:
-            self.get_logger().error(problem)
 
     def on_load(self, request, response):
         """Reload the active calibration. A ``file`` must name the active one: nothing else is served."""

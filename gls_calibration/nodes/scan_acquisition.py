@@ -19,6 +19,7 @@ from sensor_msgs.msg import PointCloud2
 
 from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
+from gls_calibration.nodes.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
 from gls_calibration.sweep import PoseTrack, SweepCollector, SweepMotion, nominal_start_pose
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, StartSweep
@@ -157,7 +158,8 @@ class ScanAcquisitionNode(GlsNode):
         try:
             started = await self.call(self.start_client, StartSweep.Request(
                 length_mm=request.length_mm, speed_mm_s=request.speed_mm_s, step_mm=request.step_mm,
-                direction=direction, orientation_deg=request.orientation_deg), timeout_s)
+                direction=direction, orientation_deg=request.orientation_deg, request_id=new_request_id()),
+                timeout_s, resend_after_s=RESEND_WITH_ID_AFTER_S)
             if not started.success:
                 raise ServiceCallError(f"the scanner refused the sweep: {started.message}")
             self.sweep_id = started.sweep_id

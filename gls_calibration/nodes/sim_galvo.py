@@ -11,6 +11,7 @@ from std_srvs.srv import Trigger
 
 from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
+from gls_calibration.nodes.request_ids import AnsweredRequests
 from gls_calibration.nodes.sim_parameters import declare_sim_config
 from gls_calibration.simulation.head import TruthHead
 from gls_calibration_msgs.msg import MarkedPaths
@@ -31,13 +32,18 @@ class SimGalvoNode(GlsNode):
         self.times: list[np.ndarray] = []
         self.max_points = self.declare("max_points", 5_000_000, "most points of one marking job",
                                        minimum=1, maximum=100_000_000)
+        self.answered = AnsweredRequests()    # on_mark runs one at a time (the default group)
         self.create_service(MarkPolylines, "galvo/mark", self.on_mark)
         self.create_service(LandingPositions, "sim/landing_positions", self.on_landing_positions)
         self.create_service(GetMarkedPaths, "sim/marked_paths", self.on_marked_paths)
         self.create_service(Trigger, "sim/exchange_plate", self.on_exchange_plate)
 
     def on_mark(self, request, response):
-        """Mark every polyline; ``success=false`` with the reason on malformed or unreachable commands."""
+        """Mark every polyline; ``success=false`` with the reason on malformed or unreachable commands.
+        A repeated request id gets the first answer again and marks nothing."""
+        return self.answered.answer(request.request_id, lambda: self._mark(request, response))
+
+    def _mark(self, request, response):
         alpha_x = conversions.float64_array(request.alpha_x)
         alpha_y = conversions.float64_array(request.alpha_y)
         focus = conversions.float64_array(request.focus_shift)

@@ -27,6 +27,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, answers_errors, run_node
+from gls_calibration.nodes.request_ids import AnsweredRequests
 from gls_calibration.nodes.sim_parameters import declare_sim_config
 from gls_calibration.simulation.scanner import ORIENTATIONS_DEG, Profile
 from gls_calibration_msgs.msg import SweepDone
@@ -58,6 +59,7 @@ class SimScannerNode(GlsNode):
         self.done = self.create_publisher(SweepDone, "scan/sweep_done",
                                           QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
         self.marks_client = self.client(GetMarkedPaths, "sim/marked_paths")
+        self.answered = AnsweredRequests()
         self.create_service(StartSweep, "scanner/start_sweep", self.on_start_sweep,
                             callback_group=self.reentrant_group)
         # One tick at a time: the sweep is a generator and profiles must go out in order.
@@ -66,7 +68,11 @@ class SimScannerNode(GlsNode):
 
     @answers_errors(ValueError)
     async def on_start_sweep(self, request, response):
-        """Load the plate's marks, then start publishing the sweep."""
+        """Load the plate's marks, then start publishing the sweep; a repeated request id gets the
+        first answer again and starts nothing."""
+        return await self.answered.answer_async(request.request_id, lambda: self._start_sweep(request, response))
+
+    async def _start_sweep(self, request, response):
         if self.job is not None:
             response.success, response.message = False, "a sweep is running; request refused"
             return response

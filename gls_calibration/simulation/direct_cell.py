@@ -65,8 +65,8 @@ class DirectCell:
         xyz = data.placed_by_pose() if self.placed_by_pose else data.placed_by_time()
         return xyz.astype(np.float32), data.intensity
 
-    def intensities(self, cloud: Cloud) -> np.ndarray:
-        return cloud[1]
+    def points_and_intensities(self, cloud: Cloud) -> tuple[np.ndarray, np.ndarray]:
+        return cloud
 
     async def estimate_plate_pose(self, cloud: Cloud) -> PlatePose:
         return _refusing(estimate_plate_pose, cloud[0].reshape(-1, 3), head_direction=(0.0, 0.0, -1.0))
