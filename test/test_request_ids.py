@@ -3,6 +3,7 @@ work twice, and ``GlsNode.call`` resends, backs off, and takes the first answer 
 from __future__ import annotations
 
 import asyncio
+import gc
 import time
 
 import pytest
@@ -174,3 +175,32 @@ def test_the_simulated_galvo_marks_a_repeated_job_once(start_cell):
     assert cell.call(MarkPolylines, "galvo/mark", request, 10.0).success
     marked = cell.call(GetMarkedPaths, "sim/marked_paths", GetMarkedPaths.Request(), 10.0).paths
     assert len(marked.polyline_starts) == 2
+
+
+def test_a_repeat_waiting_for_a_service_that_raised_gets_the_error():
+    answered, release = AnsweredRequests(), Future()
+
+    async def serve():
+        await release
+        raise ValueError("refused")
+
+    async def both():
+        request_id = new_request_id()
+        first = asyncio.ensure_future(answered.answer_async(request_id, serve))
+        repeat = asyncio.ensure_future(answered.answer_async(request_id, serve))
+        await asyncio.sleep(0.01)
+        release.set_result(None)
+        return await asyncio.gather(first, repeat, return_exceptions=True)
+    assert [str(outcome) for outcome in asyncio.run(both())] == ["refused", "refused"]
+    assert not answered.answers
+
+
+def test_an_error_raised_to_the_caller_is_not_reported_again_as_never_retrieved(capfd):
+    answered = AnsweredRequests()
+
+    async def serve():
+        raise ValueError("refused")
+    with pytest.raises(ValueError, match="refused"):
+        asyncio.run(answered.answer_async(new_request_id(), serve))
+    gc.collect()
+    assert "never retrieved" not in capfd.readouterr().err

@@ -85,6 +85,7 @@ class AnsweredRequests:
             answer.set_result(await serve())
         except BaseException as error:
             self.answers.pop(key, None)
-            answer.set_exception(error)
+            answer.set_exception(error)   # a repeat waiting for this answer gets the error too
+            answer.exception()            # raised to the caller below: not an error nobody saw
             raise
         return answer.result()
