@@ -23,7 +23,7 @@ from gls_calibration.outcome import CalibrationOutcome, Candidate, DeviationMetr
 from gls_calibration.plate_marks import existing_marks
 from gls_calibration.plate_pose import PlatePose, mean_plate_pose
 from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
-from gls_calibration.sweep_plan import CellTimeModel, SweepPass, combine_sweeps, plan_label
+from gls_calibration.sweep_plan import CellTimeModel, CombinedSweeps, SweepPass, combine_sweeps, plan_label
 from gls_calibration.training import TrainedModel
 from gls_calibration.validation import as_positive_number
 
@@ -246,6 +246,20 @@ def acceptance_problem(before_rms_mm: float, after_rms_mm: float, settings: Proc
             f"{margin:g} mm")
 
 
+def combined_centres_gls(measurements: list[FiducialMeasurement], settings: ProcedureSettings, targets: np.ndarray,
+                         pose_scanner: PlatePose) -> tuple[np.ndarray, CombinedSweeps]:
+    """The centres (K, 3, gls frame) of the marked plate from every sweep of ``settings.sweep_plan``
+    (``sweep_plan.combine_sweeps``, placement as the settings say), put on the plate plane
+    ``pose_scanner``; and the combination. ``measurements`` are in the plan's order."""
+    try:
+        combined = combine_sweeps(measurements, settings.sweep_plan, targets, settings.scanner_to_gls,
+                                  settings.profiles_placed_by_pose)
+    except ValueError as error:
+        raise CalibrationError(f"the sweeps of the marked plate cannot be combined: {error}") from None
+    centres = np.column_stack([combined.centres_xy, plane_height(pose_scanner, *combined.centres_xy.T)])
+    return settings.scanner_to_gls.apply(centres), combined
+
+
 async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray, progress: Progress,
                     span: tuple[float, float], want_truth: bool, allow_marked: bool = False) -> PlateRun:
     """Scan the plain plate, mark ``grid_xy`` through the active correction, scan, measure, pair.
@@ -299,13 +313,7 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
                                    f"({settings.min_found_fraction:.0%}) are needed{which}")
         measurements.append(found)
     report("measurement", 0.85, "combining the sweeps")
-    try:
-        combined = combine_sweeps(measurements, plan, targets, settings.scanner_to_gls,
-                                  settings.profiles_placed_by_pose)
-    except ValueError as error:
-        raise CalibrationError(f"the sweeps of the marked plate cannot be combined: {error}") from None
-    centres = np.column_stack([combined.centres_xy, plane_height(pose_scanner, *combined.centres_xy.T)])
-    centres_gls = settings.scanner_to_gls.apply(centres)
+    centres_gls, combined = combined_centres_gls(measurements, settings, targets, pose_scanner)
     pairing = pair_with_targets(centres_gls, targets)
     if len(pairing.target_index) < needed:
         raise CalibrationError(f"paired {len(pairing.target_index)} of {len(grid_xy)} fiducials with their "

@@ -1,20 +1,25 @@
 """The simulated measurement chain: each error source moves what is measured by what it should."""
 from dataclasses import replace
+import json
 import math
 
 import numpy as np
 import pytest
+import yaml
 
 from gls_calibration import targets
+from gls_calibration.config_files import config_path
 from gls_calibration.fiducials import measure_fiducials
 from gls_calibration.kinematics import HeadGeometry
 from gls_calibration.plate_pose import estimate_plate_pose
+from gls_calibration.procedure import ProcedureSettings
 from gls_calibration.simulation.head import TruthHead
 from gls_calibration.simulation.measurement import (PRESET_CHAINS, MeasurementChain, lateral_linearity_shape,
                                                     measurement_from_mapping, smooth_process)
 from gls_calibration.simulation.plate import Plate, PlateSettings
 from gls_calibration.simulation.scanner import LaserLineScanner, ScannerSettings
 from gls_calibration.simulation.world import load_sim_config, sim_config_from_dict
+from gls_calibration.sweep_plan import parse_plan, plan_label
 
 QUIET = ScannerSettings(line_length_mm=60.0, z_noise_mm=0.0, linearity_mm=0.0, speckle=0.0, dropout_fraction=0.0,
                         path_repeatability_mm=0.0)
@@ -365,6 +370,62 @@ def test_reference_plate_check_on_paper_like_is_like_the_papers():
     from gls_calibration.simulation.reference_plate import RAW_PLAN, reference_plate_check
     result = reference_plate_check(load_sim_config(preset="paper_like"), RAW_PLAN, seed=1)
     assert all(0.05 <= sigma <= 0.09 for sigma in result.sigma_mm), result.sigma_mm
+
+
+def test_reference_plate_calibration_plan_is_the_calibration_managers(tmp_path):
+    from gls_calibration.simulation.reference_plate import calibration_plan
+    sweep = yaml.safe_load(config_path("gls.yaml").read_text())["/**"]["ros__parameters"]["sweep"]
+    plan = calibration_plan()
+    assert plan.label == plan_label(parse_plan(sweep["plan"])) and len(plan.passes) > 1
+    assert plan.placed_by_pose is sweep["placed_by_pose"] and plan.plain_sweeps == sweep["plain_repeats"]
+    bare = tmp_path / "bare.yaml"
+    bare.write_text("/**:\n  ros__parameters:\n    grid: {per_side: 5}\n")
+    defaults = ProcedureSettings()
+    assert calibration_plan(bare) == replace(plan, passes=defaults.sweep_plan, plain_sweeps=defaults.plain_sweeps,
+                                             placed_by_pose=defaults.profiles_placed_by_pose)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("/**:\n  ros__parameters:\n    sweep: {plan: '0+,45-'}\n")
+    with pytest.raises(ValueError, match=r"bad.yaml: sweep plan orientation must be 0 or 90 deg, got 45.0"):
+        calibration_plan(bad)
+
+
+def test_sim_cell_reference_plate_measures_with_the_calibrations_plan(tmp_path, monkeypatch):
+    from gls_calibration.cli import sim_cell
+    from gls_calibration.simulation import reference_plate
+    plans = []
+
+    def check(config, plan, seed=1, positions=reference_plate.POSITIONS_MM):
+        plans.append(plan)
+        sigma = (0.05, 0.06) if plan == reference_plate.RAW_PLAN else (0.01, 0.02)
+        return reference_plate.ReferencePlateResult(sigma, ((0.0, 0.0),), 143, 143)
+
+    monkeypatch.setattr(reference_plate, "reference_plate_check", check)
+    assert sim_cell.main(["--reference-plate", "--measurement", "ideal", "--out", str(tmp_path / "a")]) == 0
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    calibration = reference_plate.calibration_plan()
+    assert plans == [reference_plate.RAW_PLAN, replace(calibration, placed_by_pose=True)]
+    assert summary["reference_plate_raw_sigma_mm"] == [0.05, 0.06]
+    assert summary["reference_plate_sigma_mm"] == [0.01, 0.02]
+    assert summary["reference_plate_plan"]["sweep_plan"] == calibration.label
+    assert summary["reference_plate_plan"]["placement"] == "pose"
+    assert summary["reference_plate_raw_plan"] == {"sweep_plan": "0+", "placement": "time", "plain_sweeps": 0}
+    # the cell's own overrides of the plan reach the check as they reach the manager
+    plans.clear()
+    assert sim_cell.main(["--reference-plate", "--measurement", "ideal", "--sweep-plan", "0+,90-", "--placement",
+                          "time", "--out", str(tmp_path / "b")]) == 0
+    assert plans[1] == replace(calibration, passes=parse_plan("0+,90-"), placed_by_pose=False)
+    assert json.loads((tmp_path / "b" / "summary.json").read_text())["reference_plate_plan"]["sweep_plan"] == "0+,90-"
+
+
+@pytest.mark.slow
+def test_reference_plate_with_the_calibrations_plan_beats_one_sweep_on_paper_like():
+    from gls_calibration.simulation.reference_plate import RAW_PLAN, calibration_plan, reference_plate_check
+    config = load_sim_config(preset="paper_like")
+    raw = reference_plate_check(config, RAW_PLAN, seed=2, positions=((0.0, 0.0),))
+    planned = reference_plate_check(config, calibration_plan(), seed=2, positions=((0.0, 0.0),))
+    assert planned.found == planned.expected == 143
+    # separating four reversed and turned sweeps placed by pose leaves a fraction of one sweep by time
+    assert max(planned.sigma_mm) < 0.4 * min(raw.sigma_mm), (planned.sigma_mm, raw.sigma_mm)
 
 
 @pytest.mark.parametrize("arguments, message", [

@@ -1,6 +1,8 @@
 """sim_scanner's hooks for sweep plans: direction, orientation and the reported pose per profile."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -41,3 +43,22 @@ def test_sweep_direction_orientation_and_reported_pose_stream(start_cell):
     assert np.all(np.diff(x) > 0.05) and abs(x[-1] - x[0] - 2.0) < 0.2
     q = poses[0].pose.orientation
     assert np.allclose([q.x, q.y, abs(q.z), abs(q.w)], [0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)])
+
+
+def test_a_sweep_waits_for_its_listeners_before_publishing(start_cell):
+    """Profiles published before the scanner's writers know the acquisition's readers would be lost
+    (volatile topics): a sweep requested before anybody subscribes still arrives whole."""
+    cell = start_cell(node_types=(SimGalvoNode, SimScannerNode))
+    client = cell.client_node.create_client(StartSweep, "scanner/start_sweep")
+    assert client.wait_for_service(timeout_sec=10.0)
+    answer = client.call_async(StartSweep.Request(length_mm=2.0, step_mm=0.1))
+    time.sleep(0.5)   # the scanner has the request; nobody listens yet
+    stamps, done = [], []
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    cell.client_node.create_subscription(PointCloud2, "scan/points", lambda m: stamps.append(m.header.stamp), qos)
+    cell.client_node.create_subscription(PoseStamped, "scan/pose", lambda m: None, qos)
+    cell.client_node.create_subscription(SweepDone, "scan/sweep_done", done.append, qos)
+    wait_for(answer.done, 20.0, what="the scanner's answer")
+    assert answer.result().success and answer.result().expected_profiles == 21
+    wait_for(lambda: done, 20.0, what="the end of the sweep")
+    assert done[0].profiles == 21 and len(stamps) == 21

@@ -10,6 +10,7 @@ reference-plate check instead of a calibration (no ROS) and writes ``DIR/summary
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import json
 import os
 from pathlib import Path
@@ -96,9 +97,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     try:
         # every node reads the same file: refuse a bad one before anything starts or is written
         args.sim = load_sim_config(args.sim_config or config_path("sim.yaml"), args.measurement)
+        if args.reference_plate:
+            args.reference_plan = reference_plan(args)
     except ValueError as error:
         parser.error(str(error))
     return args
+
+
+def reference_plan(args: argparse.Namespace):
+    """The plan the calibration of this command line would run: config/gls.yaml's, with the
+    ``--sweep-plan`` and ``--placement`` the cell's manager is given (see ``ros_arguments``)."""
+    from gls_calibration.simulation.reference_plate import calibration_plan
+
+    plan = replace(calibration_plan(config_path("gls.yaml")), placed_by_pose=args.placement == "pose")
+    return plan if args.sweep_plan is None else replace(plan, passes=parse_plan(args.sweep_plan))
 
 
 def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: Path) -> list[str]:
@@ -212,21 +224,25 @@ def note_measurement(report_dir: Path, preset: str) -> None:
 
 def run_reference_plate(args: argparse.Namespace) -> int:
     """The simulated reference-plate check (no ROS): write ``summary.json`` and print the figures."""
-    from gls_calibration.simulation.reference_plate import (CALIBRATION_PLAN, PATTERN, PITCH_MM, POSITIONS_MM,
-                                                            RAW_PLAN, reference_plate_check)
+    from gls_calibration.simulation.reference_plate import (PATTERN, PITCH_MM, POSITIONS_MM, RAW_PLAN,
+                                                            reference_plate_check)
 
+    plan = args.reference_plan
     raw = reference_plate_check(args.sim, RAW_PLAN, seed=args.seed)
-    planned = raw if CALIBRATION_PLAN == RAW_PLAN else reference_plate_check(args.sim, CALIBRATION_PLAN, seed=args.seed)
+    planned = raw if plan == RAW_PLAN else reference_plate_check(args.sim, plan, seed=args.seed)
     summary = {
         "measurement_preset": args.sim.measurement_preset,
         "reference_plate": (f"double-ring fiducials r = 2.5 / 2.7 mm, {PATTERN[0]} x {PATTERN[1]} at {PITCH_MM:g} mm "
                             f"pitch, plate centre at {len(POSITIONS_MM)} positions {list(POSITIONS_MM)} mm"),
         "reference_plate_raw_sigma_mm": list(raw.sigma_mm),
         "reference_plate_raw_bias_mm": [list(b) for b in raw.bias_mm],
+        "reference_plate_raw_plan": {"sweep_plan": RAW_PLAN.label, "placement": RAW_PLAN.placement,
+                                     "plain_sweeps": RAW_PLAN.plain_sweeps},
         "reference_plate_sigma_mm": list(planned.sigma_mm),
         "reference_plate_bias_mm": [list(b) for b in planned.bias_mm],
-        "reference_plate_plan": {"placement": CALIBRATION_PLAN.placement,
-                                 "sweeps": [list(sweep) for sweep in CALIBRATION_PLAN.sweeps]},
+        "reference_plate_plan": {"sweep_plan": plan.label, "placement": plan.placement,
+                                 "plain_sweeps": plan.plain_sweeps,
+                                 "combined_by": "procedure.combined_centres_gls (sweep_plan.combine_sweeps)"},
         "reference_plate_found": planned.found,
         "reference_plate_expected": planned.expected,
         "seed": args.seed,
@@ -234,7 +250,8 @@ def run_reference_plate(args: argparse.Namespace) -> int:
     atomic_write_text(args.out / "summary.json", json.dumps(summary, indent=2) + "\n")
     print(f"reference plate, preset {summary['measurement_preset']} (MEASURED against the known centres, k = 1): "
           f"raw sigma x {raw.sigma_mm[0]:.4f} mm, y {raw.sigma_mm[1]:.4f} mm (one sweep, placed by time); "
-          f"calibration plan x {planned.sigma_mm[0]:.4f} mm, y {planned.sigma_mm[1]:.4f} mm; "
+          f"calibration plan ({plan.label}, placed by {plan.placement}) x {planned.sigma_mm[0]:.4f} mm, "
+          f"y {planned.sigma_mm[1]:.4f} mm; "
           f"{planned.found} of {planned.expected} centres")
     print(f"summary: {args.out / 'summary.json'}")
     return 0

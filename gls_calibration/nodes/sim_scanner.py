@@ -36,6 +36,8 @@ from geometry_msgs.msg import PoseStamped
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
 
+LISTENER_WAIT_S = 3.0   # a sweep waits this long at most for subscribers on its topics
+
 
 class SimScannerNode(GlsNode):
     """Publishes a sweep's profiles in batches from a timer, so that subscribers keep up."""
@@ -94,6 +96,7 @@ class SimScannerNode(GlsNode):
             return response
         try:
             await self._load_marks()
+            await self._wait_for_listeners()
         except ServiceCallError as error:
             response.success, response.message = False, f"cannot see the plate's marks: {error}"
             return response
@@ -107,6 +110,23 @@ class SimScannerNode(GlsNode):
         response.success, response.message = True, f"sweep {self.sweep_id} started"
         self.timer.reset()
         return response
+
+    async def _wait_for_listeners(self) -> None:
+        """Wait (at most ``LISTENER_WAIT_S``) until every topic of the sweep has a matched subscriber.
+
+        A sweep is not repeated: published before this node's writers know the acquisition's readers
+        (after a restart, discovery may take seconds one way while the other already works), its
+        profiles would be lost. Nobody listening after the wait: the sweep goes out anyway, as a real
+        sensor's would.
+        """
+        publishers = (self.points, self.poses, self.done)
+        try:
+            await self.wait_for(lambda: all(publisher.get_subscription_count() > 0 for publisher in publishers),
+                                LISTENER_WAIT_S, "no subscriber")
+        except ServiceCallError:
+            silent = [publisher.topic_name for publisher in publishers if publisher.get_subscription_count() == 0]
+            self.get_logger().warning(f"nobody listens on {', '.join(silent)} after {LISTENER_WAIT_S:g} s: "
+                                      "sweep published anyway")
 
     async def _load_marks(self) -> None:
         answer = await self.call(self.marks_client, GetMarkedPaths.Request(), 10.0)

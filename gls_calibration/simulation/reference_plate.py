@@ -11,22 +11,32 @@ taken out) and the bias per position (mean residual after ONE rigid alignment of
 a position-dependent error leaves).
 
 Two measurement plans are compared: ``RAW_PLAN``, the paper's way (one sweep, profiles placed by
-time at the nominal speed), and the plan the calibration uses (``CALIBRATION_PLAN`` unless given:
-today one sweep placed by time; a plan may place profiles by the robot's reported pose and average
-several sweeps in both directions and sensor orientations).
+time at the nominal speed, the plate plane from that sweep), and the plan the calibration runs
+(:func:`calibration_plan`: the calibration manager's ``sweep.plan``, ``sweep.placed_by_pose`` and
+``sweep.plain_repeats`` from its parameter file, ``config/gls.yaml`` -- today four passes, 0+,0-,90+,90-,
+placed by the robot's reported pose). A plan's sweeps are combined by the calibration's own code
+(``procedure.combined_centres_gls``: the error separation of ``sweep_plan.combine_sweeps``) and
+paired with the known centres as the calibration pairs its targets; the plate plane comes from
+plain sweeps averaged as the calibration does.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 import math
+from pathlib import Path
+from typing import Any, Mapping
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from gls_calibration import targets
+from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.fiducials import measure_fiducials
-from gls_calibration.plate_pose import estimate_plate_pose
-from gls_calibration.registration import align_rigid_2d
+from gls_calibration.head_config import parameters_block
+from gls_calibration.plate_pose import PlatePose, estimate_plate_pose, mean_plate_pose
+from gls_calibration.procedure import ProcedureSettings, combined_centres_gls
+from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
+from gls_calibration.sweep_plan import SweepPass, parse_plan, plan_label
+from gls_calibration.validation import as_integer_at_least
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.simulation.world import SimConfig
 
@@ -38,25 +48,49 @@ POSITIONS_MM = ((-40.0, -40.0), (0.0, 0.0), (40.0, 40.0))
 
 @dataclass(frozen=True)
 class MeasurementPlan:
-    """How a plate is measured: profile placement (``time`` or ``pose``) and the sweeps
-    ((direction +1/-1, sensor orientation 0/90 deg), ...) whose centres are averaged."""
+    """How a plate is measured: the passes over it (``sweep_plan.SweepPass``), profiles placed by the
+    robot's reported pose or by time, and the plain sweeps whose plate planes are averaged (0: the
+    plane of the first pass)."""
 
-    placement: str = "time"
-    sweeps: tuple[tuple[int, float], ...] = ((1, 0.0),)
+    passes: tuple[SweepPass, ...] = (SweepPass(),)
+    placed_by_pose: bool = False
+    plain_sweeps: int = 0
 
     def __post_init__(self) -> None:
-        if self.placement not in ("time", "pose"):
-            raise ValueError(f"plan placement must be 'time' or 'pose', got {self.placement!r}")
-        if not self.sweeps:
-            raise ValueError("a plan needs at least one sweep")
-        for direction, orientation in self.sweeps:
-            if direction not in (1, -1) or orientation not in (0.0, 90.0):
-                raise ValueError(f"plan sweep ({direction}, {orientation}): direction must be +1 or -1 and "
-                                 "orientation 0 or 90 deg")
+        if not self.passes or not all(isinstance(item, SweepPass) for item in self.passes):
+            raise ValueError(f"a plan needs one or more SweepPass, got {self.passes!r}")
+        if not isinstance(self.placed_by_pose, bool):
+            raise ValueError(f"placed_by_pose must be true or false, got {self.placed_by_pose!r}")
+        as_integer_at_least(self.plain_sweeps, "plain_sweeps", 0)
+
+    @property
+    def placement(self) -> str:
+        return "pose" if self.placed_by_pose else "time"
+
+    @property
+    def label(self) -> str:
+        return plan_label(self.passes)
 
 
 RAW_PLAN = MeasurementPlan()
-CALIBRATION_PLAN = MeasurementPlan()     # what the calibrate flow does today: one marked sweep by time
+
+
+def calibration_plan(parameter_file: str | Path | None = None) -> MeasurementPlan:
+    """The plan the calibration manager runs with ``parameter_file`` (default: the package's
+    ``config/gls.yaml``): its ``sweep.plan``, ``sweep.placed_by_pose`` and ``sweep.plain_repeats``,
+    the procedure's defaults for keys the file leaves out. ValueError naming the file and key."""
+    defaults = ProcedureSettings()
+
+    def parse(document: Any) -> MeasurementPlan:
+        sweep = parameters_block(document).get("sweep") or {}
+        if not isinstance(sweep, Mapping):
+            raise ValueError(f"sweep must be a mapping, got {type(sweep).__name__}")
+        passes = parse_plan(sweep["plan"]) if "plan" in sweep else defaults.sweep_plan
+        return MeasurementPlan(passes, sweep.get("placed_by_pose", defaults.profiles_placed_by_pose),
+                               sweep.get("plain_repeats", defaults.plain_sweeps))
+
+    return read_config_file(parameter_file if parameter_file is not None else config_path("gls.yaml"),
+                            "parameter file", parse)
 
 
 @dataclass(frozen=True)
@@ -89,42 +123,45 @@ def _reference_plate(config: SimConfig, offset_xy, seed) -> tuple[Plate, np.ndar
 
 
 def measure_plate(config: SimConfig, plate: Plate, plan: MeasurementPlan, seed: int,
-                  expected_count: int) -> np.ndarray:
-    """Fiducial centres (M, 3) in the scanner base frame, averaged over the plan's sweeps.
-
-    Centres seen in fewer than all sweeps are dropped."""
+                  known_gls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Measure ``plate`` with ``plan`` as the calibration measures its marked plate; the measured
+    centres (M, 3, gls frame through the CAD mounting) and the known ones (M, 3) they pair with."""
     scanner = config.make_scanner()
-    per_sweep = []
-    for number, (direction, orientation) in enumerate(plan.sweeps):
-        data = scanner.sweep_data(plate, config.sweep_length_mm, step_mm=0.1, seed=seed * 1009 + number,
-                                  direction=direction, orientation_deg=orientation)
-        xyz = data.placed_by_pose() if plan.placement == "pose" else data.placed_by_time()
-        pose = estimate_plate_pose(xyz, head_direction=(0.0, 0.0, -1.0))
-        per_sweep.append(measure_fiducials(xyz, data.intensity, pose, ring_radii_mm=RING_RADII_MM,
-                                           expected_count=expected_count).centres)
-    reference = per_sweep[0]
-    total, seen = reference.copy(), np.ones(len(reference), dtype=int)
-    for centres in per_sweep[1:]:
-        distance, nearest = cKDTree(centres).query(reference)
-        close = distance < 1.0
-        total[close] += centres[nearest[close]]
-        seen[close] += 1
-    keep = seen == len(per_sweep)
-    return total[keep] / seen[keep, None]
+    mounting = config.scanner_to_gls
+    settings = ProcedureSettings(ring_radii_mm=RING_RADII_MM, sweep_plan=plan.passes,
+                                 profiles_placed_by_pose=plan.placed_by_pose,
+                                 scanner_to_gls=RigidTransform(mounting[:3, :3].copy(), mounting[:3, 3].copy()))
+
+    def cloud(number: int, step_mm: float, item: SweepPass = SweepPass()) -> tuple[np.ndarray, np.ndarray]:
+        data = scanner.sweep_data(plate, config.sweep_length_mm, step_mm=step_mm, seed=seed * 1009 + number,
+                                  direction=item.direction, orientation_deg=item.orientation_deg)
+        return (data.placed_by_pose() if plan.placed_by_pose else data.placed_by_time()), data.intensity
+
+    def plane(xyz: np.ndarray) -> PlatePose:
+        return estimate_plate_pose(xyz, head_direction=(0.0, 0.0, -1.0))
+
+    poses = [plane(cloud(500 + repeat, settings.plain_sweep_step_mm)[0]) for repeat in range(plan.plain_sweeps)]
+    pose = mean_plate_pose(poses) if poses else None
+    measurements = []
+    for number, item in enumerate(plan.passes):
+        xyz, intensity = cloud(number, settings.marked_sweep_step_mm, item)
+        if pose is None:
+            pose = plane(xyz)
+        measurements.append(measure_fiducials(xyz, intensity, pose, ring_radii_mm=settings.ring_radii_mm,
+                                              expected_count=len(known_gls)))
+    centres_gls, _combined = combined_centres_gls(measurements, settings, known_gls, pose)
+    pairing = pair_with_targets(centres_gls, known_gls)
+    return centres_gls[pairing.measured_index], known_gls[pairing.target_index]
 
 
-def reference_plate_check(config: SimConfig, plan: MeasurementPlan = CALIBRATION_PLAN, seed: int = 1,
+def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 1,
                           positions=POSITIONS_MM) -> ReferencePlateResult:
     """Scan the reference plate at ``positions`` (plate-centre offsets, mm) with ``plan``."""
-    scanner = config.make_scanner()
     residuals, measured_all, known_all, found, expected = [], [], [], 0, 0
     for index, offset in enumerate(positions):
         plate, known = _reference_plate(config, offset, [seed, index])
-        centres = scanner.to_gls(measure_plate(config, plate, plan, seed * 101 + index, len(known)))
-        distance, nearest = cKDTree(known).query(centres)
-        paired = distance < 0.5 * PITCH_MM
-        measured, truth = centres[paired], known[nearest[paired]]
-        found += int(paired.sum())
+        measured, truth = measure_plate(config, plate, plan, seed * 101 + index, known)
+        found += len(measured)
         expected += len(known)
         residuals.append(_aligned_residuals(measured, truth))
         measured_all.append(measured)
