@@ -9,7 +9,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
-from gls_calibration.nodes.sim_scanner import SimScannerNode
+from gls_calibration.nodes.sim_scanner import LISTENER_WAIT_S, SimScannerNode
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import StartSweep
 
@@ -47,18 +47,24 @@ def test_sweep_direction_orientation_and_reported_pose_stream(start_cell):
 
 def test_a_sweep_waits_for_its_listeners_before_publishing(start_cell):
     """Profiles published before the scanner's writers know the acquisition's readers would be lost
-    (volatile topics): a sweep requested before anybody subscribes still arrives whole."""
+    (volatile topics): a sweep nobody listens to is held back LISTENER_WAIT_S, then goes out; with
+    matched listeners every profile arrives."""
     cell = start_cell(node_types=(SimGalvoNode, SimScannerNode))
-    client = cell.client_node.create_client(StartSweep, "scanner/start_sweep")
-    assert client.wait_for_service(timeout_sec=10.0)
-    answer = client.call_async(StartSweep.Request(length_mm=2.0, step_mm=0.1))
-    time.sleep(0.5)   # the scanner has the request; nobody listens yet
+    asked = time.monotonic()
+    started = cell.call(StartSweep, "scanner/start_sweep", StartSweep.Request(length_mm=2.0, step_mm=0.1), 20.0)
+    assert started.success and time.monotonic() - asked >= LISTENER_WAIT_S - 0.05
     stamps, done = [], []
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-    cell.client_node.create_subscription(PointCloud2, "scan/points", lambda m: stamps.append(m.header.stamp), qos)
-    cell.client_node.create_subscription(PoseStamped, "scan/pose", lambda m: None, qos)
-    cell.client_node.create_subscription(SweepDone, "scan/sweep_done", done.append, qos)
-    wait_for(answer.done, 20.0, what="the scanner's answer")
-    assert answer.result().success and answer.result().expected_profiles == 21
-    wait_for(lambda: done, 20.0, what="the end of the sweep")
-    assert done[0].profiles == 21 and len(stamps) == 21
+    subscriptions = [
+        cell.client_node.create_subscription(PointCloud2, "scan/points", lambda m: stamps.append(m.header.stamp), qos),
+        cell.client_node.create_subscription(PoseStamped, "scan/pose", lambda m: None, qos),
+        cell.client_node.create_subscription(SweepDone, "scan/sweep_done", done.append, qos)]
+    # As scan_acquisition does: ask for a sweep once this side has matched the scanner's writers.
+    wait_for(lambda: all(subscription.get_publisher_count() for subscription in subscriptions), 20.0,
+             what="the scanner's publishers")
+    time.sleep(0.5)   # the first sweep's profiles, if any were still in flight
+    stamps.clear()
+    started = cell.call(StartSweep, "scanner/start_sweep", StartSweep.Request(length_mm=2.0, step_mm=0.1), 20.0)
+    assert started.success and started.expected_profiles == 21
+    wait_for(lambda: any(end.sweep_id == started.sweep_id for end in done), 20.0, what="the end of the sweep")
+    assert len(stamps) == 21

@@ -32,6 +32,7 @@ MAX_SPEED_MM_S = 10000.0
 MAX_STEP_MM = 100.0
 MALFORMED_GRACE_S = 2.0    # profiles still in flight after the end of sweep: wait this before giving up
 MAX_ENDS_KEPT = 16         # ends of sweep remembered during one acquisition (others' sweeps, spoofs)
+SCANNER_TOPICS_WAIT_S = 5.0  # before a sweep: how long to wait for the scanner's topics to match (after a restart)
 
 
 def profile_qos(depth: int) -> QoSProfile:
@@ -67,12 +68,13 @@ class ScanAcquisitionNode(GlsNode):
         self.sweep_id: Optional[int] = None    # the sweep this node started; other ends of sweep are ignored
         self.malformed = 0
         self.start_client = self.client(StartSweep, "scanner/start_sweep")
-        self.create_subscription(PointCloud2, "scan/points", self.on_profile, profile_qos(self.max_profiles),
-                                 callback_group=self.reentrant_group)
+        self.points_subscription = self.create_subscription(
+            PointCloud2, "scan/points", self.on_profile, profile_qos(self.max_profiles),
+            callback_group=self.reentrant_group)
         self.create_subscription(PoseStamped, "scan/pose", self.on_pose, profile_qos(self.max_profiles),
                                  callback_group=self.reentrant_group)
-        self.create_subscription(SweepDone, "scan/sweep_done", self.on_sweep_done, profile_qos(10),
-                                 callback_group=self.reentrant_group)
+        self.done_subscription = self.create_subscription(SweepDone, "scan/sweep_done", self.on_sweep_done,
+                                                          profile_qos(10), callback_group=self.reentrant_group)
         self.create_service(AcquireSweep, "scan/acquire", self.on_acquire, callback_group=self.reentrant_group)
 
     def on_profile(self, message: PointCloud2) -> None:
@@ -156,6 +158,7 @@ class ScanAcquisitionNode(GlsNode):
         self.ends.clear()
         self.first_stamp = None
         try:
+            await self._wait_for_scanner_topics()
             started = await self.call(self.start_client, StartSweep.Request(
                 length_mm=request.length_mm, speed_mm_s=request.speed_mm_s, step_mm=request.step_mm,
                 direction=direction, orientation_deg=request.orientation_deg, request_id=new_request_id()),
@@ -197,6 +200,24 @@ class ScanAcquisitionNode(GlsNode):
         if self.malformed:
             response.message += f"; {self.malformed} malformed profile(s) dropped"
         return response
+
+    async def _wait_for_scanner_topics(self) -> None:
+        """Wait (at most ``SCANNER_TOPICS_WAIT_S``) until the profile and end-of-sweep subscriptions
+        have matched a publisher.
+
+        A scanner that has just (re)started may send its first profiles before this node's readers
+        know its writers; a volatile reader then never gets them (the scanner, for its part, waits
+        for its writers to match). The pose stream is optional, so not waited for. No publisher after
+        the wait: the sweep is asked for anyway (a driver may create its publishers on demand).
+        """
+        needed = (self.points_subscription, self.done_subscription)
+        try:
+            await self.wait_for(lambda: all(sub.get_publisher_count() > 0 for sub in needed),
+                                SCANNER_TOPICS_WAIT_S, "no publisher")
+        except ServiceCallError:
+            silent = [sub.topic_name for sub in needed if sub.get_publisher_count() == 0]
+            self.get_logger().warning(f"nobody publishes on {', '.join(silent)} after {SCANNER_TOPICS_WAIT_S:g} s: "
+                                      "sweep asked for anyway")
 
     def _timeout_message(self, timeout_s: float, expected: int):
         def message() -> str:
