@@ -1,6 +1,6 @@
 """gls-correct: corrected targets, mirror angles and focus shift for targets from a CSV (x,y[,z] in mm,
 gls frame), from a calibration file (``--calibration FILE``, no running cell needed) or from the
-running cell's ``correct_setpoints`` service.
+running cell's correction node (``correct_setpoints_batch``).
 
 One output row per target, in input order. Exit 0 when every target is reachable, 1 when some lie
 beyond the mirror limits or the focus range (the file is still written, complete, with its
@@ -67,28 +67,33 @@ def correct_offline(calibration: Path, x, y, z):
             result.inside_calibrated_field, result.within_limits, f"calibration {calibration}")
 
 
+SERVICE = "correct_setpoints_batch"
+
+
 def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: Sequence[str] = ()):
-    """The same from the running cell's ``correct_setpoints`` (``ros_arguments``: remaps, namespace);
-    RuntimeError when it gives no usable answer."""
+    """The same from the running cell's correction node (``ros_arguments``: remaps, namespace), through
+    ``correct_setpoints_batch``: a file of targets is a large request, whose answer on
+    ``correct_setpoints`` would hold up other clients' single targets. RuntimeError when it gives no
+    usable answer."""
     from gls_calibration.cli.client import call_and_wait, client_node
     from gls_calibration.nodes.conversions import flag_array, float64_sequence
     from gls_calibration_msgs.srv import CorrectSetpoints
     with client_node("gls_correct_client", namespace, ros_arguments) as (node, executor):
-        print(f"gls-correct: service {node.resolve_service_name('correct_setpoints')}", file=sys.stderr)
+        print(f"gls-correct: service {node.resolve_service_name(SERVICE)}", file=sys.stderr)
         try:
-            response = call_and_wait(executor, node.create_client(CorrectSetpoints, "correct_setpoints"),
+            response = call_and_wait(executor, node.create_client(CorrectSetpoints, SERVICE),
                                      CorrectSetpoints.Request(x=float64_sequence(x), y=float64_sequence(y),
                                                               z=float64_sequence(z)), timeout)
         except TimeoutError as error:
             raise RuntimeError(str(error)) from None
     if response is None:
-        raise RuntimeError("correct_setpoints: no answer")
+        raise RuntimeError(f"{SERVICE}: no answer")
     complete = all(len(values) == len(x) for values in (response.x, response.y, response.alpha_x, response.alpha_y,
                                                          response.focus_shift, response.inside_calibrated_field,
                                                          response.within_limits))
     # A refusal for unreachable targets still carries every answer and its flags.
     if not complete or (not response.success and all(response.within_limits)):
-        raise RuntimeError(f"correct_setpoints: {response.message}")
+        raise RuntimeError(f"{SERVICE}: {response.message}")
     return (np.asarray(response.x), np.asarray(response.y), np.asarray(response.alpha_x),
             np.asarray(response.alpha_y), np.asarray(response.focus_shift),
             flag_array(response.inside_calibrated_field), flag_array(response.within_limits),

@@ -62,7 +62,9 @@ class ServiceCell:
         self.acquire = node.client(AcquireSweep, "scan/acquire")
         self.pose = node.client(EstimatePlatePose, "plate_pose/estimate")
         self.fiducials = node.client(MeasureFiducials, "fiducials/measure")
-        self.corrector = node.client(CorrectSetpoints, "correct_setpoints")
+        # The marking grid's ring points are a large request: on the batch name, its answer does not
+        # hold up other clients' single targets (see the correction node).
+        self.corrector = node.client(CorrectSetpoints, "correct_setpoints_batch")
         self.loader = node.client(LoadCalibration, "correction/load")
         self.galvo = node.client(MarkPolylines, "galvo/mark")
         self.trainer = node.client(TrainCorrection, "rbf/train")
