@@ -76,12 +76,13 @@ def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: S
     ``correct_setpoints`` would hold up other clients' single targets. RuntimeError when it gives no
     usable answer."""
     from gls_calibration.cli.client import call_and_wait, client_node
+    from gls_calibration.nodes.base import CLIENT_QOS
     from gls_calibration.nodes.conversions import flag_array, float64_sequence
     from gls_calibration_msgs.srv import CorrectSetpoints
     with client_node("gls_correct_client", namespace, ros_arguments) as (node, executor):
         print(f"gls-correct: service {node.resolve_service_name(SERVICE)}", file=sys.stderr)
         try:
-            response = call_and_wait(executor, node.create_client(CorrectSetpoints, SERVICE),
+            response = call_and_wait(executor, node.create_client(CorrectSetpoints, SERVICE, qos_profile=CLIENT_QOS),
                                      CorrectSetpoints.Request(x=float64_sequence(x), y=float64_sequence(y),
                                                               z=float64_sequence(z)), timeout)
         except TimeoutError as error:
