@@ -205,6 +205,21 @@ class GlsNode(Node):
                 if not future.done():
                     client.remove_pending_request(future)
 
+    async def wait_for_peers(self, endpoints: Sequence, matched: Callable[[Any], int], timeout_s: float,
+                             nobody: str, anyway: str) -> None:
+        """Await every one of ``endpoints`` (publishers or subscriptions) having a matched peer
+        (``matched(endpoint) > 0``), at most ``timeout_s``; then warn "``nobody`` <topics> after ..:
+        ``anyway``" for those without one and return: the caller goes on regardless.
+
+        After a restart DDS discovery may take seconds one way while the other already works, and a
+        volatile topic loses what is sent before both ends have matched.
+        """
+        try:
+            await self.wait_for(lambda: all(matched(endpoint) > 0 for endpoint in endpoints), timeout_s, "no peer")
+        except ServiceCallError:
+            silent = [endpoint.topic_name for endpoint in endpoints if matched(endpoint) == 0]
+            self.get_logger().warning(f"{nobody} {', '.join(silent)} after {timeout_s:g} s: {anyway}")
+
     async def yield_to_executor(self) -> None:
         """Let the executor serve what is waiting (other requests) before this coroutine goes on."""
         resumed = Future()

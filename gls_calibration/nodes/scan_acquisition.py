@@ -210,14 +210,9 @@ class ScanAcquisitionNode(GlsNode):
         for its writers to match). The pose stream is optional, so not waited for. No publisher after
         the wait: the sweep is asked for anyway (a driver may create its publishers on demand).
         """
-        needed = (self.points_subscription, self.done_subscription)
-        try:
-            await self.wait_for(lambda: all(sub.get_publisher_count() > 0 for sub in needed),
-                                SCANNER_TOPICS_WAIT_S, "no publisher")
-        except ServiceCallError:
-            silent = [sub.topic_name for sub in needed if sub.get_publisher_count() == 0]
-            self.get_logger().warning(f"nobody publishes on {', '.join(silent)} after {SCANNER_TOPICS_WAIT_S:g} s: "
-                                      "sweep asked for anyway")
+        await self.wait_for_peers((self.points_subscription, self.done_subscription),
+                                  lambda subscription: subscription.get_publisher_count(), SCANNER_TOPICS_WAIT_S,
+                                  "nobody publishes on", "sweep asked for anyway")
 
     def _timeout_message(self, timeout_s: float, expected: int):
         def message() -> str:

@@ -119,14 +119,9 @@ class SimScannerNode(GlsNode):
         profiles would be lost. Nobody listening after the wait: the sweep goes out anyway, as a real
         sensor's would.
         """
-        publishers = (self.points, self.poses, self.done)
-        try:
-            await self.wait_for(lambda: all(publisher.get_subscription_count() > 0 for publisher in publishers),
-                                LISTENER_WAIT_S, "no subscriber")
-        except ServiceCallError:
-            silent = [publisher.topic_name for publisher in publishers if publisher.get_subscription_count() == 0]
-            self.get_logger().warning(f"nobody listens on {', '.join(silent)} after {LISTENER_WAIT_S:g} s: "
-                                      "sweep published anyway")
+        await self.wait_for_peers((self.points, self.poses, self.done),
+                                  lambda publisher: publisher.get_subscription_count(), LISTENER_WAIT_S,
+                                  "nobody listens on", "sweep published anyway")
 
     async def _load_marks(self) -> None:
         answer = await self.call(self.marks_client, GetMarkedPaths.Request(), 10.0)
