@@ -108,7 +108,6 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--requests", type=int, default=300, help="single-target requests per client and phase")
     parser.add_argument("--batch", type=int, default=1_000_000)
-    parser.add_argument("--threads", type=int, default=4, help="executor threads of the correction node")
     parser.add_argument("--same-service", action="store_true",
                         help="send the batches to correct_setpoints too (instead of correct_setpoints_batch)")
     parser.add_argument("--serve-batches", help=argparse.SUPPRESS)  # the child's role: the batch service
@@ -118,7 +117,7 @@ def main() -> None:
         return
     batch_service = "correct_setpoints" if args.same_service else "correct_setpoints_batch"
     names = tuple(f"single_{index}" for index in range(CLIENTS))
-    with correction_peer(names, f"executor_threads:={args.threads}") as (_, nodes, expected):
+    with correction_peer(names) as (_, nodes, expected):
         singles = [node.create_client(CorrectSetpoints, "correct_setpoints", qos_profile=CLIENT_QOS) for node in nodes]
         for client in singles:
             if not client.wait_for_service(timeout_sec=60.0):
@@ -142,7 +141,6 @@ def main() -> None:
         check = expected.correct(np.array([10.0]), np.array([-20.0]))
         assert check.within_limits.all()
     p99_alone, p99_during = np.percentile(alone, 99), np.percentile(during, 99)
-    print(f"correction node with {args.threads} executor thread(s)")
     print(f"single target from {CLIENTS} clients, {args.requests} requests each: p99 {1e3 * p99_alone:.2f} ms alone, "
           f"{1e3 * p99_during:.2f} ms while {args.batch}-target batches are served on {batch_service} ({p99_during / p99_alone:.1f}x; "
           f"goal <= 3x); median {1e3 * np.median(alone):.2f} / {1e3 * np.median(during):.2f} ms")

@@ -82,9 +82,11 @@ def executor(ros_context: Context) -> Iterator[MultiThreadedExecutor]:
 
 @pytest.fixture
 def add_node(executor: MultiThreadedExecutor) -> Callable[[Node], Node]:
-    """add_node(node) -> node: spin ``node`` in the test's executor (destroyed after the test)."""
+    """add_node(node) -> node: spin ``node`` and its companions (``companions``, see NodeThreads) in
+    the test's executor (destroyed after the test)."""
     def add(node: Node) -> Node:
-        executor.add_node(node)
+        for member in (node, *getattr(node, "companions", ())):
+            executor.add_node(member)
         return node
     return add
 

@@ -13,7 +13,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.signals import SignalHandlerOptions
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -319,14 +319,12 @@ class NodeThreads:
     """
 
     def __init__(self, nodes: list[Node]) -> None:
-        self.nodes = nodes
-        # A node that serves long requests next to short ones asks for threads (``executor_threads``):
-        # the taking, converting and answering of a large request then no longer blocks the others.
-        self.executors = [MultiThreadedExecutor(num_threads=node.executor_threads, context=node.context)
-                          if getattr(node, "executor_threads", 1) > 1 else SingleThreadedExecutor(context=node.context)
-                          for node in nodes]
+        # A node's companions (``companions``: nodes of the same process that need a thread of their
+        # own, e.g. the correction's batch service) are spun and destroyed with it.
+        self.nodes = [member for node in nodes for member in (node, *getattr(node, "companions", ()))]
+        self.executors = [SingleThreadedExecutor(context=node.context) for node in self.nodes]
         self.threads = []
-        for node, executor in zip(nodes, self.executors):
+        for node, executor in zip(self.nodes, self.executors):
             executor.add_node(node)
             thread = threading.Thread(target=self._spin, args=(executor,), name=node.get_name(), daemon=True)
             self.threads.append(thread)

@@ -1,6 +1,7 @@
-"""correction: serves ``correct_setpoints`` (and the same as ``correct_setpoints_batch`` for large
-requests) with the store's ACTIVE calibration, and ``correction/load`` (reload the active calibration,
-e.g. after an activation).
+"""correction: serves ``correct_setpoints`` with the store's ACTIVE calibration, and
+``correction/load`` (reload the active calibration, e.g. after an activation); its companion node
+``correction_batch`` (same process, same calibration, its own executor thread) serves the same as
+``correct_setpoints_batch`` for large requests.
 
 It never serves anything else: a calibration run evaluates its candidate inside the calibration
 manager, so other nodes are never corrected by a calibration that has not passed. Every answer
@@ -30,8 +31,10 @@ NOMINAL_ID = "nominal"
 class CorrectionNode(GlsNode):
     """Corrects setpoints with the active calibration; the nominal model when there is none.
 
-    Requests are served by several executor threads and large ones are computed in chunks,
-    yielding between chunks, so that single-target requests of other clients are answered meanwhile.
+    Single-target requests are answered on this node's own single-threaded executor; large requests
+    go to the companion node :class:`BatchCorrectionNode` on another thread, so that taking,
+    computing and answering them never queues the single targets behind them. Large requests are
+    computed in chunks either way, yielding between chunks.
     """
 
     def __init__(self, **kwargs) -> None:
@@ -42,10 +45,6 @@ class CorrectionNode(GlsNode):
         self.max_targets = self.declare(
             "max_targets", 1_000_000, "most targets in one correct_setpoints request (about 300 bytes of "
             "memory each while served)", minimum=1, maximum=10_000_000)
-        # See NodeThreads: with more than one thread, taking and answering a large batch does not hold up
-        # single-target requests (bench_concurrency.py).
-        self.executor_threads = self.declare("executor_threads", 4, "threads of the node's executor",
-                                             minimum=1, maximum=16)
         self.chunk_targets = self.declare("chunk_targets", 20_000, "targets computed between two chances for "
                                           "other requests to be served", minimum=100, maximum=10_000_000)
         self.correction: Optional[Correction] = Correction(self.geometry)
@@ -59,10 +58,12 @@ class CorrectionNode(GlsNode):
         # The same service twice: Fast DDS hands every answer of a service to all of its clients (each
         # drops those not its own) in order, so a 42 MB answer on correct_setpoints would hold up the
         # single-target answers of every other client for up to seconds (bench_concurrency.py).
-        # Large requests go to correct_setpoints_batch, whose answers travel on their own writer.
-        for name in ("correct_setpoints", "correct_setpoints_batch"):
-            self.create_service(CorrectSetpoints, name, self.on_correct, callback_group=self.reentrant_group)
+        # Large requests go to correct_setpoints_batch, whose answers travel on their own writer and
+        # are computed on the companion's thread: a multi-threaded executor here instead cost every
+        # single-target call about 0.25 ms (bench_services.py).
+        self.create_service(CorrectSetpoints, "correct_setpoints", self.on_correct, callback_group=self.reentrant_group)
         self.create_service(LoadCalibration, "correction/load", self.on_load)
+        self.companions = (BatchCorrectionNode(self, context=self.context),)
         publish_diagnostics(self, self.health)
 
     def health(self) -> Health:
@@ -144,6 +145,11 @@ class CorrectionNode(GlsNode):
     @answers_errors(ValueError)
     async def on_correct(self, request, response):
         """Correct the targets; ``success=false`` and a message naming the problem on bad input."""
+        return await self.answer(self, request, response)
+
+    async def answer(self, worker: GlsNode, request, response):
+        """Fill ``response`` for ``request``; between chunks, ``worker`` (the node whose executor runs
+        this) serves what else is waiting."""
         # One snapshot: a reload between chunks must not mix two calibrations in one answer.
         correction, calibration_id, created = self.correction, self.calibration_id, self.created
         response.calibration_id = calibration_id
@@ -164,7 +170,7 @@ class CorrectionNode(GlsNode):
         answer = conversions.start_setpoints_response(response)
         for start in range(0, count, self.chunk_targets):
             if start:
-                await self.yield_to_executor()
+                await worker.yield_to_executor()
             end = start + self.chunk_targets
             conversions.append_setpoints(answer, correction.correct(x[start:end], y[start:end], z[start:end]))
         reachable = conversions.flag_array(answer["within_limits"])
@@ -178,6 +184,22 @@ class CorrectionNode(GlsNode):
             response.success = True
             response.message = "corrected" if self.file else "no calibration loaded: nominal model"
         return response
+
+
+class BatchCorrectionNode(GlsNode):
+    """``correct_setpoints_batch``: the same answers as ``correct_setpoints`` (same calibration, same
+    limits, from its owner), on an executor of its own."""
+
+    def __init__(self, owner: CorrectionNode, **kwargs) -> None:
+        super().__init__(f"{owner.get_name()}_batch", namespace=owner.get_namespace(), **kwargs)
+        self.owner = owner
+        self.create_service(CorrectSetpoints, "correct_setpoints_batch", self.on_correct,
+                            callback_group=self.reentrant_group)
+
+    @answers_errors(ValueError)
+    async def on_correct(self, request, response):
+        """Correct the targets with the owner's calibration; ``success=false`` and a message on bad input."""
+        return await self.owner.answer(self, request, response)
 
 
 def main(args=None) -> None:
