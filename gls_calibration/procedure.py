@@ -111,7 +111,7 @@ class ProcedureSettings:
     max_outlying_points: int = 10       # ...and more of them than this mean the plate is not clean;
     mark_cluster_sigmas: float = 4.0    # or points this far outside it...
     max_cluster_points: int = 8         # ...more than this many within one fiducial's extent (see plate_marks)
-    measurement_uncertainty_mm: float = 0.005   # of one fiducial centre (3-4 um RMS measured against the truth)
+    measurement_uncertainty_mm: float = 0.005   # of one fiducial centre, at least (3-4 um RMS measured against the truth)
     max_cv_factor: float = 20.0         # a CV RMS above this many uncertainties...
     max_cv_fraction: float = 0.5        # ...and above this fraction of the deviations' RMS: the model explains little
 
@@ -215,35 +215,50 @@ def check_clean_plate(points: np.ndarray, intensity: np.ndarray, settings: Proce
             "the old marks (force marks over them anyway)")
 
 
-def check_model_explains(model: "TrainedModel", deviation_rms_mm: float, settings: ProcedureSettings) -> None:
+def centre_uncertainty_mm(run: PlateRun, settings: ProcedureSettings) -> float:
+    """Standard uncertainty (mm, per axis) of one measured centre of ``run``: the RMS of the
+    per-centre figures the measurement stated, never below ``settings.measurement_uncertainty_mm``.
+
+    The floor stands for what the fits cannot see (robot path, plate height, timing); a plate that
+    measures worse (speckle, faint marks) raises the figure above it.
+    """
+    floor = settings.measurement_uncertainty_mm
+    sigma = None if run.sigma_mm is None else np.asarray(run.sigma_mm, dtype=float)
+    if sigma is None or sigma.size == 0 or not np.all(np.isfinite(sigma)):
+        return floor
+    return max(floor, float(np.sqrt(np.mean(sigma ** 2))))
+
+
+def check_model_explains(model: "TrainedModel", deviation_rms_mm: float, uncertainty_mm: float,
+                         settings: ProcedureSettings) -> None:
     """CalibrationError when the model cannot explain the measurement: its cross-validated error is
-    far above the measurement's uncertainty and a large part of the deviations it was trained on.
+    far above the measurement's uncertainty (``uncertainty_mm``, :func:`centre_uncertainty_mm`)
+    and a large part of the deviations it was trained on.
 
     Both, because a sparse grid (3x3) leaves a CV error of ~0.6 mm on a 1.5 mm field and still
     helps, while new marks measured among old ones (the issue's case) leave 0.25 mm of 0.34 mm.
     """
-    limit = max(settings.max_cv_factor * settings.measurement_uncertainty_mm,
-                settings.max_cv_fraction * deviation_rms_mm)
+    limit = max(settings.max_cv_factor * uncertainty_mm, settings.max_cv_fraction * deviation_rms_mm)
     if not model.cv_rms_mm <= limit:
         raise CalibrationError(
             f"the model cannot explain the measurement: CV RMS {model.cv_rms_mm:.4f} mm is over "
-            f"{settings.max_cv_factor:g} x the per-fiducial uncertainty ({settings.measurement_uncertainty_mm:g} mm) "
+            f"{settings.max_cv_factor:g} x the per-fiducial uncertainty ({uncertainty_mm:.4f} mm) "
             f"and over {settings.max_cv_fraction:g} x the deviations' RMS ({deviation_rms_mm:.4f} mm); old marks "
             "or ambiguous pairings? Nothing activated")
 
 
-def acceptance_problem(before_rms_mm: float, after_rms_mm: float, settings: ProcedureSettings) -> str:
+def acceptance_problem(before_rms_mm: float, after_rms_mm: float, uncertainty_mm: float) -> str:
     """Why a validated candidate must not replace the calibration in use (empty string: accept it).
 
     ``before_rms_mm``: the first plate of the run, marked through the calibration in use; ``after``:
-    the validation plate, marked through the candidate; both measured the same way.
+    the validation plate, marked through the candidate; both measured the same way, with a
+    per-centre uncertainty of ``uncertainty_mm`` (the larger of the two plates').
     """
-    margin = settings.measurement_uncertainty_mm
-    if after_rms_mm + margin < before_rms_mm:
+    if after_rms_mm + uncertainty_mm < before_rms_mm:
         return ""
     return (f"candidate rejected: validation {after_rms_mm:.4f} mm RMS is not better than the calibration in use "
             f"({before_rms_mm:.4f} mm RMS on this run's first plate) by more than the measurement uncertainty "
-            f"{margin:g} mm")
+            f"{uncertainty_mm:.4f} mm")
 
 
 def combined_centres_gls(measurements: list[FiducialMeasurement], settings: ProcedureSettings, targets: np.ndarray,
@@ -393,7 +408,7 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
                                       tuple(runs), None, tuple(models), None, time.monotonic() - began)
         progress("training", (iteration + 0.9) * span, f"training on {len(run.deviations)} deviations")
         models.append(await cell.train(run.measured_gls[:, :2], run.corrections))
-        check_model_explains(models[-1], rms, settings)
+        check_model_explains(models[-1], rms, centre_uncertainty_mm(run, settings), settings)
         candidate = save_candidate(runs, models)
         await cell.load_calibration(candidate.path)
 
@@ -403,7 +418,8 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
         validation = await run_plate(cell, settings, validation_grid(settings), progress,
                                      (iterations * span, span), want_truth, allow_marked=force)
         rejected = acceptance_problem(runs[0].metrics.full.rms_abs_mm, validation.metrics.full.rms_abs_mm,
-                                      settings)
+                                      max(centre_uncertainty_mm(runs[0], settings),
+                                          centre_uncertainty_mm(validation, settings)))
         if rejected:
             rejected = f"{rejected}; {Path(candidate.path).name} stays in the history, inactive"
             progress("done", 1.0, rejected)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from std_srvs.srv import Trigger
 from gls_calibration.persistence import CalibrationStore
 from gls_calibration.plate_marks import existing_marks
 from gls_calibration.training import TrainedModel
-from gls_calibration.procedure import (CalibrationError, ProcedureSettings, acceptance_problem,
+from gls_calibration.procedure import (CalibrationError, ProcedureSettings, acceptance_problem, centre_uncertainty_mm,
                                        check_clean_plate, check_model_explains)
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 from gls_calibration_msgs.srv import Calibrate, CorrectSetpoints
@@ -67,21 +68,35 @@ def model(cv_rms_mm: float) -> TrainedModel:
 
 
 def test_a_model_that_explains_little_of_its_data_fails():
-    check_model_explains(model(0.006), 0.85, SETTINGS)          # a 19x19 grid: CV of a few micrometres
-    check_model_explains(model(0.59), 1.50, SETTINGS)           # a 3x3 grid: coarse, but it helps
-    with pytest.raises(CalibrationError, match=r"CV RMS 0.2500 mm is over 20 x .* 0.5 x the deviations' RMS"):
-        check_model_explains(model(0.25), 0.335, SETTINGS)       # the issue's case
+    check_model_explains(model(0.006), 0.85, 0.005, SETTINGS)   # a 19x19 grid: CV of a few micrometres
+    check_model_explains(model(0.59), 1.50, 0.005, SETTINGS)    # a 3x3 grid: coarse, but it helps
+    with pytest.raises(CalibrationError, match=r"CV RMS 0.2500 mm is over 20 x .*\(0.0050 mm\) .* 0.5 x the "
+                                               r"deviations' RMS"):
+        check_model_explains(model(0.25), 0.335, 0.005, SETTINGS)  # the issue's case
+    check_model_explains(model(0.25), 0.335, 0.0125, SETTINGS)  # a plate measured 2.5x worse explains it
     with pytest.raises(CalibrationError, match="cannot explain"):
-        check_model_explains(model(float("nan")), 0.335, SETTINGS)
+        check_model_explains(model(float("nan")), 0.335, 0.005, SETTINGS)
+
+
+def test_the_uncertainty_is_the_measured_one_never_below_the_configured_floor():
+    """The run's per-centre figures count (RMS) when they are above the floor for what fits cannot see."""
+    def run(sigma):
+        return SimpleNamespace(sigma_mm=sigma)     # the rule reads nothing else of a PlateRun
+    assert centre_uncertainty_mm(run(np.full(361, 0.0016)), SETTINGS) == SETTINGS.measurement_uncertainty_mm
+    assert centre_uncertainty_mm(run(np.array([0.003, 0.009, 0.012])), SETTINGS) == pytest.approx(
+        np.sqrt((0.003 ** 2 + 0.009 ** 2 + 0.012 ** 2) / 3))
+    for unknown in (None, np.array([]), np.array([0.01, np.nan])):   # no usable figure: the floor
+        assert centre_uncertainty_mm(run(unknown), SETTINGS) == SETTINGS.measurement_uncertainty_mm
 
 
 def test_a_candidate_must_beat_the_calibration_in_use_by_the_uncertainty():
-    assert acceptance_problem(0.855, 0.004, SETTINGS) == ""
-    assert acceptance_problem(0.020, 0.010, SETTINGS) == ""
-    problem = acceptance_problem(0.004, 0.230, SETTINGS)        # the issue's case: fifty times worse
+    assert acceptance_problem(0.855, 0.004, 0.005) == ""
+    assert acceptance_problem(0.020, 0.010, 0.005) == ""
+    problem = acceptance_problem(0.004, 0.230, 0.005)           # the issue's case: fifty times worse
     assert problem == ("candidate rejected: validation 0.2300 mm RMS is not better than the calibration in use "
-                       "(0.0040 mm RMS on this run's first plate) by more than the measurement uncertainty 0.005 mm")
-    assert acceptance_problem(0.0060, 0.0040, SETTINGS).startswith("candidate rejected")   # within the noise
+                       "(0.0040 mm RMS on this run's first plate) by more than the measurement uncertainty 0.0050 mm")
+    assert acceptance_problem(0.0060, 0.0040, 0.005).startswith("candidate rejected")   # within the noise
+    assert acceptance_problem(0.020, 0.010, 0.012).startswith("candidate rejected")     # a noisier measurement
 
 
 def test_the_flow_refuses_an_old_plate_and_never_activates_a_candidate_measured_over_old_marks(tmp_path):
