@@ -26,7 +26,9 @@ What we know is used throughout: every fiducial is two concentric rings of known
 5. Status: candidates are rejected with a reason (``spurious``: coverage below ``SPURIOUS_COVERAGE``,
    no ring there; ``partial``: coverage below ``MIN_COVERAGE``;
    ``radius``: a ring's semi-axes (mean radius +- its second harmonic) off the nominal radius, which
-   also turns down two rings close enough to merge into one detection; ``fit``: too few usable rays or an ill-posed fit;
+   also turns down two rings close enough to merge into one detection; ``merged``: two fiducials
+   closer still (about 0.1-0.3 mm), whose lines are broader than the plate's other marks', more so
+   along their offset (``_merged``); ``fit``: too few usable rays or an ill-posed fit;
    ``uncertain``: stated uncertainty above ``MAX_SIGMA_MM``; ``duplicate``: the same fiducial as a
    better candidate). Accepted centres are returned in plate coordinates and, via
    ``PlatePose.from_plane``, as 3-D points on the fitted plane.
@@ -37,6 +39,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy import stats
 from scipy.spatial import cKDTree
 
 from gls_calibration.plate_pose import PlatePose
@@ -667,8 +670,6 @@ def _merged(mean_width: np.ndarray, harmonic: np.ndarray, covariance: np.ndarray
     (chi-square, 4 degrees of freedom) and a candidate is merged below ``MERGED_FALSE_ALARM``.
     Without ``MERGED_MIN_REFERENCE`` reference candidates nothing is called merged.
     """
-    from scipy import stats
-
     merged = np.zeros(len(mean_width), bool)
     usable = reference & np.isfinite(mean_width)
     if np.count_nonzero(usable) < MERGED_MIN_REFERENCE:
