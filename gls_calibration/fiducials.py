@@ -114,7 +114,8 @@ class FiducialMeasurement:
     standard uncertainty (k = 1) of each centre along the cloud frame's x and y axes,
     ``sigma_plane_mm`` (K, 2) the same along the plate axes, ``coverage`` (K,) the share of the
     circumference where the rings were seen (0-1). ``merged`` counts duplicate candidates of an
-    accepted fiducial, ``rejected`` all candidates turned down; those are listed in
+    accepted fiducial (reason ``duplicate``; two fiducials merged into one detection are rejected
+    with the reason ``merged`` instead), ``rejected`` all candidates turned down; those are listed in
     ``rejected_centres`` (J, 3) with ``rejected_reasons`` (J,), ``rejected_sigma_xy_mm`` (J, 2)
     and ``rejected_coverage`` (J,). ``missing`` is ``expected_count - K`` (negative for extra
     centres) or None. ``image_shape`` is (rows, columns) of the analysed image and
