@@ -26,7 +26,9 @@ What we know is used throughout: every fiducial is two concentric rings of known
 5. Status: candidates are rejected with a reason (``spurious``: coverage below ``SPURIOUS_COVERAGE``,
    no ring there; ``partial``: coverage below ``MIN_COVERAGE``;
    ``radius``: a ring's semi-axes (mean radius +- its second harmonic) off the nominal radius, which
-   also turns down two rings close enough to merge into one detection; ``fit``: too few usable rays or an ill-posed fit;
+   also turns down two rings close enough to merge into one detection; ``merged``: two fiducials
+   closer still (about 0.1-0.3 mm), whose lines are broader than the plate's other marks', more so
+   along their offset (``_merged``); ``fit``: too few usable rays or an ill-posed fit;
    ``uncertain``: stated uncertainty above ``MAX_SIGMA_MM``; ``duplicate``: the same fiducial as a
    better candidate). Accepted centres are returned in plate coordinates and, via
    ``PlatePose.from_plane``, as 3-D points on the fitted plane.
@@ -37,6 +39,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy import stats
 from scipy.spatial import cKDTree
 
 from gls_calibration.plate_pose import PlatePose
@@ -79,6 +82,13 @@ fraction of this (interpolation and the template's line shape)."""
 MAX_SIGMA_MM = 0.010
 """Candidates whose stated uncertainty exceeds this (per axis) are rejected as ``uncertain``."""
 
+MERGED_FALSE_ALARM = 1e-7
+"""Chance that one single fiducial is turned down as ``merged`` if the merged test's noise model
+holds (its two p-values combined by Fisher's method); see ``_merged``."""
+
+MERGED_MIN_REFERENCE = 20
+"""The merged test compares a candidate with the plate's other fiducials: it needs this many."""
+
 DETECTION_SIGMAS = 4.0
 """Detection threshold on the correlation map, in robust standard deviations of bare steel."""
 
@@ -104,7 +114,8 @@ class FiducialMeasurement:
     standard uncertainty (k = 1) of each centre along the cloud frame's x and y axes,
     ``sigma_plane_mm`` (K, 2) the same along the plate axes, ``coverage`` (K,) the share of the
     circumference where the rings were seen (0-1). ``merged`` counts duplicate candidates of an
-    accepted fiducial, ``rejected`` all candidates turned down; those are listed in
+    accepted fiducial (reason ``duplicate``; two fiducials merged into one detection are rejected
+    with the reason ``merged`` instead), ``rejected`` all candidates turned down; those are listed in
     ``rejected_centres`` (J, 3) with ``rejected_reasons`` (J,), ``rejected_sigma_xy_mm`` (J, 2)
     and ``rejected_coverage`` (J,). ``missing`` is ``expected_count - K`` (negative for extra
     centres) or None. ``image_shape`` is (rows, columns) of the analysed image and
@@ -370,11 +381,16 @@ def _detect(image: np.ndarray, pitch: tuple[float, float], radii: np.ndarray, ma
     return centres, values, marks_darker
 
 
-def _profile_template(step: float, offsets: np.ndarray, line_sigma_mm: float) -> np.ndarray:
-    """Radial profile of dark lines at ``offsets`` (mm from the template centre), zero mean, negated."""
+def _profile_template(step: float, offsets: np.ndarray, line_sigma_mm: float,
+                      curvature: bool = False) -> np.ndarray:
+    """Radial profile of dark lines at ``offsets`` (mm from the template centre), zero mean, negated.
+
+    ``curvature`` gives its second derivative along the ray instead (mm^-2): broadening Gaussian lines
+    by a variance d adds d / 2 times it (heat equation), so it measures the lines' width."""
     half = float(np.max(np.abs(offsets))) + 3 * line_sigma_mm
     positions = np.arange(-np.ceil(half / step), np.ceil(half / step) + 1) * step
-    darkness = sum(np.exp(-0.5 * ((positions - offset) / line_sigma_mm) ** 2) for offset in offsets)
+    scaled = [(positions - offset) / line_sigma_mm for offset in offsets]
+    darkness = sum(np.exp(-0.5 * x**2) * ((x**2 - 1) / line_sigma_mm**2 if curvature else 1.0) for x in scaled)
     template = -darkness
     return (template - template.mean()).astype(np.float32)
 
@@ -420,13 +436,26 @@ def _harmonic_design(angles: np.ndarray) -> np.ndarray:
                      np.sin(2 * angles)], axis=-1)
 
 
+def _row_nanquantile(values: np.ndarray, quantile: float) -> np.ndarray:
+    """Per row of ``values`` (M, N) the ``quantile`` (0-1, linear interpolation) of its finite entries,
+    NaN for a row without any: ``np.nanpercentile`` along rows, with one sort for all rows instead of
+    numpy's loop over the rows that hold a NaN."""
+    ordered = np.sort(np.where(np.isfinite(values), values, np.nan), axis=1)      # NaN sorts last
+    last = np.isfinite(values).sum(axis=1) - 1
+    position = np.maximum(last, 0) * quantile
+    low = np.floor(position).astype(int)
+    high = np.minimum(low + 1, np.maximum(last, 0))
+    rows = np.arange(len(values))
+    lower, upper = ordered[rows, low], ordered[rows, high]
+    return np.where(last >= 0, lower + (upper - lower) * (position - low), np.nan)
+
+
 def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, weight: np.ndarray):
     """Least-squares fit of the radial model to edge radii (M, A) with one 3-sigma trimming round.
 
     Returns the centre shift (M, 2), mean radius (M,), the fitted radius along every ray (M, A),
     residuals (M, A), rays used (M, A) and fit_ok (M,).
     """
-    count = len(edge_radius)
     used = weight.copy()
     parameters = design.shape[-1]
     for trimming in range(2):
@@ -439,9 +468,7 @@ def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, weight: np.ndarray):
         residual = edge_radius - solution @ design.T
         if trimming == 0:
             # Rays hit by speckle, a scratch or a neighbour's mark: beyond 3 robust sigmas.
-            abs_res = np.where(used, np.abs(residual), np.nan)
-            with np.errstate(all="ignore"):
-                mad = np.nanmedian(abs_res, axis=1) if count else np.empty(0)
+            mad = _row_nanquantile(np.where(used, np.abs(residual), np.nan), 0.5)
             limit = np.maximum(3.0 * 1.4826 * np.nan_to_num(mad, nan=0.0), 1e-6)
             used = used & (np.abs(residual) <= limit[:, None])
     fit_ok = well_posed & (used.sum(axis=1) >= 16)
@@ -483,6 +510,59 @@ def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarra
     deviation = np.where(present[..., None], moves - mean[:, None, :], 0.0)
     covariance = ((groups - 1) / groups)[:, None, None] * np.einsum("msi,msj->mij", deviation, deviation)
     return covariance[:, 1:3, 1:3] + MODEL_SIGMA_MM**2 * np.eye(2)
+
+
+def _line_width(profiles: np.ndarray, score: np.ndarray, index: np.ndarray, used: np.ndarray,
+                angles: np.ndarray, sector_of_ray: np.ndarray, template: np.ndarray,
+                curvature_template: np.ndarray) -> dict:
+    """How much the rings' lines are broadened, on average and as a second harmonic along the ring.
+
+    At every ray's peak the profile is resolved into the ring template T and its radial second
+    derivative T'': broadening Gaussian lines by a variance d adds d / 2 T'', so the T'' share over
+    the T share is half the broadening (a width statistic in mm^2; the whitened image's lines are
+    not Gaussian, so it is a relative measure, compared within a plate). Two rings offset by s
+    broaden each line by (s cos(theta - phi))^2 / 4 = s^2 / 8 (1 + cos 2(theta - phi)); one ring
+    seen through a distorted head changes its radius, not its line width. Fitted over the used
+    rays: d(theta) = d0 + h_c cos 2 theta + h_s sin 2 theta. Returns ``mean`` d0 (M,),
+    ``harmonic`` (h_c, h_s) (M, 2), its delete-one-sector jackknife ``covariance`` (M, 2, 2) and
+    the number of sectors that entered it, ``groups`` (M,).
+    """
+    curvature = _correlate_rows(profiles, curvature_template)
+    low = np.clip(np.floor(index).astype(int), 0, profiles.shape[2] - 2)
+    fraction = index - low
+    pair = np.stack([low, low + 1], -1)
+
+    def at_peak(values: np.ndarray) -> np.ndarray:
+        both = np.take_along_axis(values, pair, -1)
+        return both[..., 0] + (both[..., 1] - both[..., 0]) * fraction
+
+    t, c = template.astype(float), curvature_template.astype(float)
+    gram = np.array([[t @ t, t @ c], [c @ t, c @ c]])
+    shares = np.stack([at_peak(score), at_peak(curvature)], -1) @ np.linalg.inv(gram).T   # (M, A, 2)
+    amplitude, bend = shares[..., 0], shares[..., 1]
+    # bend = amplitude * d(theta) / 2: linear in (d0, h_c, h_s), weighted by the ring's amplitude.
+    basis = np.stack([np.ones_like(angles), np.cos(2 * angles), np.sin(2 * angles)], -1)      # (A, 3)
+    design = 0.5 * amplitude[..., None] * basis                                               # (M, A, 3)
+    weight = (used & (amplitude > 0)).astype(float)
+    sector_normal = _sector_sums(np.einsum("mai,ma,maj->maij", design, weight, design), sector_of_ray)
+    sector_right = _sector_sums(design * (weight * bend)[..., None], sector_of_ray)
+    normal, right = sector_normal.sum(axis=1), sector_right.sum(axis=1)
+    well_posed = np.linalg.cond(normal) < 1e12
+    normal[~well_posed] = np.eye(3)
+    solution = np.linalg.solve(normal, right[..., None])[..., 0]                              # (M, 3)
+    left_out = normal[:, None] - sector_normal
+    solvable = np.linalg.cond(left_out) < 1e12
+    left_out[~solvable] = np.eye(3)
+    partial = np.linalg.solve(left_out, (right[:, None] - sector_right)[..., None])[..., 0]   # (M, S, 3)
+    keep = (_sector_sums(weight, sector_of_ray) > 0) & solvable
+    groups = keep.sum(axis=1)
+    mean = np.where(keep[..., None], partial, 0.0).sum(axis=1) / np.maximum(groups, 1)[:, None]
+    deviation = np.where(keep[..., None], partial - mean[:, None], 0.0)
+    covariance = ((groups - 1) / np.maximum(groups, 1))[:, None, None] * np.einsum("msi,msj->mij",
+                                                                                   deviation, deviation)
+    solution[~well_posed | (groups < 4)] = np.nan
+    return dict(mean=solution[:, 0], harmonic=solution[:, 1:], covariance=covariance[:, 1:, 1:],
+                groups=groups)
 
 
 def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacobian: np.ndarray,
@@ -535,14 +615,15 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         sector_n = _sector_sums(np.isfinite(amplitude).astype(float), sector_of_ray)
         with np.errstate(invalid="ignore", divide="ignore"):
             sector = np.where(sector_n > 0, sector_sum / sector_n, np.nan)
-            reference = np.nanpercentile(np.where(np.isfinite(sector), sector, np.nan), 75, axis=1) \
-                if count else np.empty(0)
+        reference = _row_nanquantile(sector, 0.75)
         seen = np.nan_to_num(sector) > SECTOR_SEEN_FRACTION * np.where(reference > 0, reference, np.inf)[:, None]
         coverage = seen.mean(axis=1)
         visible = seen[:, sector_of_ray]
         sampled_at = centres
         centres = np.where(fit_ok[:, None], centres + shift, centres)
     final_residual = residual
+    line_width = _line_width(profiles, score, index, used, angles, sector_of_ray, pair_template,
+                             _profile_template(step, offsets, line_sigma, curvature=True))
     # Second harmonic of the fitted ring (half the difference of its axes): a ring on the plate is a
     # circle, so this is small; the envelope of two offset rings (a merged detection) is not.
     ellipticity = np.hypot(at @ np.cos(2 * angles), at @ np.sin(2 * angles)) * (2.0 / RAY_COUNT)
@@ -571,7 +652,7 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
                                        / np.maximum(counts, 1), np.nan)
     rms = np.sqrt((np.where(used, final_residual, 0.0) ** 2).sum(axis=1) / np.maximum(used.sum(axis=1), 1))
     return dict(centres=centres, covariance=covariance, radii=ring_radii, rms=rms, coverage=coverage,
-                ellipticity=ellipticity, fit_ok=fit_ok & np.isfinite(ring_radii).all(axis=1))
+                ellipticity=ellipticity, line_width=line_width, fit_ok=fit_ok & np.isfinite(ring_radii).all(axis=1))
 
 
 def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, inverse: np.ndarray,
@@ -584,6 +665,42 @@ def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, in
     map_x = start[:, None, None, 0] + heading[..., 0, None] * radial                    # (M, A, S)
     map_y = start[:, None, None, 1] + heading[..., 1, None] * radial
     return _sample_bilinear(image, map_x, map_y)
+
+
+def _merged(mean_width: np.ndarray, harmonic: np.ndarray, covariance: np.ndarray, groups: np.ndarray,
+            reference: np.ndarray) -> np.ndarray:
+    """Mask of candidates whose lines look like two offset fiducials merged into one detection.
+
+    Two rings offset by s broaden the lines by s^2 / 8 on average and by as much again in a second
+    harmonic along the ring (``_line_width``); a single fiducial's lines are as wide as the plate's
+    other marks' and their width does not depend on direction beyond what all marks share (spot
+    shape, unequal pixel pitch). Two one-sided tests, each against its own noise: the mean width
+    against the ``reference`` candidates' median in robust standard deviations of theirs (normal
+    tail), and the harmonic minus their median harmonic against its jackknife covariance (Hotelling
+    T^2 with the jackknife's sector count). Their p-values are combined by Fisher's method
+    (chi-square, 4 degrees of freedom) and a candidate is merged below ``MERGED_FALSE_ALARM``.
+    Without ``MERGED_MIN_REFERENCE`` reference candidates nothing is called merged.
+    """
+    merged = np.zeros(len(mean_width), bool)
+    usable = reference & np.isfinite(mean_width)
+    if np.count_nonzero(usable) < MERGED_MIN_REFERENCE:
+        return merged
+    centre = np.median(mean_width[usable])
+    spread = 1.4826 * np.median(np.abs(mean_width[usable] - centre))
+    common = np.median(harmonic[usable], axis=0)
+    check = np.isfinite(mean_width) & (groups >= 4) & (spread > 0)
+    if not check.any():
+        return merged
+    log_p_width = stats.norm.logsf((mean_width[check] - centre) / spread)
+    excess = harmonic[check] - common
+    solvable = np.linalg.cond(covariance[check]) < 1e12
+    inverse = np.linalg.inv(np.where(solvable[:, None, None], covariance[check], np.eye(2)))
+    t_squared = np.einsum("mi,mij,mj->m", excess, inverse, excess)
+    dof = groups[check].astype(float) - 2
+    log_p_harmonic = np.where(solvable, stats.f.logsf(t_squared * dof / (2 * (dof + 1)), 2, dof), 0.0)
+    fisher = -2 * (log_p_width + log_p_harmonic)
+    merged[check] = stats.chi2.logsf(fisher, 4) < np.log(MERGED_FALSE_ALARM)
+    return merged
 
 
 def _duplicates(centres: np.ndarray, sigma: np.ndarray, distance: float) -> np.ndarray:
@@ -655,7 +772,9 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=(2.5, 2.
     else:
         affine_ok = np.zeros(0, bool)
         fit = dict(centres=np.empty((0, 2)), covariance=np.empty((0, 2, 2)), radii=np.empty((0, len(radii_nominal))),
-                   rms=np.empty(0), coverage=np.empty(0), ellipticity=np.empty(0), fit_ok=np.zeros(0, bool))
+                   rms=np.empty(0), coverage=np.empty(0), ellipticity=np.empty(0), fit_ok=np.zeros(0, bool),
+                   line_width=dict(mean=np.empty(0), harmonic=np.empty((0, 2)), covariance=np.empty((0, 2, 2)),
+                                   groups=np.zeros(0, int)))
     centres_uv = fit["centres"]
     sigma_plane = np.sqrt(np.stack([fit["covariance"][:, 0, 0], fit["covariance"][:, 1, 1]], axis=-1))
     sigma_xy = _plane_to_cloud_sigma(fit["covariance"], pose)
@@ -671,6 +790,12 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=(2.5, 2.
               ("radius", radius_ok), ("uncertain", sigma_plane.max(axis=1, initial=0.0) <= MAX_SIGMA_MM))
     for reason, passed in reversed(checks):
         reasons[~passed] = reason
+    # Two fiducials close enough to pass as one (ring radii and shape within the tolerances above):
+    # their lines are broader than the plate's other marks', more so along the offset.
+    lines = fit["line_width"]
+    merged = _merged(lines["mean"], lines["harmonic"], lines["covariance"], lines["groups"],
+                     reasons == STATUS_OK)
+    reasons[merged & np.isin(reasons, (STATUS_OK, "uncertain"))] = "merged"
     accepted = np.nonzero(reasons == STATUS_OK)[0]
     duplicate = _duplicates(centres_uv[accepted], sigma_plane[accepted].max(axis=1, initial=0.0),
                             radii_nominal[-1])
