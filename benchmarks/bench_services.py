@@ -34,6 +34,8 @@ from gls_calibration.nodes.base import NodeThreads
 from gls_calibration.persistence import CalibrationStore, head_geometry, load_record
 from gls_calibration_msgs.srv import AcquireSweep, CorrectSetpoints
 
+from correction_peer import call
+
 # An echo of CorrectSetpoints: the response carries the same arrays as the correction's, filled
 # from the request without computing anything.
 ECHO_NODE = """
@@ -69,14 +71,12 @@ def default_main_job_calibration(directory: Path) -> Path:
 
 
 def timed_calls(client, request, count: int) -> list[float]:
-    """Round-trip times (s) of ``count`` calls, each awaited before the next."""
+    """Round-trip times (s) of ``count`` calls, each awaited before the next (RuntimeError when an
+    answer does not come within 60 s: a benchmark must fail, not spin for ever)."""
     times = []
     for _ in range(count):
         began = time.perf_counter()
-        future = client.call_async(request)
-        while not future.done():
-            time.sleep(0.0001)
-        response = future.result()
+        response = call(client, request, timeout_s=60.0)
         times.append(time.perf_counter() - began)
         assert response.success, response.message
     return times
