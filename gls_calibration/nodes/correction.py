@@ -9,6 +9,7 @@ names the calibration that gave it (content hash and creation time).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 from typing import Any, Optional
@@ -26,6 +27,17 @@ from gls_calibration.validation import as_coordinate_arrays
 from gls_calibration_msgs.srv import CorrectSetpoints, LoadCalibration
 
 NOMINAL_ID = "nominal"
+
+
+@dataclass(frozen=True)
+class Served:
+    """What answers corrections, swapped as one value (the batch service reads it from another
+    thread): the correction (None: refused with ``problem``), its id and creation time."""
+
+    correction: Optional[Correction]
+    calibration_id: str = NOMINAL_ID
+    created: Optional[datetime] = None
+    problem: str = ""
 
 
 class CorrectionNode(GlsNode):
@@ -47,10 +59,8 @@ class CorrectionNode(GlsNode):
             "memory each while served)", minimum=1, maximum=10_000_000)
         self.chunk_targets = self.declare("chunk_targets", 20_000, "targets computed between two chances for "
                                           "other requests to be served", minimum=100, maximum=10_000_000)
-        self.correction: Optional[Correction] = Correction(self.geometry)
+        self.served = Served(Correction(self.geometry))
         self.file = ""
-        self.problem = ""
-        self.calibration_id, self.created = NOMINAL_ID, None
         self.summary: dict[str, object] = dict(NOMINAL_SUMMARY)
         self._load(keep_serving=False)
         # A new head geometry changes every answer: reload the active calibration with it.
@@ -68,11 +78,12 @@ class CorrectionNode(GlsNode):
 
     def health(self) -> Health:
         """What /diagnostics says about this node."""
-        values = {"state": "failed" if self.problem else "serving",
+        served = self.served
+        values = {"state": "failed" if served.problem else "serving",
                   "calibration_file": self.file or "none"} | with_age(self.summary)
-        if self.problem:
-            return Health("error", self.problem, values)
-        return Health("ok", f"serving calibration {self.calibration_id}", values)
+        if served.problem:
+            return Health("error", served.problem, values)
+        return Health("ok", f"serving calibration {served.calibration_id}", values)
 
     def _apply_head(self, values: dict[str, Any]) -> Optional[str]:
         try:
@@ -105,25 +116,26 @@ class CorrectionNode(GlsNode):
         except (CalibrationFileError, ValueError, OSError, RecursionError, MemoryError) as error:
             problem = f"active calibration refused: {error}"
             self.get_logger().error(problem)
-            if keep_serving and self.correction is not None:
+            if keep_serving and self.served.correction is not None:
                 return False, f"{problem}; still serving {self.file or 'the nominal model'}"
             self._serve(None, str(self.store.pointer_path), problem)
             return False, problem
         self._serve(correction, str(path), "", *record_identity(record), summary=record_summary(record))
-        self.get_logger().info(f"calibration {self.calibration_id} loaded from {path}")
-        return True, f"calibration {self.calibration_id} loaded from {path}"
+        self.get_logger().info(f"calibration {self.served.calibration_id} loaded from {path}")
+        return True, f"calibration {self.served.calibration_id} loaded from {path}"
 
     def _serve(self, correction: Optional[Correction], file: str, problem: str,
                calibration_id: str = NOMINAL_ID, created: Optional[datetime] = None,
                summary: Optional[dict] = None) -> None:
         """Serve ``correction`` (None: refuse corrections with ``problem``); ``summary`` describes it
         in the diagnostics (default: the nominal model's)."""
-        self.correction, self.file, self.problem = correction, file, problem
+        self.file = file
         if correction is None:
             self.summary = {"active_calibration_id": "none"}
+            self.served = Served(None, "", None, problem)
         else:
             self.summary = summary if summary is not None else dict(NOMINAL_SUMMARY)
-        self.calibration_id, self.created = (calibration_id, created) if correction is not None else ("", None)
+            self.served = Served(correction, calibration_id, created, problem)
 
     def on_load(self, request, response):
         """Reload the active calibration. A ``file`` must name the active one: nothing else is served."""
@@ -151,13 +163,14 @@ class CorrectionNode(GlsNode):
         """Fill ``response`` for ``request``; between chunks, ``worker`` (the node whose executor runs
         this) serves what else is waiting."""
         # One snapshot: a reload between chunks must not mix two calibrations in one answer.
-        correction, calibration_id, created = self.correction, self.calibration_id, self.created
-        response.calibration_id = calibration_id
-        if created is not None:
-            response.calibration_created = conversions.time_to_msg(created.timestamp())
+        served = self.served
+        correction = served.correction
+        response.calibration_id = served.calibration_id
+        if served.created is not None:
+            response.calibration_created = conversions.time_to_msg(served.created.timestamp())
         if correction is None:
             response.success = False
-            response.message = f"corrections refused: {self.problem}"
+            response.message = f"corrections refused: {served.problem}"
             return response
         count = len(request.x)
         if count > self.max_targets:
