@@ -160,6 +160,33 @@ def test_correction_process_exits_cleanly_on_sigint(ros_context, add_node, tmp_p
     assert exit_code == 0, f"correction node exited with {exit_code}; log:\n{log_path.read_text()}"
 
 
+# A node that gets Ctrl-C while it is being built (after its first service is in the graph, as a
+# test or an operator may send it), then says it was built.
+SIGINT_WHILE_BUILT = """
+import os, signal, sys
+from gls_calibration.nodes.base import GlsNode, run_node
+from std_srvs.srv import Trigger
+
+class Interrupted(GlsNode):
+    def __init__(self, **kwargs):
+        super().__init__("interrupted", **kwargs)
+        self.create_service(Trigger, "first", lambda request, response: response)
+        os.kill(os.getpid(), signal.SIGINT)
+        self.create_service(Trigger, "second", lambda request, response: response)
+        print("built", flush=True)
+
+run_node(Interrupted)
+"""
+
+
+def test_a_node_interrupted_while_it_is_built_exits_cleanly(tmp_path):
+    """Ctrl-C during construction waits until the node spins, then stops it as usual (exit 0, not
+    a KeyboardInterrupt out of a half-built node)."""
+    result = subprocess.run([sys.executable, "-c", SIGINT_WHILE_BUILT], capture_output=True, text=True,
+                            timeout=PROCESS_START_TIMEOUT_S, preexec_fn=default_sigint)
+    assert result.returncode == 0 and result.stdout.strip() == "built", result.stdout + result.stderr
+
+
 def test_call_service_without_server_times_out(ros_context, add_node):
     node = add_node(Node("lonely_client", namespace=NAMESPACE, context=ros_context))
     client = node.create_client(CorrectSetpoints, SERVICE_NAME)

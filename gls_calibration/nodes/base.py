@@ -5,6 +5,7 @@ import functools
 import inspect
 import math
 import os
+import signal
 import threading
 import time
 from typing import Any, Callable, Optional, Sequence
@@ -358,12 +359,37 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None
     use_fast_liveliness()
     context = Context()
     rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
-    threads = NodeThreads([factory(context=context)])
+    threads = None
     try:
+        threads = NodeThreads([_built_before_interrupt(factory, context)])
         while context.ok():
             time.sleep(0.2)
     except KeyboardInterrupt:
         pass
     finally:
-        threads.stop()
+        if threads is not None:
+            threads.stop()
         context.try_shutdown()
+
+
+def _built_before_interrupt(factory: Callable[..., Node], context: Context) -> Node:
+    """``factory(context=context)``, with Ctrl-C held back until the node is built, then raised.
+
+    A node's services are in the graph before its constructor ends; Ctrl-C in between would leave a
+    half-built node nobody can destroy before the context shuts down (the process then dies of the
+    KeyboardInterrupt instead of stopping cleanly).
+    """
+    held: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda number, frame: held.append(number))
+    try:
+        node = factory(context=context)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if held and callable(previous):
+        try:
+            previous(signal.SIGINT, None)       # Python's default handler: KeyboardInterrupt
+        except KeyboardInterrupt:
+            for member in (node, *getattr(node, "companions", ())):
+                member.destroy_node()
+            raise
+    return node
