@@ -378,11 +378,21 @@ def test_reference_plate_calibration_plan_is_the_calibration_managers(tmp_path):
     plan = calibration_plan()
     assert plan.label == plan_label(parse_plan(sweep["plan"])) and len(plan.passes) > 1
     assert plan.placed_by_pose is sweep["placed_by_pose"] and plan.plain_sweeps == sweep["plain_repeats"]
+    assert (plan.plain_step_mm, plan.marked_step_mm) == (sweep["plain_step_mm"], sweep["marked_step_mm"])
+    steps = tmp_path / "steps.yaml"
+    steps.write_text("/**:\n  ros__parameters:\n    sweep: {plain_step_mm: 2.0, marked_step_mm: 0.07}\n")
+    assert (calibration_plan(steps).plain_step_mm, calibration_plan(steps).marked_step_mm) == (2.0, 0.07)
+    negative = tmp_path / "negative.yaml"
+    negative.write_text("/**:\n  ros__parameters:\n    sweep: {marked_step_mm: -0.1}\n")
+    with pytest.raises(ValueError, match=r"negative.yaml: marked_step_mm must be a positive finite number"):
+        calibration_plan(negative)
     bare = tmp_path / "bare.yaml"
     bare.write_text("/**:\n  ros__parameters:\n    grid: {per_side: 5}\n")
     defaults = ProcedureSettings()
     assert calibration_plan(bare) == replace(plan, passes=defaults.sweep_plan, plain_sweeps=defaults.plain_sweeps,
-                                             placed_by_pose=defaults.profiles_placed_by_pose)
+                                             placed_by_pose=defaults.profiles_placed_by_pose,
+                                             plain_step_mm=defaults.plain_sweep_step_mm,
+                                             marked_step_mm=defaults.marked_sweep_step_mm)
     bad = tmp_path / "bad.yaml"
     bad.write_text("/**:\n  ros__parameters:\n    sweep: {plan: '0+,45-'}\n")
     with pytest.raises(ValueError, match=r"bad.yaml: sweep plan orientation must be 0 or 90 deg, got 45.0"):

@@ -36,7 +36,7 @@ from gls_calibration.plate_pose import PlatePose, estimate_plate_pose, mean_plat
 from gls_calibration.procedure import ProcedureSettings, combined_centres_gls
 from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
 from gls_calibration.sweep_plan import SweepPass, parse_plan, plan_label
-from gls_calibration.validation import as_integer_at_least
+from gls_calibration.validation import as_integer_at_least, as_positive_number
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.simulation.world import SimConfig
 
@@ -49,12 +49,14 @@ POSITIONS_MM = ((-40.0, -40.0), (0.0, 0.0), (40.0, 40.0))
 @dataclass(frozen=True)
 class MeasurementPlan:
     """How a plate is measured: the passes over it (``sweep_plan.SweepPass``), profiles placed by the
-    robot's reported pose or by time, and the plain sweeps whose plate planes are averaged (0: the
-    plane of the first pass)."""
+    robot's reported pose or by time, the plain sweeps whose plate planes are averaged (0: the
+    plane of the first pass), and the sweeps' profile steps (plain and marked plate)."""
 
     passes: tuple[SweepPass, ...] = (SweepPass(),)
     placed_by_pose: bool = False
     plain_sweeps: int = 0
+    plain_step_mm: float = ProcedureSettings.plain_sweep_step_mm
+    marked_step_mm: float = ProcedureSettings.marked_sweep_step_mm
 
     def __post_init__(self) -> None:
         if not self.passes or not all(isinstance(item, SweepPass) for item in self.passes):
@@ -62,6 +64,8 @@ class MeasurementPlan:
         if not isinstance(self.placed_by_pose, bool):
             raise ValueError(f"placed_by_pose must be true or false, got {self.placed_by_pose!r}")
         as_integer_at_least(self.plain_sweeps, "plain_sweeps", 0)
+        as_positive_number(self.plain_step_mm, "plain_step_mm")
+        as_positive_number(self.marked_step_mm, "marked_step_mm")
 
     @property
     def placement(self) -> str:
@@ -77,8 +81,9 @@ RAW_PLAN = MeasurementPlan()
 
 def calibration_plan(parameter_file: str | Path | None = None) -> MeasurementPlan:
     """The plan the calibration manager runs with ``parameter_file`` (default: the package's
-    ``config/gls.yaml``): its ``sweep.plan``, ``sweep.placed_by_pose`` and ``sweep.plain_repeats``,
-    the procedure's defaults for keys the file leaves out. ValueError naming the file and key."""
+    ``config/gls.yaml``): its ``sweep.plan``, ``sweep.placed_by_pose``, ``sweep.plain_repeats``,
+    ``sweep.plain_step_mm`` and ``sweep.marked_step_mm``, the procedure's defaults for keys the file
+    leaves out. ValueError naming the file and key."""
     defaults = ProcedureSettings()
 
     def parse(document: Any) -> MeasurementPlan:
@@ -87,7 +92,9 @@ def calibration_plan(parameter_file: str | Path | None = None) -> MeasurementPla
             raise ValueError(f"sweep must be a mapping, got {type(sweep).__name__}")
         passes = parse_plan(sweep["plan"]) if "plan" in sweep else defaults.sweep_plan
         return MeasurementPlan(passes, sweep.get("placed_by_pose", defaults.profiles_placed_by_pose),
-                               sweep.get("plain_repeats", defaults.plain_sweeps))
+                               sweep.get("plain_repeats", defaults.plain_sweeps),
+                               sweep.get("plain_step_mm", defaults.plain_sweep_step_mm),
+                               sweep.get("marked_step_mm", defaults.marked_sweep_step_mm))
 
     return read_config_file(parameter_file if parameter_file is not None else config_path("gls.yaml"),
                             "parameter file", parse)
@@ -140,11 +147,11 @@ def measure_plate(config: SimConfig, plate: Plate, plan: MeasurementPlan, seed: 
     def plane(xyz: np.ndarray) -> PlatePose:
         return estimate_plate_pose(xyz, head_direction=(0.0, 0.0, -1.0))
 
-    poses = [plane(cloud(500 + repeat, settings.plain_sweep_step_mm)[0]) for repeat in range(plan.plain_sweeps)]
+    poses = [plane(cloud(500 + repeat, plan.plain_step_mm)[0]) for repeat in range(plan.plain_sweeps)]
     pose = mean_plate_pose(poses) if poses else None
     measurements = []
     for number, item in enumerate(plan.passes):
-        xyz, intensity = cloud(number, settings.marked_sweep_step_mm, item)
+        xyz, intensity = cloud(number, plan.marked_step_mm, item)
         if pose is None:
             pose = plane(xyz)
         measurements.append(measure_fiducials(xyz, intensity, pose, ring_radii_mm=settings.ring_radii_mm,
