@@ -16,7 +16,7 @@ deviation) from the median:
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -78,5 +78,5 @@ def existing_marks(intensity, sigmas: float = 6.0, *, points=None, cluster_sigma
         # bounds the time and still finds a cluster that large.
         centres = found[::max(1, len(found) // MAX_CLUSTER_CENTRES)]
         largest = int(max(cKDTree(found).query_ball_point(centres, cluster_radius_mm, return_length=True)))
-    return MarkEvidence(outlying, evidence.finite_points, float(sigmas), largest, float(cluster_sigmas),
-                        float(cluster_radius_mm))
+    return replace(evidence, largest_cluster=largest, cluster_sigmas=float(cluster_sigmas),
+                   cluster_radius_mm=float(cluster_radius_mm))
