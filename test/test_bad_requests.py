@@ -69,11 +69,13 @@ def client(ros_context, add_node):
 
 # --- correction -------------------------------------------------------------------------------------
 
+@pytest.mark.parametrize("service", ["correct_setpoints", "correct_setpoints_batch"])
 def test_correct_setpoints_refuses_bad_and_oversized_requests_and_keeps_serving(ros_context, add_node, client,
-                                                                              tmp_path):
+                                                                              tmp_path, service):
+    """Both services (the batch one is served by the companion node) validate the same way."""
     add_node(CorrectionNode(context=ros_context, parameter_overrides=[
         Parameter("calibration_dir", value=str(tmp_path / "store")), Parameter("max_targets", value=10)]))
-    correct = client(CorrectSetpoints, "correct_setpoints")
+    correct = client(CorrectSetpoints, service)
     correct.refuses(CorrectSetpoints.Request(x=[NAN], y=[0.0]), "x")
     correct.refuses(CorrectSetpoints.Request(x=[0.0], y=[INF]), "y")
     correct.refuses(CorrectSetpoints.Request(x=[0.0, 1.0], y=[0.0]), "same length")
@@ -152,13 +154,15 @@ def test_a_bad_active_file_at_start_leaves_the_node_up_and_refusing_with_the_rea
     good.write_text("[" * 100_000 + "]" * 100_000)      # deep nesting: once a RecursionError at start-up
     add_node(CorrectionNode(context=ros_context, parameter_overrides=[
         Parameter("calibration_dir", value=str(store.directory))]))
-    correct = client(CorrectSetpoints, "correct_setpoints")
-    message = correct.refuses(CorrectSetpoints.Request(x=[0.0], y=[0.0]), "corrections refused")
-    assert "nested deeper than" in message
+    for service in ("correct_setpoints", "correct_setpoints_batch"):
+        message = client(CorrectSetpoints, service).refuses(CorrectSetpoints.Request(x=[0.0], y=[0.0]),
+                                                            "corrections refused")
+        assert "nested deeper than" in message
     replacement = store.save(make_record(seed=2), activate=True)
     loaded = client(LoadCalibration, "correction/load")(LoadCalibration.Request(file=""))
     assert loaded.success and loaded.file == str(replacement), loaded.message
-    assert correct(CorrectSetpoints.Request(x=[0.0], y=[0.0])).success
+    for service in ("correct_setpoints", "correct_setpoints_batch"):
+        assert client(CorrectSetpoints, service)(CorrectSetpoints.Request(x=[0.0], y=[0.0])).success
 
 
 # --- scan acquisition, plate pose, fiducials, trainer ------------------------------------------------------
