@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy import stats
+from scipy import optimize, special, stats
 from scipy.spatial import cKDTree
 
 from gls_calibration.plate_pose import PlatePose
@@ -81,6 +81,9 @@ fraction of this (interpolation and the template's line shape)."""
 
 MAX_SIGMA_MM = 0.010
 """Candidates whose stated uncertainty exceeds this (per axis) are rejected as ``uncertain``."""
+
+MODERATION_MIN_REFERENCE = 10
+"""Candidates a plate needs before their uncertainties are moderated towards its typical one."""
 
 MERGED_FALSE_ALARM = 1e-7
 """Chance that one single fiducial is turned down as ``merged`` if the merged test's noise model
@@ -509,7 +512,42 @@ def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarra
     mean = moves.sum(axis=1) / groups[:, None]
     deviation = np.where(present[..., None], moves - mean[:, None, :], 0.0)
     covariance = ((groups - 1) / groups)[:, None, None] * np.einsum("msi,msj->mij", deviation, deviation)
-    return covariance[:, 1:3, 1:3] + MODEL_SIGMA_MM**2 * np.eye(2)
+    return covariance[:, 1:3, 1:3], groups - 1
+
+
+def _moderated(covariance: np.ndarray, dof: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Jackknife covariances (M, 2, 2) with each axis' variance raised to its empirical-Bayes
+    posterior, never lowered.
+
+    A variance estimated from ~24 sectors (``dof`` (M,) degrees of freedom) comes out well below the
+    true one now and then, so in units of the stated uncertainty the errors of a plate are
+    heavy-tailed (Student t, not normal). The fiducials of one plate share most of their noise:
+    per plate axis, each variance is combined with the plate's typical one as in moderated
+    statistics (Smyth 2004): the prior's degrees of freedom d0 and variance s0^2 by the method of
+    moments on the log variances of the ``reference`` candidates, posterior (d s^2 + d0 s0^2) /
+    (d + d0). Only raised: a fiducial with a genuinely larger uncertainty (scratched, partly seen)
+    keeps its own. Fewer than ``MODERATION_MIN_REFERENCE`` references: unchanged.
+    """
+    usable = reference & (dof >= 2) & np.all(np.diagonal(covariance, axis1=1, axis2=2) > 0, axis=1)
+    if np.count_nonzero(usable) < MODERATION_MIN_REFERENCE:
+        return covariance
+    half = dof[usable] / 2.0
+    factors = np.ones((len(covariance), 2))
+    for axis in range(2):
+        variance = covariance[:, axis, axis]
+        # log s^2 - E[log chi2_d / d] is centred on the log of the prior's scale (both have digammas)
+        centred = np.log(variance[usable]) - special.digamma(half) + np.log(half)
+        excess = np.var(centred, ddof=1) - np.mean(special.polygamma(1, half))
+        if excess > 0:
+            prior_dof = 2.0 * optimize.brentq(lambda x: special.polygamma(1, x) - excess, 1e-8, 1e8)
+            prior = np.exp(np.mean(centred) + special.digamma(prior_dof / 2) - np.log(prior_dof / 2))
+            posterior = (dof * variance + prior_dof * prior) / np.maximum(dof + prior_dof, 1e-12)
+        else:   # no spread beyond the sampling's: one variance for the whole plate
+            posterior = np.full(len(variance), np.exp(np.mean(centred)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            factors[:, axis] = np.where(variance > 0, np.maximum(posterior / variance, 1.0), 1.0)
+    scale = np.sqrt(factors)
+    return covariance * scale[:, :, None] * scale[:, None, :]
 
 
 def _line_width(profiles: np.ndarray, score: np.ndarray, index: np.ndarray, used: np.ndarray,
@@ -627,7 +665,7 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
     # Second harmonic of the fitted ring (half the difference of its axes): a ring on the plate is a
     # circle, so this is small; the envelope of two offset rings (a merged detection) is not.
     ellipticity = np.hypot(at @ np.cos(2 * angles), at @ np.sin(2 * angles)) * (2.0 / RAY_COUNT)
-    covariance = _centre_covariance(design, final_residual, used, sector_of_ray)
+    covariance, dof = _centre_covariance(design, final_residual, used, sector_of_ray)
 
     # Each ring's radius about the final centre: darkness centroid in a window of +- half the ring
     # gap around its expected position on every used ray (a check of the ring sizes, not the centre).
@@ -651,7 +689,7 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         ring_radii[:, ring] = np.where(counts > 0, np.where(good, distance, 0.0).sum(axis=1)
                                        / np.maximum(counts, 1), np.nan)
     rms = np.sqrt((np.where(used, final_residual, 0.0) ** 2).sum(axis=1) / np.maximum(used.sum(axis=1), 1))
-    return dict(centres=centres, covariance=covariance, radii=ring_radii, rms=rms, coverage=coverage,
+    return dict(centres=centres, covariance=covariance, dof=dof, radii=ring_radii, rms=rms, coverage=coverage,
                 ellipticity=ellipticity, line_width=line_width, fit_ok=fit_ok & np.isfinite(ring_radii).all(axis=1))
 
 
@@ -771,18 +809,21 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=(2.5, 2.
         fit = _refine(image, start_uv, offset, jacobian, radii_nominal, pitch)
     else:
         affine_ok = np.zeros(0, bool)
-        fit = dict(centres=np.empty((0, 2)), covariance=np.empty((0, 2, 2)), radii=np.empty((0, len(radii_nominal))),
+        fit = dict(centres=np.empty((0, 2)), covariance=np.empty((0, 2, 2)), dof=np.zeros(0, int),
+                   radii=np.empty((0, len(radii_nominal))),
                    rms=np.empty(0), coverage=np.empty(0), ellipticity=np.empty(0), fit_ok=np.zeros(0, bool),
                    line_width=dict(mean=np.empty(0), harmonic=np.empty((0, 2)), covariance=np.empty((0, 2, 2)),
                                    groups=np.zeros(0, int)))
     centres_uv = fit["centres"]
-    sigma_plane = np.sqrt(np.stack([fit["covariance"][:, 0, 0], fit["covariance"][:, 1, 1]], axis=-1))
-    sigma_xy = _plane_to_cloud_sigma(fit["covariance"], pose)
     # Both semi-axes of every ring (mean radius +- the second harmonic) within the tolerance: an
     # uncalibrated scanner's anisotropic scale keeps them there, the envelope of two offset rings
     # (a merged detection) does not.
     radius_ok = np.all(np.abs(fit["radii"] - radii_nominal) + fit["ellipticity"][:, None] <= radius_tolerance_mm,
                        axis=1)
+    reference = fit["fit_ok"] & (fit["coverage"] >= MIN_COVERAGE) & radius_ok
+    covariance = _moderated(fit["covariance"], fit["dof"], reference) + MODEL_SIGMA_MM**2 * np.eye(2)
+    sigma_plane = np.sqrt(np.stack([covariance[:, 0, 0], covariance[:, 1, 1]], axis=-1))
+    sigma_xy = _plane_to_cloud_sigma(covariance, pose)
     reasons = np.full(len(candidates), STATUS_OK, dtype=object)
     # The first failing check names the reason, most basic first.
     checks = (("fit", fit["fit_ok"] & affine_ok), ("spurious", fit["coverage"] >= SPURIOUS_COVERAGE),

@@ -20,9 +20,11 @@ PER_SIDE = 5
 ISSUE_CONDITIONS = ("clean", "speckle_0.3", "speckle_0.3_corr2", "marks_85pct", "marks_bright", "scratches",
                     "pitch_0.07", "pitch_0.15", "pitch_0.07x0.15", "unorganized", "rotation_15deg",
                     "rotation_-15deg", "tilt_3deg", "dropouts_1pct")
-# Missed target, kept visible: under correlated speckle the stated uncertainty is too small (RMS of
-# error / sigma about 1.3, worst accepted centre about 4x its sigma; see README, fiducial measurement).
-SIGMA_MISSED = {"speckle_0.3", "speckle_0.3_corr2"}
+# Missed target, kept visible: under correlated speckle the stated uncertainty is still a little too
+# small (19x19: RMS of error / sigma 1.06, worst accepted centre 3.6x its sigma; this 5x5 render of
+# 1.5 px speckle: 4.6x; see README, fiducial measurement). The 2 px render passes since the moderated
+# uncertainties (worst 2.7x).
+SIGMA_MISSED = {"speckle_0.3"}
 
 
 @lru_cache(maxsize=None)
@@ -49,7 +51,7 @@ def test_every_fiducial_found_within_target(name):
 
 
 @pytest.mark.parametrize("name", [pytest.param(name, marks=pytest.mark.xfail(
-    strict=True, reason="target missed under 0.3 speckle: worst centre about 4x its sigma"))
+    strict=True, reason="target missed under 0.3 speckle (1.5 px): worst centre 4.6x its sigma"))
     if name in SIGMA_MISSED else name for name in ISSUE_CONDITIONS])
 def test_accepted_centres_within_three_sigma(name):
     measurement, truth = measured(name)

@@ -207,3 +207,30 @@ def test_bad_parameters(small_scan, kwargs, message):
     xyz, intensity, pose = small_scan
     with pytest.raises(ValueError, match=message):
         measure_fiducials(xyz, intensity, pose, **kwargs)
+
+
+def test_moderated_uncertainties_are_raised_towards_the_plate_never_lowered():
+    """Jackknife variances of equal true size scatter like chi2(23)/23: the low draws are raised towards
+    the plate's typical one, nothing is lowered, a genuinely larger variance keeps its own, and a plate
+    with too few candidates is left as it is."""
+    from gls_calibration.fiducials import MODERATION_MIN_REFERENCE, _moderated
+    rng = np.random.default_rng(5)
+    count, dof = 300, 23
+    variance = 4e-6 * rng.chisquare(dof, size=(count, 2)) / dof          # (2 um)^2, per axis
+    variance[0] *= 25.0                                                   # a scratched fiducial: 5x the sigma
+    covariance = np.zeros((count, 2, 2))
+    covariance[:, 0, 0], covariance[:, 1, 1] = variance[:, 0], variance[:, 1]
+    covariance[:, 0, 1] = covariance[:, 1, 0] = 0.3 * np.sqrt(variance[:, 0] * variance[:, 1])
+    moderated = _moderated(covariance, np.full(count, dof), np.ones(count, bool))
+    after = np.stack([moderated[:, 0, 0], moderated[:, 1, 1]], axis=1)
+    assert np.all(after >= variance * (1 - 1e-12))
+    np.testing.assert_allclose(after[0], variance[0])                    # its own, larger variance stays
+    low = variance[:, 0] < np.quantile(variance[:, 0], 0.1)
+    assert np.all(after[low, 0] > 1.2 * variance[low, 0])                 # the low draws are raised
+    assert np.std(np.log(after[1:])) < 0.6 * np.std(np.log(variance[1:]))
+    # Correlation between the axes is kept (both axes scaled, not replaced).
+    correlation = moderated[:, 0, 1] / np.sqrt(moderated[:, 0, 0] * moderated[:, 1, 1])
+    np.testing.assert_allclose(correlation, 0.3)
+    few = MODERATION_MIN_REFERENCE - 1
+    np.testing.assert_array_equal(_moderated(covariance[:few], np.full(few, dof), np.ones(few, bool)),
+                                  covariance[:few])
