@@ -22,7 +22,8 @@ What we know is used throughout: every fiducial is two concentric rings of known
    ``coverage`` is the share of sectors where the rings are seen, and rays of unseen sectors are
    left out of the final fit. The standard uncertainty per axis comes from the fit: a
    delete-one-sector jackknife of the edge points' ring fit (neighbouring rays are correlated, whole
-   sectors much less), plus ``MODEL_SIGMA_MM``.
+   sectors much less), its variances raised towards the plate's typical one where they came out low
+   by chance (``_moderated``), plus ``MODEL_SIGMA_MM``.
 5. Status: candidates are rejected with a reason (``spurious``: coverage below ``SPURIOUS_COVERAGE``,
    no ring there; ``partial``: coverage below ``MIN_COVERAGE``;
    ``radius``: a ring's semi-axes (mean radius +- its second harmonic) off the nominal radius, which
@@ -486,8 +487,9 @@ def _sector_sums(values: np.ndarray, sector_of_ray: np.ndarray) -> np.ndarray:
 
 
 def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarray,
-                       sector_of_ray: np.ndarray) -> np.ndarray:
-    """Covariance (M, 2, 2) of the fitted centre (plate axes, mm^2) from the radial residuals.
+                       sector_of_ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance (M, 2, 2) of the fitted centre (plate axes, mm^2) from the radial residuals, and its
+    degrees of freedom (M,) (sectors used - 1).
 
     Delete-one-sector jackknife of the (linearised) circle fit: neighbouring rays share pixels and
     speckle grains, so their residuals are correlated; sectors (0.7 mm of arc) are much longer than
