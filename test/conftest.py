@@ -30,7 +30,7 @@ if "ROS_DOMAIN_ID" not in os.environ:
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 # As `make test` sets it (before numpy loads OpenBLAS), so that `python -m pytest` runs alike.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-from gls_calibration.nodes.base import use_fast_liveliness  # noqa: E402
+from gls_calibration.nodes.base import use_fast_liveliness, with_companions  # noqa: E402
 use_fast_liveliness()  # as every node process does: a killed node leaves the graph within 1.5 s
 
 try:
@@ -82,10 +82,10 @@ def executor(ros_context: Context) -> Iterator[MultiThreadedExecutor]:
 
 @pytest.fixture
 def add_node(executor: MultiThreadedExecutor) -> Callable[[Node], Node]:
-    """add_node(node) -> node: spin ``node`` and its companions (``companions``, see NodeThreads) in
-    the test's executor (destroyed after the test)."""
+    """add_node(node) -> node: spin ``node`` and its companions (``with_companions``) in the test's
+    executor (destroyed after the test)."""
     def add(node: Node) -> Node:
-        for member in (node, *getattr(node, "companions", ())):
+        for member in with_companions(node):
             executor.add_node(member)
         return node
     return add

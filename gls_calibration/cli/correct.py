@@ -77,7 +77,7 @@ def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: S
     usable answer."""
     from gls_calibration.cli.client import call_and_wait, client_node
     from gls_calibration.nodes.base import CLIENT_QOS
-    from gls_calibration.nodes.conversions import flag_array, float64_sequence
+    from gls_calibration.nodes.conversions import float64_sequence, setpoints_from_response
     from gls_calibration_msgs.srv import CorrectSetpoints
     with client_node("gls_correct_client", namespace, ros_arguments) as (node, executor):
         print(f"gls-correct: service {node.resolve_service_name(SERVICE)}", file=sys.stderr)
@@ -95,10 +95,9 @@ def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: S
     # A refusal for unreachable targets still carries every answer and its flags.
     if not complete or (not response.success and all(response.within_limits)):
         raise RuntimeError(f"{SERVICE}: {response.message}")
-    return (np.asarray(response.x), np.asarray(response.y), np.asarray(response.alpha_x),
-            np.asarray(response.alpha_y), np.asarray(response.focus_shift),
-            flag_array(response.inside_calibrated_field), flag_array(response.within_limits),
-            f"service: {response.message}")
+    result = setpoints_from_response(response)
+    return (result.x, result.y, result.alpha_x, result.alpha_y, result.focus_shift,
+            result.inside_calibrated_field, result.within_limits, f"service: {response.message}")
 
 
 def main(argv: Optional[list[str]] = None) -> int:

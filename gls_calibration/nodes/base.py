@@ -310,6 +310,13 @@ def _first_answer(futures: Sequence[Future]) -> Future:
     return first
 
 
+def with_companions(node: Node) -> tuple[Node, ...]:
+    """``node`` and its companions (``node.companions``: nodes of the same process that need an
+    executor thread of their own, e.g. the correction's batch service), to be spun and destroyed
+    with it."""
+    return (node, *getattr(node, "companions", ()))
+
+
 class NodeThreads:
     """Spins each node on its own single-threaded executor in its own thread.
 
@@ -320,9 +327,7 @@ class NodeThreads:
     """
 
     def __init__(self, nodes: list[Node]) -> None:
-        # A node's companions (``companions``: nodes of the same process that need a thread of their
-        # own, e.g. the correction's batch service) are spun and destroyed with it.
-        self.nodes = [member for node in nodes for member in (node, *getattr(node, "companions", ()))]
+        self.nodes = [member for node in nodes for member in with_companions(node)]
         self.executors = [SingleThreadedExecutor(context=node.context) for node in self.nodes]
         self.threads = []
         for node, executor in zip(self.nodes, self.executors):
@@ -389,7 +394,7 @@ def _built_before_interrupt(factory: Callable[..., Node], context: Context) -> N
         try:
             previous(signal.SIGINT, None)       # Python's default handler: KeyboardInterrupt
         except KeyboardInterrupt:
-            for member in (node, *getattr(node, "companions", ())):
+            for member in with_companions(node):
                 member.destroy_node()
             raise
     return node
