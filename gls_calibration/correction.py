@@ -21,15 +21,19 @@ continuous, bounded by its values on the boundary, and finite however far away t
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, fields
 import math
+import os
+import threading
 from typing import Any, Optional
 
 import numpy as np
 
 from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.rbf import DeviationModel
-from gls_calibration.validation import as_coordinate_arrays, as_finite_array, as_non_negative_number, as_points
+from gls_calibration.rbf import BLOCK_ROWS, DeviationModel
+from gls_calibration.validation import (as_coordinate_arrays, as_finite_array, as_integer_at_least,
+                                        as_non_negative_number, as_points)
 
 
 _INSIDE_TOLERANCE_MM = 1e-9
@@ -113,8 +117,13 @@ def taper_weight(distance_mm: np.ndarray, taper_mm: float) -> np.ndarray:
     distance_mm = np.asarray(distance_mm, dtype=float)
     if taper_mm == 0.0:
         return (distance_mm <= 0.0).astype(float)
-    fraction = np.clip(distance_mm / taper_mm, 0.0, 1.0)
-    return 0.5 * (1.0 + np.cos(math.pi * fraction))
+    # Only points beyond the boundary need the cosine (it is exactly 1 at distance 0).
+    weight = np.ones_like(distance_mm)
+    beyond = distance_mm > 0.0
+    if beyond.any():
+        fraction = np.clip(distance_mm[beyond] / taper_mm, 0.0, 1.0)
+        weight[beyond] = 0.5 * (1.0 + np.cos(math.pi * fraction))
+    return weight
 
 
 class Correction:
@@ -172,16 +181,28 @@ class Correction:
             total += as_finite_array(model(points), "model output", ndim=2)
         return weight * total[:, 0], weight * total[:, 1], inside
 
-    def correct(self, x, y, z=None) -> CorrectedSetpoints:
+    def correct(self, x, y, z=None, workers: Optional[int] = None) -> CorrectedSetpoints:
         """Corrected setpoints for targets (x, y[, z]) in mm (gls frame); z defaults to the work plane.
 
         Through Q' on the calibration plane (see the module docstring); without models the nominal
-        kinematics of Q.
+        kinematics of Q. ``workers``: threads that share a large request (None: every CPU this
+        process may use; 1: none). The targets are split at multiples of the models' evaluation
+        block, so the answer is bit-identical whatever the number of workers.
         """
         single = _single_target(x, y, z)
         if single is not None and self.models:
             return self._correct_one(*single)
         x, y, z = as_coordinate_arrays(x, y, z)
+        parts = _worker_slices(x.size, available_workers() if workers is None else
+                               as_integer_at_least(workers, "workers", 1))
+        if len(parts) == 1:
+            return self._correct_many(x, y, z)
+        pieces = list(_pool(len(parts)).map(lambda part: self._correct_many(x[part], y[part], z[part]), parts))
+        return CorrectedSetpoints(*(np.concatenate([getattr(piece, field.name) for piece in pieces])
+                                    for field in fields(CorrectedSetpoints)))
+
+    def _correct_many(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> CorrectedSetpoints:
+        """:meth:`correct` for validated 1-D arrays, in this thread."""
         # The height itself must lie in the focus range too, not only the focus shift it needs.
         height_ok = np.abs(z) <= self.geometry.focus_range_mm
         if not self.models:
@@ -240,6 +261,37 @@ class Correction:
                                   np.array([within]))
 
 
+_MIN_ROWS_PER_WORKER = 8 * BLOCK_ROWS     # below this a thread's hand-over costs more than it saves
+_pools: dict[int, ThreadPoolExecutor] = {}
+_pools_lock = threading.Lock()
+
+
+def available_workers() -> int:
+    """CPUs this process may run on (the default number of workers of :meth:`Correction.correct`)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:           # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _worker_slices(count: int, workers: int) -> list[slice]:
+    """Contiguous parts of ``count`` targets for up to ``workers`` threads, cut at multiples of BLOCK_ROWS."""
+    workers = max(1, min(workers, count // _MIN_ROWS_PER_WORKER))
+    if workers == 1:
+        return [slice(0, count)]
+    size = -(-count // workers)
+    size = -(-size // BLOCK_ROWS) * BLOCK_ROWS
+    return [slice(start, min(start + size, count)) for start in range(0, count, size)]
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """One shared pool per size (threads are started once, not per request)."""
+    with _pools_lock:
+        if workers not in _pools:
+            _pools[workers] = ThreadPoolExecutor(workers, thread_name_prefix="correction")
+        return _pools[workers]
+
+
 def _single_target(x, y, z) -> Optional[tuple[float, float, float]]:
     """(x, y, z) as floats when the request is one finite target (z absent or one value), else None."""
     try:
@@ -258,10 +310,22 @@ def transfer_along_ray(geometry: HeadGeometry, x, y, z_from, z_to) -> tuple[np.n
 
     Beyond the X mirror the nominal ray is straight: x scales with the height below the mirror
     ``h = d - z``, the slant ``hypot(h, x)`` too, and ``y / (e + slant)`` (tan of the Y angle) is
-    constant along it.
+    constant along it. Where both heights are equal everywhere, (x, y) themselves (the formulas give
+    exactly them: every ratio is 1.0).
     """
-    height_from = geometry.working_distance_mm - np.asarray(z_from, dtype=float)
-    ratio = (geometry.working_distance_mm - np.asarray(z_to, dtype=float)) / height_from
+    z_from, z_to = _uniform_to_scalar(z_from), _uniform_to_scalar(z_to)
+    if np.all(z_from == z_to):
+        return np.array(x, dtype=float), np.array(y, dtype=float)
+    height_from = geometry.working_distance_mm - z_from
+    ratio = (geometry.working_distance_mm - z_to) / height_from
     slant = np.hypot(height_from, x)
     e = geometry.mirror_distance_mm
     return x * ratio, y * ((e + slant * ratio) / (e + slant))
+
+
+def _uniform_to_scalar(z) -> np.ndarray:
+    """``z`` as a float array; a 0-d one when all its values are equal (the same arithmetic, fewer passes)."""
+    z = np.asarray(z, dtype=float)
+    if z.ndim and z.size and np.all(z == z.flat[0]):
+        return np.asarray(z.flat[0])
+    return z

@@ -141,6 +141,23 @@ def test_correction_rejects_bad_configuration(kwargs, message):
         Correction(GEOMETRY, **kwargs)
 
 
+def test_the_answer_is_the_same_whatever_the_number_of_workers(first_model, second_model):
+    correction = Correction(GEOMETRY, [first_model, second_model], REGION)
+    rng = np.random.default_rng(21)
+    x, y, z = rng.uniform(-110.0, 110.0, 20_001), rng.uniform(-110.0, 110.0, 20_001), rng.uniform(-10.0, 10.0, 20_001)
+    serial = correction.correct(x, y, z, workers=1)
+    for workers in (2, 3, None):
+        shared = correction.correct(x, y, z, workers=workers)
+        for name in vars(serial):
+            np.testing.assert_array_equal(getattr(shared, name), getattr(serial, name), err_msg=name)
+
+
+@pytest.mark.parametrize("workers", [0, -1, 1.5, True])
+def test_correct_rejects_a_bad_number_of_workers(workers):
+    with pytest.raises(ValueError, match=f"workers must be an integer >= 1, got {workers!r}"):
+        Correction(GEOMETRY).correct([0.0], [0.0], workers=workers)
+
+
 def test_correct_rejects_bad_coordinates():
     with pytest.raises(ValueError, match="x and y must have the same length"):
         Correction(GEOMETRY).correct([0.0, 1.0], [0.0])

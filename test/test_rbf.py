@@ -151,6 +151,24 @@ def test_thin_plate_spline_solves_the_same_system_as_scipy():
         np.testing.assert_allclose(ThinPlateSplineModel(X, Y, smoothing)(query), reference, atol=1e-9)
 
 
+@pytest.mark.parametrize("offset", ["default", 0.0])
+def test_thin_plate_spline_blocks_agree_with_the_kernel_formula_at_and_between_centres(monkeypatch, offset):
+    # Large batches take the blocked path (BLAS distances, OpenCV logarithm, an offset that keeps
+    # r^2 positive); at a centre itself phi(0) = 0 must still hold. Without the offset, round-off
+    # makes r^2 zero or negative at the centres: those rows must be recomputed, not returned as NaN.
+    if offset != "default":
+        monkeypatch.setattr("gls_calibration.rbf._OFFSET_PER_SQUARED_MM", offset)
+    X, Y = noisy_samples(14)
+    spline = ThinPlateSplineModel(X, Y)
+    query = np.vstack([X, np.random.default_rng(15).uniform(-120.0, 120.0, (2000, 2))])
+    squared = np.sum((query[:, None, :] - spline.centres) ** 2, axis=2)
+    phi = 0.5 * squared * np.log(np.where(squared > 0.0, squared, 1.0))
+    expected = phi @ spline.weights + spline.affine[0] + query @ spline.affine[1:]
+    # 5e-12 mm: the round-off of the expanded distances is ~2e-12 here, the offset's share 1e-12.
+    np.testing.assert_allclose(spline(query), expected, rtol=0.0, atol=5e-12)
+    np.testing.assert_allclose(spline(X), Y, rtol=0.0, atol=1e-9)
+
+
 def test_thin_plate_spline_loads_without_refitting(monkeypatch):
     X, Y = noisy_samples(14)
     spline = ThinPlateSplineModel(X, Y, smoothing=10.0)

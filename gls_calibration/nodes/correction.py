@@ -59,6 +59,9 @@ class CorrectionNode(GlsNode):
             "memory each while served)", minimum=1, maximum=10_000_000)
         self.chunk_targets = self.declare("chunk_targets", 20_000, "targets computed between two chances for "
                                           "other requests to be served", minimum=100, maximum=10_000_000)
+        self.workers = self.declare("workers", 0, "threads that share a large request (0: every CPU the "
+                                    "process may use; the answer is the same whatever their number)",
+                                    minimum=0, maximum=256) or None
         self.served = Served(Correction(self.geometry))
         self.file = ""
         self.summary: dict[str, object] = dict(NOMINAL_SUMMARY)
@@ -185,7 +188,8 @@ class CorrectionNode(GlsNode):
             if start:
                 await worker.yield_to_executor()
             end = start + self.chunk_targets
-            conversions.append_setpoints(answer, correction.correct(x[start:end], y[start:end], z[start:end]))
+            part = correction.correct(x[start:end], y[start:end], z[start:end], workers=self.workers)
+            conversions.append_setpoints(answer, part)
         reachable = conversions.flag_array(answer["within_limits"])
         unreachable = count - int(np.count_nonzero(reachable))
         if unreachable:
