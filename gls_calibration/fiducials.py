@@ -486,15 +486,37 @@ def _sector_sums(values: np.ndarray, sector_of_ray: np.ndarray) -> np.ndarray:
     return np.add.reduceat(values, starts, axis=1)
 
 
+def _sector_jackknife(sector_normal: np.ndarray, sector_right: np.ndarray, present: np.ndarray,
+                      total_right: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Delete-one-sector jackknife of a least-squares fit given per sector (the rays of a ring are
+    correlated, whole sectors much less): covariance (M, P, P) of the solution and the number of
+    sectors g (M,) that entered it.
+
+    ``sector_normal`` (M, S, P, P) and ``sector_right`` (M, S, P) are each sector's share of the
+    normal equations N x = r, ``present`` (M, S) the sectors with data. Leaving out sector g gives
+    (N - N_g)^-1 (r - r_g), with r the sum of ``sector_right`` unless ``total_right`` (M, P) is
+    given (0 for a fit already solved, whose residuals' scores are ``sector_right``). Sectors whose
+    removal leaves an ill-posed fit do not enter; g is at least 2.
+    """
+    parameters = sector_normal.shape[-1]
+    total = sector_right.sum(axis=1) if total_right is None else total_right
+    left_out = sector_normal.sum(axis=1, keepdims=True) - sector_normal            # (M, S, P, P)
+    solvable = np.linalg.cond(left_out) < 1e10
+    left_out[~solvable] = np.eye(parameters)
+    partial = np.linalg.solve(left_out, (total[:, None] - sector_right)[..., None])[..., 0]
+    keep = present & solvable
+    groups = np.maximum(keep.sum(axis=1), 2)
+    mean = np.where(keep[..., None], partial, 0.0).sum(axis=1) / groups[:, None]
+    deviation = np.where(keep[..., None], partial - mean[:, None], 0.0)
+    covariance = ((groups - 1) / groups)[:, None, None] * np.einsum("msi,msj->mij", deviation, deviation)
+    return covariance, groups
+
+
 def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarray,
                        sector_of_ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Covariance (M, 2, 2) of the fitted centre (plate axes, mm^2) from the radial residuals, and its
-    degrees of freedom (M,) (sectors used - 1).
-
-    Delete-one-sector jackknife of the (linearised) circle fit: neighbouring rays share pixels and
-    speckle grains, so their residuals are correlated; sectors (0.7 mm of arc) are much longer than
-    that correlation, so leaving out a whole sector at a time sees it. Leaving out sector g moves
-    the solution by -(N - N_g)^-1 X_g' e_g (N the normal matrix, X the design, e the residuals).
+    degrees of freedom (M,) (sectors used - 1): the sector jackknife of the linearised circle fit
+    (sectors of 0.7 mm of arc are much longer than the residuals' correlation along the ring).
     """
     count, rays = residual.shape
     parameters = design.shape[-1]
@@ -502,18 +524,8 @@ def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarra
     design = np.broadcast_to(design, (count, rays, parameters))
     sector_normal = _sector_sums(np.einsum("mai,ma,maj->maij", design, u, design), sector_of_ray)
     sector_score = _sector_sums(design * np.where(used, residual, 0.0)[..., None], sector_of_ray)
-    per_sector = _sector_sums(u, sector_of_ray)
-    present = per_sector > 0
-    left_out = sector_normal.sum(axis=1, keepdims=True) - sector_normal          # (M, S, 3, 3)
-    solvable = np.linalg.cond(left_out) < 1e10
-    left_out[~solvable] = np.eye(parameters)
-    moves = -np.linalg.solve(left_out, sector_score[..., None])[..., 0]          # (M, S, 3)
-    # Sectors without rays, or whose removal leaves an ill-posed fit, do not enter.
-    moves = np.where((solvable & present)[..., None], moves, 0.0)
-    groups = np.maximum(present.sum(axis=1), 2)
-    mean = moves.sum(axis=1) / groups[:, None]
-    deviation = np.where(present[..., None], moves - mean[:, None, :], 0.0)
-    covariance = ((groups - 1) / groups)[:, None, None] * np.einsum("msi,msj->mij", deviation, deviation)
+    covariance, groups = _sector_jackknife(sector_normal, sector_score, _sector_sums(u, sector_of_ray) > 0,
+                                           total_right=np.zeros((count, parameters)))
     return covariance[:, 1:3, 1:3], groups - 1
 
 
@@ -590,16 +602,7 @@ def _line_width(profiles: np.ndarray, score: np.ndarray, index: np.ndarray, used
     well_posed = np.linalg.cond(normal) < 1e12
     normal[~well_posed] = np.eye(3)
     solution = np.linalg.solve(normal, right[..., None])[..., 0]                              # (M, 3)
-    left_out = normal[:, None] - sector_normal
-    solvable = np.linalg.cond(left_out) < 1e12
-    left_out[~solvable] = np.eye(3)
-    partial = np.linalg.solve(left_out, (right[:, None] - sector_right)[..., None])[..., 0]   # (M, S, 3)
-    keep = (_sector_sums(weight, sector_of_ray) > 0) & solvable
-    groups = keep.sum(axis=1)
-    mean = np.where(keep[..., None], partial, 0.0).sum(axis=1) / np.maximum(groups, 1)[:, None]
-    deviation = np.where(keep[..., None], partial - mean[:, None], 0.0)
-    covariance = ((groups - 1) / np.maximum(groups, 1))[:, None, None] * np.einsum("msi,msj->mij",
-                                                                                   deviation, deviation)
+    covariance, groups = _sector_jackknife(sector_normal, sector_right, _sector_sums(weight, sector_of_ray) > 0)
     solution[~well_posed | (groups < 4)] = np.nan
     return dict(mean=solution[:, 0], harmonic=solution[:, 1:], covariance=covariance[:, 1:, 1:],
                 groups=groups)
