@@ -9,7 +9,8 @@ names the calibration that gave it (content hash and creation time).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import Any, Optional
@@ -32,12 +33,15 @@ NOMINAL_ID = "nominal"
 @dataclass(frozen=True)
 class Served:
     """What answers corrections, swapped as one value (the batch service reads it from another
-    thread): the correction (None: refused with ``problem``), its id and creation time."""
+    thread): the correction (None: refused with ``problem``), its id and creation time, the file it
+    came from ("" for the nominal model) and its description in the diagnostics."""
 
     correction: Optional[Correction]
     calibration_id: str = NOMINAL_ID
     created: Optional[datetime] = None
     problem: str = ""
+    file: str = ""
+    summary: Mapping[str, object] = field(default_factory=lambda: dict(NOMINAL_SUMMARY))
 
 
 class CorrectionNode(GlsNode):
@@ -63,8 +67,6 @@ class CorrectionNode(GlsNode):
                                     "process may use; the answer is the same whatever their number)",
                                     minimum=0, maximum=256) or None
         self.served = Served(Correction(self.geometry))
-        self.file = ""
-        self.summary: dict[str, object] = dict(NOMINAL_SUMMARY)
         self._load(keep_serving=False)
         # A new head geometry changes every answer: reload the active calibration with it.
         self.apply_parameter_changes(HEAD_PARAMETERS, self._apply_head)
@@ -83,7 +85,7 @@ class CorrectionNode(GlsNode):
         """What /diagnostics says about this node."""
         served = self.served
         values = {"state": "failed" if served.problem else "serving",
-                  "calibration_file": self.file or "none"} | with_age(self.summary)
+                  "calibration_file": served.file or "none"} | with_age(served.summary)
         if served.problem:
             return Health("error", served.problem, values)
         return Health("ok", f"serving calibration {served.calibration_id}", values)
@@ -120,7 +122,7 @@ class CorrectionNode(GlsNode):
             problem = f"active calibration refused: {error}"
             self.get_logger().error(problem)
             if keep_serving and self.served.correction is not None:
-                return False, f"{problem}; still serving {self.file or 'the nominal model'}"
+                return False, f"{problem}; still serving {self.served.file or 'the nominal model'}"
             self._serve(None, str(self.store.pointer_path), problem)
             return False, problem
         self._serve(correction, str(path), "", *record_identity(record), summary=record_summary(record))
@@ -132,13 +134,11 @@ class CorrectionNode(GlsNode):
                summary: Optional[dict] = None) -> None:
         """Serve ``correction`` (None: refuse corrections with ``problem``); ``summary`` describes it
         in the diagnostics (default: the nominal model's)."""
-        self.file = file
         if correction is None:
-            self.summary = {"active_calibration_id": "none"}
-            self.served = Served(None, "", None, problem)
+            self.served = Served(None, "", None, problem, file, {"active_calibration_id": "none"})
         else:
-            self.summary = summary if summary is not None else dict(NOMINAL_SUMMARY)
-            self.served = Served(correction, calibration_id, created, problem)
+            self.served = Served(correction, calibration_id, created, problem, file,
+                                 summary if summary is not None else dict(NOMINAL_SUMMARY))
 
     def on_load(self, request, response):
         """Reload the active calibration. A ``file`` must name the active one: nothing else is served."""
@@ -151,10 +151,10 @@ class CorrectionNode(GlsNode):
                 response.success = False
                 response.message = (f"{request.file} is not the active calibration of {self.store.directory}; "
                                     "only the active calibration is served (activate it first)")
-                response.file = self.file
+                response.file = self.served.file
                 return response
         response.success, response.message = self._load(keep_serving=True)
-        response.file = self.file
+        response.file = self.served.file
         return response
 
     @answers_errors(ValueError)
@@ -199,7 +199,7 @@ class CorrectionNode(GlsNode):
                                  f"(first at index {first}); see within_limits")
         else:
             response.success = True
-            response.message = "corrected" if self.file else "no calibration loaded: nominal model"
+            response.message = "corrected" if served.file else "no calibration loaded: nominal model"
         return response
 
 
