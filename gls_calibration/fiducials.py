@@ -214,7 +214,12 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
         raise ValueError("cloud has no finite point with a finite intensity")
     uv = pose.to_plane(xyz[keep])
     values = intensity[keep]
-    origin = np.floor(uv.min(axis=0) / pixel_size_mm) * pixel_size_mm
+    # Pixel centres on the points of a regular scan (the circular mean of their phase against the
+    # raster): splatting then hardly blurs, where points midway between pixel centres would be
+    # averaged 2x2 (0.3 speckle with dropouts: 255-267 -> 349-355 of 361 fiducials found). An
+    # irregular cloud has no such phase, and any origin does.
+    phase = np.angle(np.exp(2j * np.pi * uv[::97] / pixel_size_mm).mean(axis=0)) / (2 * np.pi)
+    origin = (np.floor(uv.min(axis=0) / pixel_size_mm - 1.0) + phase) * pixel_size_mm
     position = (uv - origin) / pixel_size_mm
     corner = np.floor(position).astype(np.int64)
     fraction = position - corner
