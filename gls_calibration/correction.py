@@ -262,8 +262,8 @@ class Correction:
 
 
 _MIN_ROWS_PER_WORKER = 8 * BLOCK_ROWS     # below this a thread's hand-over costs more than it saves
-_pools: dict[int, ThreadPoolExecutor] = {}
-_pools_lock = threading.Lock()
+_pool_lock = threading.Lock()
+_shared_pool: list[tuple[int, ThreadPoolExecutor]] = []    # (threads, pool): one, replaced by a larger one
 
 
 def available_workers() -> int:
@@ -285,11 +285,13 @@ def _worker_slices(count: int, workers: int) -> list[slice]:
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
-    """One shared pool per size (threads are started once, not per request)."""
-    with _pools_lock:
-        if workers not in _pools:
-            _pools[workers] = ThreadPoolExecutor(workers, thread_name_prefix="correction")
-        return _pools[workers]
+    """A shared pool of at least ``workers`` threads (started once, not per request)."""
+    with _pool_lock:
+        if not _shared_pool or _shared_pool[0][0] < workers:
+            # The smaller pool is dropped, not shut down: a caller may still be handing it parts (its
+            # idle threads end when it is collected).
+            _shared_pool[:] = [(workers, ThreadPoolExecutor(workers, thread_name_prefix="correction"))]
+        return _shared_pool[0][1]
 
 
 def _single_target(x, y, z) -> Optional[tuple[float, float, float]]:
