@@ -55,7 +55,7 @@ def render_plate_scan(centres_plane_mm, *, tilt_rad=(0.0, 0.0), offset_mm=(0.0, 
                       ring_radii_mm=(2.5, 2.7), line_width_mm=0.1, noise=0.0, speckle=0.0,
                       range_noise_mm=0.0, dropout_fraction=0.0, supersampling=6,
                       marks_darker=True, seed=0, speckle_corr_px=0.0, mark_ratio=None,
-                      scratches=(), erased=None) -> tuple[np.ndarray, np.ndarray]:
+                      scratches=(), erased=None, jitter_px=0.0) -> tuple[np.ndarray, np.ndarray]:
     """Render an organized scan: xyz (H, W, 3) in mm and intensity (H, W).
 
     The scan covers ``size_mm`` (x, y) centred on the scanner origin with ``pixel_mm`` between points
@@ -68,7 +68,9 @@ def render_plate_scan(centres_plane_mm, *, tilt_rad=(0.0, 0.0), offset_mm=(0.0, 
     ``mark_ratio`` (e.g. 0.85) is the reflectance of a fully marked pixel relative to the steel and
     overrides ``marks_darker``. ``scratches`` is a sequence of ((x0, y0), (x1, y1), width_mm, ratio)
     line segments in scanner x, y (mm). ``erased`` maps a fiducial index to (start, stop) plate
-    angles (rad) over which its rings are missing.
+    angles (rad) over which its rings are missing. ``jitter_px`` > 0 moves every point by a uniform
+    random offset of up to that many pixels in x and y before it is rendered (an irregular cloud;
+    0.5 leaves no trace of the grid).
     """
     rng = np.random.default_rng(seed)
     row_pixel_mm = pixel_mm if row_pixel_mm is None else row_pixel_mm
@@ -78,6 +80,10 @@ def render_plate_scan(centres_plane_mm, *, tilt_rad=(0.0, 0.0), offset_mm=(0.0, 
     ys = (np.arange(height) - (height - 1) / 2) * row_pixel_mm
     rotation, origin = plate_frame(tilt_rad, offset_mm)
     x_grid, y_grid = np.meshgrid(xs, ys)
+    if jitter_px > 0:
+        shake = np.random.default_rng(seed + 1).uniform(-jitter_px, jitter_px, (2, height, width))
+        x_grid = x_grid + shake[0] * pixel_mm
+        y_grid = y_grid + shake[1] * row_pixel_mm
     _, _, z = _scanner_to_plate_uv(x_grid, y_grid, rotation, origin)
 
     darkness = np.zeros((height, width))
@@ -92,8 +98,8 @@ def render_plate_scan(centres_plane_mm, *, tilt_rad=(0.0, 0.0), offset_mm=(0.0, 
         rows = np.nonzero(np.abs(ys - centre_xyz[1]) <= 1.1 * r_outer)[0]
         if cols.size == 0 or rows.size == 0:
             continue
-        sx = xs[cols][None, :, None, None] + sub[None, None, None, :] * pixel_mm
-        sy = ys[rows][:, None, None, None] + sub[None, None, :, None] * row_pixel_mm
+        sx = x_grid[np.ix_(rows, cols)][:, :, None, None] + sub[None, None, None, :] * pixel_mm
+        sy = y_grid[np.ix_(rows, cols)][:, :, None, None] + sub[None, None, :, None] * row_pixel_mm
         u, v, _ = _scanner_to_plate_uv(sx, sy, rotation, origin)
         radius = np.hypot(u - centre[0], v - centre[1])
         cover = sum(_band_coverage(radius - r, line_width_mm / 2, half_step) for r in ring_radii_mm)
@@ -186,6 +192,8 @@ def vision_conditions(per_side: int) -> dict:
         "dropouts_1pct": condition(dropout_fraction=0.01, range_noise_mm=0.01),
         "unorganized_speckle_dropouts": condition(organized=False, speckle=0.3, speckle_corr_px=1.5,
                                                   dropout_fraction=0.01),
+        # Points anywhere in their cell: no grid left for the raster to follow (the plain raster).
+        "unorganized_irregular": condition(organized=False, jitter_px=0.5),
     }
 
 

@@ -236,18 +236,23 @@ def test_moderated_uncertainties_are_raised_towards_the_plate_never_lowered():
                                   covariance[:few])
 
 
-@pytest.mark.parametrize("offset_px", [0.0, 0.5, 0.3])
-def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px):
-    # A flat scan at the raster's own pitch, shifted by a fraction of a pixel: whatever the shift, each
-    # point must land on one pixel, not be averaged over four (which blurs thin lines under speckle).
+@pytest.mark.parametrize("offset_px, scale, shear", [(0.0, 1.0, 0.0), (0.5, 1.0, 0.0), (0.3, 1.0, 0.0),
+                                                     (0.3, 1.0008, 0.0015)])
+def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px, scale, shear):
+    # A flat scan near the raster's pitch, shifted by a fraction of a pixel, slightly stretched and
+    # sheared (as a tilted plate shears it): each point must land on one pixel, not be averaged over
+    # four (which blurs thin lines under speckle and shifts them by the local phase).
     from gls_calibration.fiducials import _rasterised_image
     from gls_calibration.plate_pose import PlatePose
     pitch = 0.1
-    u, v = np.meshgrid((np.arange(60) + offset_px) * pitch, (np.arange(50) + offset_px) * pitch)
+    col, row = np.meshgrid(np.arange(400) + offset_px, np.arange(300) + offset_px)
+    u, v = (col * scale + row * shear) * pitch, row * pitch
     intensity = np.where((np.arange(u.size) % 7) == 0, 100.0, 10.0)
     xyz = np.column_stack([u.ravel(), v.ravel(), np.zeros(u.size)])
     pose = PlatePose(normal=np.array([0.0, 0.0, 1.0]), centre=np.zeros(3), rotation=np.eye(3),
                      flatness_rms_mm=0.0, inlier_count=u.size, inlier_fraction=1.0)
     plate = _rasterised_image(xyz, intensity, pose, pitch)
-    column, row = np.round((xyz[:, :2] - plate.raster_origin) / pitch).astype(int).T
+    pixel = np.linalg.solve(plate.raster_matrix, (xyz[:, :2] - plate.raster_origin).T)
+    assert np.abs(pixel - np.round(pixel)).max() < 0.01
+    column, row = np.round(pixel).astype(int)
     np.testing.assert_allclose(plate.intensity[row, column], intensity, atol=1e-3)
