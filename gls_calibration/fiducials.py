@@ -105,6 +105,9 @@ HIGH_PASS_SIGMA_PX = 1.5
 of laser-marked steel 1-2 pixels correlated; this kept the most line signal over speckle in the
 vision benchmark (1.5 / 2 / 3 px compared)."""
 
+LATTICE_TILES = 16
+"""Tiles per side of the plate in the search for an unorganized cloud's scan lattice (``_scan_lattice``)."""
+
 STATUS_OK = "ok"
 
 
@@ -216,32 +219,35 @@ def _scan_lattice(uv: np.ndarray, pixel_size_mm: float) -> tuple[np.ndarray, np.
     against the scan drifts across the plate (tilt shears the scan's grid on the plane) blurs and
     shifts the thin ring lines by different amounts in different places (measured: 2.4 um RMS where
     the phase is within 0.1 px, 5 um at 0.1-0.3 px). The scan's phase against the raster is modelled
-    as linear in uv per axis (an affine lattice): a coarse search of its gradient over 8x8 tiles of
-    the plate, then a least-squares refinement. A cloud without a lattice (phase concentration
+    as linear in uv per axis (an affine lattice): a coarse search of its gradient over 16x16 tiles
+    of the plate, then a least-squares refinement. A cloud without a lattice (phase concentration
     below 0.5) keeps the plain raster at ``pixel_size_mm``.
     """
-    step = max(1, len(uv) // 200_000)
+    step = max(1, len(uv) // 50_000)        # ~200 points per tile are plenty for a phase
     sample = uv[::step] / pixel_size_mm                                          # pixel units
     low, span = sample.min(axis=0), np.maximum(np.ptp(sample, axis=0), 1e-9)
-    cell = np.minimum(((sample - low) / span * 8).astype(int), 7)
-    tile = cell[:, 0] * 8 + cell[:, 1]
-    counts = np.bincount(tile, minlength=64)
+    cell = np.minimum(((sample - low) / span * LATTICE_TILES).astype(int), LATTICE_TILES - 1)
+    tile = cell[:, 0] * LATTICE_TILES + cell[:, 1]
+    counts = np.bincount(tile, minlength=LATTICE_TILES**2)
     filled = counts > 0
-    centres = np.stack([np.bincount(tile, weights=sample[:, k], minlength=64) for k in range(2)], -1)[filled]
-    centres /= counts[filled, None]
+    centres = np.stack([np.bincount(tile, weights=sample[:, k], minlength=LATTICE_TILES**2)
+                        for k in range(2)], -1)[filled] / counts[filled, None]
     middle = centres.mean(axis=0)
     centres = centres - middle
     # Phase drift per pixel: up to 6 px over 2000 px, in steps that turn the plate's ends by 0.2 px.
+    # Tile centres 125 px apart on a 2000 px plate tell gradients apart up to 1/125 = 0.008: wider
+    # than this range, so no gradient is taken for another.
     gradients = np.arange(-30, 31) * 1e-4
     to_pixel, shift = np.eye(2), np.zeros(2)
     for axis in range(2):
         phasor = np.exp(2j * np.pi * sample[:, axis])
-        tile_sums = (np.bincount(tile, weights=phasor.real, minlength=64)
-                     + 1j * np.bincount(tile, weights=phasor.imag, minlength=64))[filled]
+        tile_sums = (np.bincount(tile, weights=phasor.real, minlength=LATTICE_TILES**2)
+                     + 1j * np.bincount(tile, weights=phasor.imag, minlength=LATTICE_TILES**2))[filled]
         # Coarse: the gradient (px of phase per px) that best lines the tiles' phasors up.
-        turn = np.exp(-2j * np.pi * (gradients[:, None, None] * centres[None, None, :, 0]
-                                     + gradients[None, :, None] * centres[None, None, :, 1]))
-        score = np.abs((turn * tile_sums[None, None, :]).sum(axis=-1))
+        # score[a, b] = |sum_t tile_sums_t exp(-2 pi i (g_a u_t + g_b v_t))|: one matrix product.
+        along_u = np.exp(-2j * np.pi * np.outer(gradients, centres[:, 0]))
+        along_v = np.exp(-2j * np.pi * np.outer(gradients, centres[:, 1]))
+        score = np.abs((along_u * tile_sums) @ along_v.T)
         best = np.unravel_index(np.argmax(score), score.shape)
         gradient = np.array([gradients[best[0]], gradients[best[1]]])
         # Fine: least squares on the tiles' residual phases, weighted by their point counts.
@@ -251,12 +257,11 @@ def _scan_lattice(uv: np.ndarray, pixel_size_mm: float) -> tuple[np.ndarray, np.
         weight = np.abs(tile_sums)
         fit = np.linalg.lstsq(design * weight[:, None], residual * weight, rcond=None)[0]
         gradient = gradient + fit[1:]
-        phase = sample[:, axis] - (sample - middle) @ gradient
-        concentration = np.abs(np.exp(2j * np.pi * phase).mean())
-        if concentration < 0.5:
+        mean_phasor = np.exp(2j * np.pi * (sample[:, axis] - (sample - middle) @ gradient)).mean()
+        if abs(mean_phasor) < 0.5:
             return np.eye(2) / pixel_size_mm, np.zeros(2)
         to_pixel[axis] -= gradient
-        shift[axis] = middle @ gradient - np.angle(np.exp(2j * np.pi * phase).mean()) / (2 * np.pi)
+        shift[axis] = middle @ gradient - np.angle(mean_phasor) / (2 * np.pi)
     return to_pixel / pixel_size_mm, shift
 
 

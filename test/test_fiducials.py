@@ -236,19 +236,26 @@ def test_moderated_uncertainties_are_raised_towards_the_plate_never_lowered():
                                   covariance[:few])
 
 
-@pytest.mark.parametrize("offset_px, scale, shear", [(0.0, 1.0, 0.0), (0.5, 1.0, 0.0), (0.3, 1.0, 0.0),
-                                                     (0.3, 1.0008, 0.0015)])
-def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px, scale, shear):
-    # A flat scan near the raster's pitch, shifted by a fraction of a pixel, slightly stretched and
-    # sheared (as a tilted plate shears it): each point must land on one pixel, not be averaged over
-    # four (which blurs thin lines under speckle and shifts them by the local phase).
+@pytest.mark.parametrize("offset_px, scale, shear, turn_rad, size_px", [
+    (0.0, 1.0, 0.0, 0.0, 400), (0.5, 1.0, 0.0, 0.0, 400), (0.3, 1.0, 0.0, 0.0, 400),
+    (0.3, 1.0008, 0.0015, 0.0, 400), (0.2, 1.0, 0.00024, 0.00135, 2000)])
+def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px, scale, shear, turn_rad,
+                                                                       size_px):
+    # A flat scan near the raster's pitch, shifted by a fraction of a pixel, slightly stretched,
+    # sheared (as a tilted plate shears it) or turned: each point must land on one pixel, not be
+    # averaged over four (which blurs thin lines under speckle and shifts them by the local phase).
+    # The last case is a 200 mm plate (every 20th point kept), where a coarse lattice search could
+    # mistake the drift for another.
     from gls_calibration.fiducials import _rasterised_image
     from gls_calibration.plate_pose import PlatePose
     pitch = 0.1
-    col, row = np.meshgrid(np.arange(400) + offset_px, np.arange(300) + offset_px)
+    col, row = np.meshgrid(np.arange(size_px) + offset_px, np.arange(size_px * 3 // 4) + offset_px)
     u, v = (col * scale + row * shear) * pitch, row * pitch
+    u, v = u * np.cos(turn_rad) - v * np.sin(turn_rad), u * np.sin(turn_rad) + v * np.cos(turn_rad)
+    kept = np.arange(u.size) % (1 if size_px <= 400 else 20) == 0
+    u, v = u.ravel()[kept], v.ravel()[kept]
     intensity = np.where((np.arange(u.size) % 7) == 0, 100.0, 10.0)
-    xyz = np.column_stack([u.ravel(), v.ravel(), np.zeros(u.size)])
+    xyz = np.column_stack([u, v, np.zeros(u.size)])
     pose = PlatePose(normal=np.array([0.0, 0.0, 1.0]), centre=np.zeros(3), rotation=np.eye(3),
                      flatness_rms_mm=0.0, inlier_count=u.size, inlier_fraction=1.0)
     plate = _rasterised_image(xyz, intensity, pose, pitch)
