@@ -271,29 +271,34 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
     keep = np.isfinite(xyz).all(axis=1) & np.isfinite(intensity)
     if np.count_nonzero(keep) == 0:
         raise ValueError("cloud has no finite point with a finite intensity")
-    uv = pose.to_plane(xyz[keep])
-    values = intensity[keep]
+    if keep.all():      # no copy of a whole cloud for nothing
+        uv, values = pose.to_plane(xyz), intensity
+    else:
+        uv, values = pose.to_plane(xyz[keep]), intensity[keep]
     to_pixel, shift = _scan_lattice(uv, pixel_size_mm)
-    position = uv @ to_pixel.T + shift
+    # Column and row per point (a tall (N, 2) @ (2, 2) product is slow in OpenBLAS; this is not).
+    column = uv[:, 0] * to_pixel[0, 0] + uv[:, 1] * to_pixel[0, 1]
+    row = uv[:, 0] * to_pixel[1, 0] + uv[:, 1] * to_pixel[1, 1]
     # Move by whole pixels only (the lattice's phase stays), one pixel of margin.
-    margin = 1.0 - np.floor(position.min(axis=0))
-    position += margin
-    shift = shift + margin
-    corner = np.floor(position).astype(np.int64)
-    fraction = position - corner
-    width, height = (int(v) + 2 for v in corner.max(axis=0))
+    shift = shift + 1.0 - np.floor([column.min() + shift[0], row.min() + shift[1]])
+    column += shift[0]
+    row += shift[1]
+    corner_column, corner_row = column.astype(np.int64), row.astype(np.int64)    # >= 1: the floor
+    fraction_column, fraction_row = column - corner_column, row - corner_row
+    width, height = int(corner_column.max()) + 2, int(corner_row.max()) + 2
     if width * height > 10_000 * 10_000:
         raise ValueError(f"rasterised plate image would have {height}x{width} pixels; "
                          f"check pixel_size_mm ({pixel_size_mm})")
     # Bilinear splatting: every point spreads over its four nearest pixels. On a regular scan this is
     # bilinear resampling, so marks keep their sub-pixel position (nearest-pixel binning would shift
     # whole regions by up to half a pixel where the scan and raster grids are out of phase).
+    base = corner_row * width + corner_column
+    rest_column, rest_row = 1.0 - fraction_column, 1.0 - fraction_row
     sums = np.zeros(width * height)
     weights = np.zeros(width * height)
-    for d_col, d_row in ((0, 0), (1, 0), (0, 1), (1, 1)):
-        weight = ((fraction[:, 0] if d_col else 1 - fraction[:, 0])
-                  * (fraction[:, 1] if d_row else 1 - fraction[:, 1]))
-        index = (corner[:, 1] + d_row) * width + corner[:, 0] + d_col
+    for step, weight in ((0, rest_column * rest_row), (1, fraction_column * rest_row),
+                         (width, rest_column * fraction_row), (width + 1, fraction_column * fraction_row)):
+        index = base + step
         sums += np.bincount(index, weights=weight * values, minlength=width * height)
         weights += np.bincount(index, weights=weight, minlength=width * height)
     covered = weights > 1e-3
