@@ -105,8 +105,10 @@ HIGH_PASS_SIGMA_PX = 1.5
 of laser-marked steel 1-2 pixels correlated; this kept the most line signal over speckle in the
 vision benchmark (1.5 / 2 / 3 px compared)."""
 
-LATTICE_TILES = 16
-"""Tiles per side of the plate in the search for an unorganized cloud's scan lattice (``_scan_lattice``)."""
+LATTICE_TILE_PX = 125.0
+"""Tile size (pixels) in the search for an unorganized cloud's scan lattice (``_scan_lattice``): tile
+centres this far apart tell phase gradients apart up to 1 / 125 = 0.008 px per px, more than the
+search's range of +-0.003, so no gradient is taken for another."""
 
 STATUS_OK = "ok"
 
@@ -219,30 +221,29 @@ def _scan_lattice(uv: np.ndarray, pixel_size_mm: float) -> tuple[np.ndarray, np.
     against the scan drifts across the plate (tilt shears the scan's grid on the plane) blurs and
     shifts the thin ring lines by different amounts in different places (measured: 2.4 um RMS where
     the phase is within 0.1 px, 5 um at 0.1-0.3 px). The scan's phase against the raster is modelled
-    as linear in uv per axis (an affine lattice): a coarse search of its gradient over 16x16 tiles
-    of the plate, then a least-squares refinement. A cloud without a lattice (phase concentration
+    as linear in uv per axis (an affine lattice): a coarse search of its gradient over tiles of
+    ``LATTICE_TILE_PX``, then a least-squares refinement. A cloud without a lattice (phase concentration
     below 0.5) keeps the plain raster at ``pixel_size_mm``.
     """
     step = max(1, len(uv) // 50_000)        # ~200 points per tile are plenty for a phase
     sample = uv[::step] / pixel_size_mm                                          # pixel units
     low, span = sample.min(axis=0), np.maximum(np.ptp(sample, axis=0), 1e-9)
-    cell = np.minimum(((sample - low) / span * LATTICE_TILES).astype(int), LATTICE_TILES - 1)
-    tile = cell[:, 0] * LATTICE_TILES + cell[:, 1]
-    counts = np.bincount(tile, minlength=LATTICE_TILES**2)
+    tiles = int(np.clip(np.ceil(span.max() / LATTICE_TILE_PX), 4, 64))          # per side
+    cell = np.minimum(((sample - low) / span * tiles).astype(int), tiles - 1)
+    tile = cell[:, 0] * tiles + cell[:, 1]
+    counts = np.bincount(tile, minlength=tiles**2)
     filled = counts > 0
-    centres = np.stack([np.bincount(tile, weights=sample[:, k], minlength=LATTICE_TILES**2)
+    centres = np.stack([np.bincount(tile, weights=sample[:, k], minlength=tiles**2)
                         for k in range(2)], -1)[filled] / counts[filled, None]
     middle = centres.mean(axis=0)
     centres = centres - middle
     # Phase drift per pixel: up to 6 px over 2000 px, in steps that turn the plate's ends by 0.2 px.
-    # Tile centres 125 px apart on a 2000 px plate tell gradients apart up to 1/125 = 0.008: wider
-    # than this range, so no gradient is taken for another.
     gradients = np.arange(-30, 31) * 1e-4
     to_pixel, shift = np.eye(2), np.zeros(2)
     for axis in range(2):
         phasor = np.exp(2j * np.pi * sample[:, axis])
-        tile_sums = (np.bincount(tile, weights=phasor.real, minlength=LATTICE_TILES**2)
-                     + 1j * np.bincount(tile, weights=phasor.imag, minlength=LATTICE_TILES**2))[filled]
+        tile_sums = (np.bincount(tile, weights=phasor.real, minlength=tiles**2)
+                     + 1j * np.bincount(tile, weights=phasor.imag, minlength=tiles**2))[filled]
         # Coarse: the gradient (px of phase per px) that best lines the tiles' phasors up.
         # score[a, b] = |sum_t tile_sums_t exp(-2 pi i (g_a u_t + g_b v_t))|: one matrix product.
         along_u = np.exp(-2j * np.pi * np.outer(gradients, centres[:, 0]))
@@ -250,7 +251,7 @@ def _scan_lattice(uv: np.ndarray, pixel_size_mm: float) -> tuple[np.ndarray, np.
         score = np.abs((along_u * tile_sums) @ along_v.T)
         best = np.unravel_index(np.argmax(score), score.shape)
         gradient = np.array([gradients[best[0]], gradients[best[1]]])
-        # Fine: least squares on the tiles' residual phases, weighted by their point counts.
+        # Fine: least squares on the tiles' residual phases, weighted by their phasor sums' length.
         aligned = tile_sums * np.exp(-2j * np.pi * centres @ gradient)
         residual = np.angle(aligned * np.exp(-1j * np.angle(aligned.sum()))) / (2 * np.pi)   # about 0: no wrap
         design = np.column_stack([np.ones(len(centres)), centres])
