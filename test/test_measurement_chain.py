@@ -381,7 +381,8 @@ def test_reference_plate_calibration_plan_is_the_calibration_managers(tmp_path):
     assert (plan.plain_step_mm, plan.marked_step_mm) == (sweep["plain_step_mm"], sweep["marked_step_mm"])
     steps = tmp_path / "steps.yaml"
     steps.write_text("/**:\n  ros__parameters:\n    sweep: {plain_step_mm: 2.0, marked_step_mm: 0.07}\n")
-    assert (calibration_plan(steps).plain_step_mm, calibration_plan(steps).marked_step_mm) == (2.0, 0.07)
+    stepped = calibration_plan(steps)
+    assert (stepped.plain_step_mm, stepped.marked_step_mm) == (2.0, 0.07)
     negative = tmp_path / "negative.yaml"
     negative.write_text("/**:\n  ros__parameters:\n    sweep: {marked_step_mm: -0.1}\n")
     with pytest.raises(ValueError, match=r"negative.yaml: marked_step_mm must be a positive finite number"):
