@@ -263,3 +263,31 @@ def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px, 
     assert np.abs(pixel - np.round(pixel)).max() < 0.01
     column, row = np.round(pixel).astype(int)
     np.testing.assert_allclose(plate.intensity[row, column], intensity, atol=1e-3)
+
+
+def test_missing_pixels_take_the_mean_of_the_smallest_box_holding_valid_ones():
+    # Reference: for each missing pixel, the first box size (3, 5, 9, ...) around it with a valid
+    # pixel, borders reflected (cv2.BORDER_REFLECT: ...cba|abc...), gives the mean of those pixels.
+    from gls_calibration.fiducials import FILL_BOX_SIZES, _fill_missing
+    rng = np.random.default_rng(7)
+    image = rng.uniform(10.0, 100.0, (23, 31))
+    valid = rng.random(image.shape) > 0.3
+    valid[2:14, 3:16] = False                  # a hole reaching the border needs the larger boxes
+    valid[0:3, 0:3] = False
+    filled = _fill_missing(image, valid)
+    reach = FILL_BOX_SIZES[-1] // 2
+    rows = np.pad(np.arange(image.shape[0]), reach, mode="symmetric")
+    cols = np.pad(np.arange(image.shape[1]), reach, mode="symmetric")
+    for row, col in zip(*np.nonzero(~valid)):
+        for size in FILL_BOX_SIZES:
+            half = size // 2
+            r = rows[row + reach - half: row + reach + half + 1]
+            c = cols[col + reach - half: col + reach + half + 1]
+            box_valid, box_values = valid[np.ix_(r, c)], image[np.ix_(r, c)]
+            if box_valid.any():
+                assert filled[row, col] == pytest.approx(box_values[box_valid].mean(), rel=1e-6)
+                break
+        else:
+            assert filled[row, col] == pytest.approx(np.median(image[valid]), rel=1e-6)
+    np.testing.assert_allclose(filled[valid], image[valid], rtol=1e-6)
+    assert np.count_nonzero(~valid) > 150
