@@ -47,6 +47,7 @@ from scipy import optimize, special, stats
 from scipy.spatial import cKDTree
 
 from gls_calibration.plate_pose import PlatePose
+from gls_calibration.robust import NORMAL_MAD_SCALE, robust_sigma
 from gls_calibration.validation import as_finite_array
 
 RAY_COUNT = 256
@@ -472,7 +473,7 @@ def _detect(image: np.ndarray, pitch: tuple[float, float], radii: np.ndarray, ma
     # Bare steel sets the spread of the correlation; marks cover a small share of the plate.
     sample = score[::2, ::2]
     median = float(np.median(sample))
-    spread = 1.4826 * float(np.median(np.abs(sample - median)))
+    spread = robust_sigma(sample - median)
     threshold = max(MIN_DETECTION_SCORE, median + DETECTION_SIGMAS * spread,
                     -median + DETECTION_SIGMAS * spread)
     distance_px = radii[-1] / max(binned_pitch)
@@ -587,7 +588,7 @@ def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, weight: np.ndarray):
         if trimming == 0:
             # Rays hit by speckle, a scratch or a neighbour's mark: beyond 3 robust sigmas.
             mad = _row_nanquantile(np.where(used, np.abs(residual), np.nan), 0.5)
-            limit = np.maximum(3.0 * 1.4826 * np.nan_to_num(mad, nan=0.0), 1e-6)
+            limit = np.maximum(3.0 * NORMAL_MAD_SCALE * np.nan_to_num(mad, nan=0.0), 1e-6)
             used = used & (np.abs(residual) <= limit[:, None])
     fit_ok = well_posed & (used.sum(axis=1) >= 16)
     return solution[:, 1:3], solution[:, 0], edge_radius - residual, residual, used, fit_ok
@@ -843,7 +844,7 @@ def _merged(mean_width: np.ndarray, harmonic: np.ndarray, covariance: np.ndarray
     if np.count_nonzero(usable) < MERGED_MIN_REFERENCE:
         return merged
     centre = np.median(mean_width[usable])
-    spread = 1.4826 * np.median(np.abs(mean_width[usable] - centre))
+    spread = robust_sigma(mean_width[usable] - centre)
     common = np.median(harmonic[usable], axis=0)
     check = np.isfinite(mean_width) & (groups >= 4) & (spread > 0)
     if not check.any():

@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from gls_calibration.robust import robust_sigma
 from gls_calibration.validation import as_positive_number
 
 MAX_CLUSTER_CENTRES = 2000
@@ -55,7 +56,7 @@ def existing_marks(intensity, sigmas: float = 6.0, *, points=None, cluster_sigma
     if not finite.any():
         raise ValueError("the sweep holds no finite intensity")
     median = float(np.median(values[finite]))
-    spread = 1.4826 * float(np.median(np.abs(values[finite] - median)))
+    spread = robust_sigma(values[finite] - median)
     with np.errstate(invalid="ignore"):
         distance = np.abs(values - median)
     if spread == 0.0:  # a quantized, perfectly uniform plate: any other value is an outlier

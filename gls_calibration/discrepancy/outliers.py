@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gls_calibration.discrepancy.residual_statistics import _smooth_basis, _smooth_degree
+from gls_calibration.robust import robust_sigma
 
 #: Robust sigmas a gross outlier departs by (a 2-D Gaussian exceeds 5 sigma with p = 4e-6).
 THRESHOLD = 5.0
@@ -23,7 +24,7 @@ _PASSES = 4
 
 def _robust_sigma(departures: np.ndarray) -> float:
     """Per-axis robust sigma of (N, 2) departures (1.4826 x MAD, both axes pooled)."""
-    return 1.4826 * float(np.median(np.abs(departures - np.median(departures, axis=0))))
+    return robust_sigma(departures - np.median(departures, axis=0))
 
 
 def find_outliers(points_xy: np.ndarray, residual_xy: np.ndarray, *, threshold: float = THRESHOLD,

@@ -1,0 +1,15 @@
+"""Robust spread: the standard deviation a normal sample would have, read from its median absolute
+departure, so that the outliers being looked for do not set it."""
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+NORMAL_MAD_SCALE = float(1.0 / stats.norm.ppf(0.75))
+"""Standard deviations per median absolute departure of a normal sample (1.4826)."""
+
+
+def robust_sigma(departures) -> float:
+    """``NORMAL_MAD_SCALE`` x the median of ``|departures|`` (any shape, departures from a centre
+    already taken off; finite values only)."""
+    return NORMAL_MAD_SCALE * float(np.median(np.abs(departures)))
