@@ -152,6 +152,27 @@ def test_the_answer_is_the_same_whatever_the_number_of_workers(first_model, seco
             np.testing.assert_array_equal(getattr(shared, name), getattr(serial, name), err_msg=name)
 
 
+def test_sharing_a_request_runs_blas_on_one_thread(first_model, monkeypatch):
+    # Each worker's matrix products under a threaded BLAS would start BLAS threads of their own on the
+    # CPUs the workers already use (a process started without OPENBLAS_NUM_THREADS=1).
+    from threadpoolctl import threadpool_info, threadpool_limits
+    import gls_calibration.correction as correction_module
+
+    def blas_threads() -> list[int]:
+        return [info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"]
+
+    monkeypatch.setattr(correction_module, "_shared_pool", [])      # the pool starts in this test
+    with threadpool_limits(limits=2, user_api="blas"):
+        if set(blas_threads()) != {2}:
+            pytest.skip(f"BLAS here cannot run on two threads: {blas_threads()}")
+        correction = Correction(GEOMETRY, [first_model], REGION)
+        x = np.linspace(-100.0, 100.0, 20_000)
+        correction.correct(x, x[::-1], workers=1)
+        assert set(blas_threads()) == {2}               # nothing shared, nothing changed
+        correction.correct(x, x[::-1], workers=2)
+        assert set(blas_threads()) == {1}
+
+
 @pytest.mark.parametrize("workers", [0, -1, 1.5, True])
 def test_correct_rejects_a_bad_number_of_workers(workers):
     with pytest.raises(ValueError, match=f"workers must be an integer >= 1, got {workers!r}"):
