@@ -177,36 +177,43 @@ class _PlateImage:
 
 
 def _fill_missing(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Fill invalid pixels with the mean of valid neighbours, growing the neighbourhood as needed."""
+    """Fill invalid pixels with the mean of the valid ones in the smallest box of ``FILL_BOX_SIZES``
+    around them holding any (borders reflected as ``cv2.BORDER_REFLECT``); beyond the largest, the
+    median of the valid pixels."""
     if valid.all():
         return image
     filled = image.astype(np.float32)
-    missing_rows, missing_cols = np.nonzero(~valid)
-    # Normalised convolution (box-sum of values over box-sum of weights, borders reflected), read at
-    # the missing pixels only from summed-area tables: one pass over the image for every box size.
+    values = np.where(valid, filled, np.float32(0.0))
     reach = FILL_BOX_SIZES[-1] // 2
-    padded = cv2.copyMakeBorder(np.where(valid, filled, np.float32(0.0)), reach, reach, reach, reach,
-                                cv2.BORDER_REFLECT)
-    padded_valid = cv2.copyMakeBorder(valid.astype(np.uint8), reach, reach, reach, reach, cv2.BORDER_REFLECT)
-    value_table = cv2.integral(padded, sdepth=cv2.CV_64F)
-    count_table = cv2.integral(padded_valid, sdepth=cv2.CV_32S)
-    pending = np.ones(len(missing_rows), bool)
+    row_of = np.pad(np.arange(valid.shape[0]), reach, mode="symmetric")     # reflected row per padded row
+    col_of = np.pad(np.arange(valid.shape[1]), reach, mode="symmetric")
+    rows, cols = np.nonzero(~valid)
+    tables = None
     for size in FILL_BOX_SIZES:
         half = size // 2
-        low_r, high_r = missing_rows[pending] + reach - half, missing_rows[pending] + reach + half + 1
-        low_c, high_c = missing_cols[pending] + reach - half, missing_cols[pending] + reach + half + 1
-
-        def box(table: np.ndarray) -> np.ndarray:
-            return table[high_r, high_c] - table[low_r, high_c] - table[high_r, low_c] + table[low_r, low_c]
-
-        counts = box(count_table)
+        if len(rows) * size * size <= valid.size:
+            # Few pixels for this size: read their boxes (cheaper than any pass over the image).
+            offsets = np.arange(-half, half + 1)
+            box_rows = row_of[rows[:, None] + reach + offsets][:, :, None]
+            box_cols = col_of[cols[:, None] + reach + offsets][:, None, :]
+            counts = np.count_nonzero(valid[box_rows, box_cols], axis=(1, 2))
+            sums = values[box_rows, box_cols].sum(axis=(1, 2), dtype=np.float64)
+        else:
+            # Many: box sums from summed-area tables of the reflected image, built once.
+            if tables is None:
+                tables = [cv2.integral(cv2.copyMakeBorder(table, reach, reach, reach, reach, cv2.BORDER_REFLECT),
+                                       sdepth=depth)
+                          for table, depth in ((values, cv2.CV_64F), (valid.astype(np.uint8), cv2.CV_32S))]
+            low_r, high_r = rows + reach - half, rows + reach + half + 1
+            low_c, high_c = cols + reach - half, cols + reach + half + 1
+            sums, counts = (table[high_r, high_c] - table[low_r, high_c] - table[high_r, low_c]
+                            + table[low_r, low_c] for table in tables)
         ready = counts > 0
-        index = np.nonzero(pending)[0][ready]
-        filled[missing_rows[index], missing_cols[index]] = box(value_table)[ready] / counts[ready]
-        pending[index] = False
-        if not pending.any():
+        filled[rows[ready], cols[ready]] = sums[ready] / counts[ready]
+        rows, cols = rows[~ready], cols[~ready]
+        if len(rows) == 0:
             return filled
-    filled[missing_rows[pending], missing_cols[pending]] = np.median(image[valid])
+    filled[rows, cols] = np.median(image[valid])
     return filled
 
 

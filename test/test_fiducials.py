@@ -265,13 +265,15 @@ def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px, 
     np.testing.assert_allclose(plate.intensity[row, column], intensity, atol=1e-3)
 
 
-def test_missing_pixels_take_the_mean_of_the_smallest_box_holding_valid_ones():
+@pytest.mark.parametrize("shape, missing_share", [((23, 31), 0.3), ((90, 120), 0.002)])
+def test_missing_pixels_take_the_mean_of_the_smallest_box_holding_valid_ones(shape, missing_share):
     # Reference: for each missing pixel, the first box size (3, 5, 9, ...) around it with a valid
     # pixel, borders reflected (cv2.BORDER_REFLECT: ...cba|abc...), gives the mean of those pixels.
+    # Many missing pixels (the first case) are read from summed-area tables, few from their boxes.
     from gls_calibration.fiducials import FILL_BOX_SIZES, _fill_missing
     rng = np.random.default_rng(7)
-    image = rng.uniform(10.0, 100.0, (23, 31))
-    valid = rng.random(image.shape) > 0.3
+    image = rng.uniform(10.0, 100.0, shape)
+    valid = rng.random(image.shape) > missing_share
     valid[2:14, 3:16] = False                  # a hole reaching the border needs the larger boxes
     valid[0:3, 0:3] = False
     filled = _fill_missing(image, valid)
