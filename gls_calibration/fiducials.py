@@ -343,11 +343,11 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
         rest_column, rest_row = 1.0 - fraction_column, 1.0 - fraction_row
         size = width * height
         sums, weights, weight = np.zeros(size), np.zeros(size), np.empty(len(base))
-        for step, along_row, along_column in ((0, rest_column, rest_row), (1, fraction_column, rest_row),
-                                              (width, rest_column, fraction_row),
-                                              (width + 1, fraction_column, fraction_row)):
+        for step, column_weight, row_weight in ((0, rest_column, rest_row), (1, fraction_column, rest_row),
+                                                (width, rest_column, fraction_row),
+                                                (width + 1, fraction_column, fraction_row)):
             # Binned at the corner pixel, then moved by ``step``: no index array per neighbour.
-            np.multiply(along_row, along_column, out=weight)
+            np.multiply(column_weight, row_weight, out=weight)
             weights[step:] += np.bincount(base, weights=weight, minlength=size)[:size - step]
             weight *= values
             sums[step:] += np.bincount(base, weights=weight, minlength=size)[:size - step]
