@@ -185,35 +185,43 @@ def _fill_missing(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     filled = image.astype(np.float32)
     values = np.where(valid, filled, np.float32(0.0))
     reach = FILL_BOX_SIZES[-1] // 2
+    rows, cols = np.nonzero(~valid)
+    # The chessboard distance to the nearest valid pixel names the box each missing pixel needs
+    # (a copy reflected beyond the border is never nearer than the pixel it copies), so every
+    # missing pixel is read once, and those beyond the largest box not at all.
+    needed = cv2.distanceTransform((~valid).astype(np.uint8), cv2.DIST_C, 3)[rows, cols]
     row_of = np.pad(np.arange(valid.shape[0]), reach, mode="symmetric")     # reflected row per padded row
     col_of = np.pad(np.arange(valid.shape[1]), reach, mode="symmetric")
-    rows, cols = np.nonzero(~valid)
     tables = None
+    smaller = 0
     for size in FILL_BOX_SIZES:
         half = size // 2
-        if len(rows) * size * size <= valid.size:
+        members = (needed > smaller) & (needed <= half)
+        smaller = half
+        box_rows, box_cols = rows[members], cols[members]
+        if len(box_rows) == 0:
+            continue
+        if len(box_rows) * size * size <= valid.size:
             # Few pixels for this size: read their boxes (cheaper than any pass over the image).
             offsets = np.arange(-half, half + 1)
-            box_rows = row_of[rows[:, None] + reach + offsets][:, :, None]
-            box_cols = col_of[cols[:, None] + reach + offsets][:, None, :]
-            counts = np.count_nonzero(valid[box_rows, box_cols], axis=(1, 2))
-            sums = values[box_rows, box_cols].sum(axis=(1, 2), dtype=np.float64)
+            rows_in_box = row_of[box_rows[:, None] + reach + offsets][:, :, None]
+            cols_in_box = col_of[box_cols[:, None] + reach + offsets][:, None, :]
+            counts = np.count_nonzero(valid[rows_in_box, cols_in_box], axis=(1, 2))
+            sums = values[rows_in_box, cols_in_box].sum(axis=(1, 2), dtype=np.float64)
         else:
             # Many: box sums from summed-area tables of the reflected image, built once.
             if tables is None:
                 tables = [cv2.integral(cv2.copyMakeBorder(table, reach, reach, reach, reach, cv2.BORDER_REFLECT),
                                        sdepth=depth)
                           for table, depth in ((values, cv2.CV_64F), (valid.astype(np.uint8), cv2.CV_32S))]
-            low_r, high_r = rows + reach - half, rows + reach + half + 1
-            low_c, high_c = cols + reach - half, cols + reach + half + 1
+            low_r, high_r = box_rows + reach - half, box_rows + reach + half + 1
+            low_c, high_c = box_cols + reach - half, box_cols + reach + half + 1
             sums, counts = (table[high_r, high_c] - table[low_r, high_c] - table[high_r, low_c]
                             + table[low_r, low_c] for table in tables)
-        ready = counts > 0
-        filled[rows[ready], cols[ready]] = sums[ready] / counts[ready]
-        rows, cols = rows[~ready], cols[~ready]
-        if len(rows) == 0:
-            return filled
-    filled[rows, cols] = np.median(image[valid])
+        filled[box_rows, box_cols] = sums / counts
+    far = needed > reach
+    if far.any():
+        filled[rows[far], cols[far]] = np.median(image[valid])
     return filled
 
 
@@ -304,8 +312,15 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
         raise ValueError("cloud has no finite point with a finite intensity")
     step = max(1, len(xyz) // 50_000)           # the lattice needs a sample only
     sample = xyz[::step][keep[::step]]
-    to_pixel, shift, on_lattice = _scan_lattice(pose.to_plane(sample if len(sample) else xyz[keep]),
-                                                pixel_size_mm)
+    sample_uv = pose.to_plane(sample if len(sample) else xyz[keep])
+    # Raster axes along the edges of the cloud's minimum-area rectangle: a cloud turned in its plane
+    # (into a robot's frame, say) keeps a tight image, and a regular scan's lines come out along the
+    # raster, where _scan_lattice can follow them.
+    edge_deg = cv2.minAreaRect(sample_uv.astype(np.float32))[2]
+    turn_rad = np.deg2rad((edge_deg + 45.0) % 90.0 - 45.0)
+    turn = np.array([[np.cos(turn_rad), np.sin(turn_rad)], [-np.sin(turn_rad), np.cos(turn_rad)]])   # by -turn
+    to_pixel, shift, on_lattice = _scan_lattice(sample_uv @ turn.T, pixel_size_mm)
+    to_pixel = to_pixel @ turn
     # Pixel coordinates straight from the cloud, column = xyz @ in_plane[:, 0] + offset[0] (gemv): the
     # plane coordinates of the whole cloud are never needed.
     in_plane = pose.rotation[:, :2] @ to_pixel.T            # (3, 2)

@@ -168,11 +168,13 @@ def vision_conditions(per_side: int) -> dict:
     """Named scan conditions of issue 11: render keyword arguments plus how the cloud is handed over.
 
     Each value has ``scan`` (``render_plate_scan`` keywords on top of ``BASE_SCAN``), ``rotation_deg``
-    (in-plane rotation of the grid), ``organized`` and ``marks_darker`` (what a caller would pass:
-    None lets the measurement find out).
+    (in-plane rotation of the grid), ``organized``, ``cloud_turn_deg`` (the whole cloud turned about
+    the scanner's z axis, as a cloud handed over in a robot's frame) and ``marks_darker`` (what a
+    caller would pass: None lets the measurement find out).
     """
-    def condition(rotation_deg=0.0, organized=True, **scan):
-        return dict(scan=dict(BASE_SCAN, **scan), rotation_deg=rotation_deg, organized=organized)
+    def condition(rotation_deg=0.0, organized=True, cloud_turn_deg=0.0, **scan):
+        return dict(scan=dict(BASE_SCAN, **scan), rotation_deg=rotation_deg, organized=organized,
+                    cloud_turn_deg=cloud_turn_deg)
 
     return {
         "clean": condition(noise=0.0),
@@ -194,6 +196,8 @@ def vision_conditions(per_side: int) -> dict:
                                                   dropout_fraction=0.01),
         # Points anywhere in their cell: no grid left for the raster to follow (the plain raster).
         "unorganized_irregular": condition(organized=False, jitter_px=0.5),
+        # The scan's lines no longer along the cloud's axes.
+        "unorganized_turned_20deg": condition(organized=False, cloud_turn_deg=20.0),
     }
 
 
@@ -227,4 +231,8 @@ def render_condition(name: str, per_side: int, seed: int = 0, supersampling: int
         order = np.random.default_rng(seed + 100).permutation(intensity.size)
         xyz, intensity = xyz.reshape(-1, 3)[order], intensity.reshape(-1)[order]
     truth = plate_to_scanner(truth_uv, scan["tilt_rad"], scan["offset_mm"])
+    if condition["cloud_turn_deg"]:
+        turn = np.deg2rad(condition["cloud_turn_deg"])
+        about_z = np.array([[np.cos(turn), -np.sin(turn), 0.0], [np.sin(turn), np.cos(turn), 0.0], [0.0, 0.0, 1.0]])
+        xyz, truth = xyz @ about_z.T, truth @ about_z.T
     return xyz, intensity, truth, condition

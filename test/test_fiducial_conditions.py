@@ -19,7 +19,8 @@ PER_SIDE = 5
 # The conditions the issue names (the benchmark adds combinations beyond them).
 ISSUE_CONDITIONS = ("clean", "speckle_0.3", "speckle_0.3_corr2", "marks_85pct", "marks_bright", "scratches",
                     "pitch_0.07", "pitch_0.15", "pitch_0.07x0.15", "unorganized", "rotation_15deg",
-                    "rotation_-15deg", "tilt_3deg", "dropouts_1pct", "unorganized_irregular")
+                    "rotation_-15deg", "tilt_3deg", "dropouts_1pct", "unorganized_irregular",
+                    "unorganized_turned_20deg")
 # Missed target, kept visible: under correlated speckle the stated uncertainty is still a little too
 # small (19x19: RMS of error / sigma 1.06, worst accepted centre 3.6x its sigma; this 5x5 render of
 # 1.5 px speckle: 4.6x; see README, fiducial measurement). The 2 px render passes since the moderated

@@ -238,14 +238,15 @@ def test_moderated_uncertainties_are_raised_towards_the_plate_never_lowered():
 
 @pytest.mark.parametrize("offset_px, scale, shear, turn_rad, size_px", [
     (0.0, 1.0, 0.0, 0.0, 400), (0.5, 1.0, 0.0, 0.0, 400), (0.3, 1.0, 0.0, 0.0, 400),
-    (0.3, 1.0008, 0.0015, 0.0, 400), (0.2, 1.0, 0.00024, 0.00135, 2000)])
+    (0.3, 1.0008, 0.0015, 0.0, 400), (0.2, 1.0, 0.00024, 0.00135, 2000), (0.3, 1.0, 0.0, 0.35, 400),
+    (0.2, 1.0008, 0.0015, -0.61, 400)])
 def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px, scale, shear, turn_rad,
                                                                        size_px):
     # A flat scan near the raster's pitch, shifted by a fraction of a pixel, slightly stretched,
     # sheared (as a tilted plate shears it) or turned: each point must land on one pixel, not be
     # averaged over four (which blurs thin lines under speckle and shifts them by the local phase).
-    # The last case is a 200 mm plate (every 20th point kept), where a coarse lattice search could
-    # mistake the drift for another.
+    # The fifth case is a 200 mm plate (every 20th point kept), where a coarse lattice search could
+    # mistake the drift for another; the last two are clouds turned by 20° and -35° (a robot's frame).
     from gls_calibration.fiducials import _rasterised_image
     from gls_calibration.plate_pose import PlatePose
     pitch = 0.1
@@ -265,17 +266,21 @@ def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px, 
     np.testing.assert_allclose(plate.intensity[row, column], intensity, atol=1e-3)
 
 
-@pytest.mark.parametrize("shape, missing_share", [((23, 31), 0.3), ((90, 120), 0.002)])
-def test_missing_pixels_take_the_mean_of_the_smallest_box_holding_valid_ones(shape, missing_share):
+@pytest.mark.parametrize("shape, missing_share, far_hole", [
+    ((23, 31), 0.3, None), ((90, 120), 0.002, None), ((130, 170), 0.002, (slice(20, 110), slice(30, 160)))])
+def test_missing_pixels_take_the_mean_of_the_smallest_box_holding_valid_ones(shape, missing_share, far_hole):
     # Reference: for each missing pixel, the first box size (3, 5, 9, ...) around it with a valid
     # pixel, borders reflected (cv2.BORDER_REFLECT: ...cba|abc...), gives the mean of those pixels.
-    # Many missing pixels (the first case) are read from summed-area tables, few from their boxes.
+    # Many missing pixels (the first case) are read from summed-area tables, few from their boxes;
+    # the last case's hole holds pixels beyond the largest box (the median).
     from gls_calibration.fiducials import FILL_BOX_SIZES, _fill_missing
     rng = np.random.default_rng(7)
     image = rng.uniform(10.0, 100.0, shape)
     valid = rng.random(image.shape) > missing_share
     valid[2:14, 3:16] = False                  # a hole reaching the border needs the larger boxes
     valid[0:3, 0:3] = False
+    if far_hole is not None:
+        valid[far_hole] = False
     filled = _fill_missing(image, valid)
     reach = FILL_BOX_SIZES[-1] // 2
     rows = np.pad(np.arange(image.shape[0]), reach, mode="symmetric")
