@@ -316,7 +316,8 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
     # Raster axes along the edges of the cloud's minimum-area rectangle: a cloud turned in its plane
     # (into a robot's frame, say) keeps a tight image, and a regular scan's lines come out along the
     # raster, where _scan_lattice can follow them.
-    edge_deg = cv2.minAreaRect(sample_uv.astype(np.float32))[2]
+    with np.errstate(over="ignore", invalid="ignore"):     # absurd coordinates fail the size check below
+        edge_deg = cv2.minAreaRect(sample_uv.astype(np.float32))[2]
     turn_rad = np.deg2rad((edge_deg + 45.0) % 90.0 - 45.0)
     turn = np.array([[np.cos(turn_rad), np.sin(turn_rad)], [-np.sin(turn_rad), np.cos(turn_rad)]])   # by -turn
     to_pixel, shift, on_lattice = _scan_lattice(sample_uv @ turn.T, pixel_size_mm)
@@ -334,6 +335,11 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
     offset = offset + 1.0 - np.floor([column.min() + offset[0], row.min() + offset[1]])
     column += offset[0]
     row += offset[1]
+    # The image's size before any cast to integers (a cloud in metres or absurd coordinates would wrap).
+    width, height = float(column.max()) + 2.0, float(row.max()) + 2.0
+    if not (width * height <= 10_000 * 10_000):         # also NaN
+        raise ValueError(f"rasterised plate image would have {height:.3g}x{width:.3g} pixels; "
+                         f"check pixel_size_mm ({pixel_size_mm}) and the cloud's units (mm)")
     if on_lattice:
         # Each point is one pixel's sample, at its centre up to the scan's jitter: nearest-pixel binning
         # takes it as it is (two bincounts where splatting takes eight).
@@ -342,9 +348,6 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
         corner_column, corner_row = column.astype(np.int64), row.astype(np.int64)    # >= 1: the floor
         fraction_column, fraction_row = column - corner_column, row - corner_row
     width, height = int(corner_column.max()) + 2, int(corner_row.max()) + 2
-    if width * height > 10_000 * 10_000:
-        raise ValueError(f"rasterised plate image would have {height}x{width} pixels; "
-                         f"check pixel_size_mm ({pixel_size_mm})")
     base = corner_row
     base *= width
     base += corner_column                   # in place: every fresh array of a whole cloud costs

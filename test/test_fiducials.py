@@ -189,6 +189,10 @@ def small_scan():
     (lambda x, i: (x[..., :2], i), r"xyz must be \(H, W, 3\)"),
     (lambda x, i: (x.reshape(-1, 3), i), r"got \(10000, 3\) and \(100, 100\)"),
     (lambda x, i: (x, np.full_like(i, np.nan)), r"intensity image has no finite pixels"),
+    (lambda x, i: (x.reshape(-1, 3) * [1e40, 1e40, 1.0], i.ravel()),
+     r"rasterised plate image would have 9.9e\+41x9.9e\+41 pixels; check pixel_size_mm \(0.1\) and the cloud's units"),
+    (lambda x, i: (x.reshape(-1, 3) * [1e300, 1.0, 1.0], i.ravel()), r"rasterised plate image would have 102x9.9e\+301 pixels"),
+    (lambda x, i: (np.full((i.size, 3), np.nan), i.ravel()), r"cloud has no finite point with a finite intensity"),
 ])
 def test_bad_input(small_scan, change, message):
     xyz, intensity, pose = small_scan
