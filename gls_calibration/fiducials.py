@@ -113,6 +113,10 @@ LATTICE_TILE_PX = 125.0
 centres this far apart tell phase gradients apart up to 1 / 125 = 0.008 px per px, more than the
 search's range of +-0.003, so no gradient is taken for another."""
 
+LATTICE_SAMPLE_POINTS = 50_000
+"""Points of an unorganized cloud (a regular stride through it) that the lattice search and the
+raster's orientation are taken from: about 200 per tile are plenty for a phase."""
+
 FILL_BOX_SIZES = (3, 5, 9, 17, 33)
 """Box sizes (pixels) tried in turn to fill a missing pixel from its valid neighbours; beyond the last,
 the image's median."""
@@ -261,7 +265,7 @@ def _scan_lattice(uv: np.ndarray, pixel_size_mm: float) -> tuple[np.ndarray, np.
     ``LATTICE_TILE_PX``, then a least-squares refinement. A cloud without a lattice (phase concentration
     below 0.5) keeps the plain raster at ``pixel_size_mm``.
     """
-    step = max(1, len(uv) // 50_000)        # ~200 points per tile are plenty for a phase
+    step = max(1, len(uv) // LATTICE_SAMPLE_POINTS)
     sample = uv[::step] / pixel_size_mm                                          # pixel units
     low, span = sample.min(axis=0), np.maximum(np.ptp(sample, axis=0), 1e-9)
     tiles = int(np.clip(np.ceil(span.max() / LATTICE_TILE_PX), 4, 64))          # per side
@@ -310,7 +314,7 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
         keep &= np.isfinite(xyz[:, axis])
     if not keep.any():
         raise ValueError("cloud has no finite point with a finite intensity")
-    step = max(1, len(xyz) // 50_000)           # the lattice needs a sample only
+    step = max(1, len(xyz) // LATTICE_SAMPLE_POINTS)
     sample = xyz[::step][keep[::step]]
     sample_uv = pose.to_plane(sample if len(sample) else xyz[keep])
     # Raster axes along the edges of the cloud's minimum-area rectangle: a cloud turned in its plane
