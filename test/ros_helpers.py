@@ -27,6 +27,7 @@ from rclpy.context import Context
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.task import Future
 
 from gls_calibration.cli import sim_cell
 from gls_calibration.nodes.base import NodeThreads
@@ -42,29 +43,43 @@ def wait_for(condition: Callable[[], bool], timeout_s: float, *, what: str = "co
         time.sleep(interval_s)
 
 
-def call_service(node: Node, client: Client, request, timeout_s: float = 5.0):
+def call_service(node: Node, client: Client, request, timeout_s: float = 5.0, resend_after_s: float | None = None):
     """Call ``client`` asynchronously and return the response, or raise TimeoutError.
 
     The service must become available and answer within ``timeout_s`` each. If ``node`` is in a
     spinning executor (the ``executor`` fixture) the answer arrives through it; otherwise the node
-    is spun here until the answer arrives.
+    is spun here until the answer arrives. ``resend_after_s`` (idempotent services only): send the
+    request again when unanswered that long, then after twice as long, and so on, as the package's
+    clients do (a server in another process that has not yet discovered this client drops its answer).
     """
     name = node.resolve_service_name(client.srv_name)
     if not client.wait_for_service(timeout_sec=timeout_s):
         raise TimeoutError(f"service {name} is not available after {timeout_s} s")
-    future = client.call_async(request)
-    if node.executor is None:
-        rclpy.spin_until_future_complete(node, future, executor=SingleThreadedExecutor(context=node.context),
-                                         timeout_sec=timeout_s)
-    else:
-        try:
-            wait_for(future.done, timeout_s, what=f"answer from {name}")
-        except TimeoutError:
-            pass
-    if not future.done():
-        client.remove_pending_request(future)
-        raise TimeoutError(f"service {name} did not answer within {timeout_s} s")
-    return future.result()
+    deadline = time.monotonic() + timeout_s
+    answered, sent, wait_s = Future(), [], resend_after_s
+    try:
+        while not answered.done():
+            future = client.call_async(request)
+            future.add_done_callback(lambda done: answered.done() or answered.set_result(done))
+            sent.append(future)
+            remaining = deadline - time.monotonic()
+            attempt_s = max(remaining if wait_s is None else min(remaining, wait_s), 1e-3)
+            if node.executor is None:
+                rclpy.spin_until_future_complete(node, answered, executor=SingleThreadedExecutor(context=node.context),
+                                                 timeout_sec=attempt_s)
+            else:
+                try:
+                    wait_for(answered.done, attempt_s, what=f"answer from {name}")
+                except TimeoutError:
+                    pass
+            if not answered.done() and attempt_s >= remaining:
+                raise TimeoutError(f"service {name} did not answer within {timeout_s} s")
+            wait_s = None if wait_s is None else 2.0 * wait_s
+        return answered.result().result()
+    finally:
+        for future in sent:
+            if not future.done():
+                client.remove_pending_request(future)
 
 
 def wait_for_peer_service(node: Node, client: Client, process: subprocess.Popen, log_path: Path,

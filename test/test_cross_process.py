@@ -19,6 +19,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from visualization_msgs.msg import MarkerArray
 
 from gls_calibration import kinematics
+from gls_calibration.cli.client import RESEND_AFTER_S
 from gls_calibration.calibration_record import record_identity
 from gls_calibration.persistence import CalibrationStore
 from gls_calibration_msgs.msg import CalibrationProgress
@@ -60,7 +61,7 @@ def test_serving_cell_calibrates_on_request_from_another_process(ros_context, ad
                                                             context=ros_context)), cell, log_path)
 
         x, y = np.array([0.0, 40.0, -80.0]), np.array([0.0, -60.0, 30.0])
-        nominal = call_service(node, corrector, CorrectSetpoints.Request(x=x, y=y), CALL_TIMEOUT_S)
+        nominal = call_service(node, corrector, CorrectSetpoints.Request(x=x, y=y), CALL_TIMEOUT_S, RESEND_AFTER_S)
         assert nominal.success, nominal.message
         assert "nominal" in nominal.message
         expected = kinematics.inverse(kinematics.HeadGeometry(), x, y)
@@ -76,7 +77,7 @@ def test_serving_cell_calibrates_on_request_from_another_process(ros_context, ad
         assert CalibrationStore(out / "calibrations").active_path() == \
             (out / "calibrations" / "history" / response.calibration_file.rsplit("/", 1)[-1])
 
-        corrected = call_service(node, corrector, CorrectSetpoints.Request(x=x, y=y), CALL_TIMEOUT_S)
+        corrected = call_service(node, corrector, CorrectSetpoints.Request(x=x, y=y), CALL_TIMEOUT_S, RESEND_AFTER_S)
         assert corrected.success, corrected.message
         assert corrected.message == "corrected"
         assert list(corrected.inside_calibrated_field) == [True, True, True]
@@ -126,7 +127,7 @@ def test_correct_setpoints_serves_only_the_active_calibration_throughout_a_run(r
         def poll() -> None:
             request = CorrectSetpoints.Request(x=[0.0, 20.0], y=[0.0, -30.0])
             while not stop.is_set():
-                answer = call_service(node, corrector, request, CALL_TIMEOUT_S)
+                answer = call_service(node, corrector, request, CALL_TIMEOUT_S, RESEND_AFTER_S)
                 assert answer.success, answer.message
                 answers.append((time.monotonic(), answer.calibration_id))
                 time.sleep(0.05)
@@ -141,7 +142,7 @@ def test_correct_setpoints_serves_only_the_active_calibration_throughout_a_run(r
         assert response.success, f"{response.message}; log:\n{log_path.read_text()[-3000:]}"
         new_id = record_identity(store.load(Path(response.calibration_file)))[0]
         assert new_id != previous_id
-        final = call_service(node, corrector, CorrectSetpoints.Request(x=[0.0], y=[0.0]), CALL_TIMEOUT_S)
+        final = call_service(node, corrector, CorrectSetpoints.Request(x=[0.0], y=[0.0]), CALL_TIMEOUT_S, RESEND_AFTER_S)
         assert final.calibration_id == new_id
 
         # A late RViz gets the last calibration: plate pose and markers are transient-local (metres).
@@ -184,7 +185,7 @@ def test_correct_setpoints_serves_only_the_active_calibration_throughout_a_run(r
         assert tool.returncode == 130, text
         assert "action /gls/calibrate" in text and "canceled" in text and "Traceback" not in text, text
         assert store.active_path() == Path(response.calibration_file)
-        again = call_service(node, corrector, CorrectSetpoints.Request(x=[0.0], y=[0.0]), CALL_TIMEOUT_S)
+        again = call_service(node, corrector, CorrectSetpoints.Request(x=[0.0], y=[0.0]), CALL_TIMEOUT_S, RESEND_AFTER_S)
         assert again.calibration_id == new_id
     finally:
         exit_code = stop_process(cell, STOP_TIMEOUT_S)

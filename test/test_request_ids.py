@@ -3,15 +3,19 @@ work twice, and ``GlsNode.call`` resends, backs off, and takes the first answer 
 from __future__ import annotations
 
 import asyncio
+from contextlib import contextmanager
 import gc
 import time
 
 import pytest
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
 from rclpy.task import Future
 from std_srvs.srv import Trigger
 
-from gls_calibration.nodes.base import DeadlineExpired, GlsNode
+from gls_calibration.cli.client import call_and_wait
+from gls_calibration.nodes.base import DEFAULT_NAMESPACE, DeadlineExpired, GlsNode
 from gls_calibration.nodes.request_ids import AnsweredRequests, id_key, new_request_id
 from gls_calibration_msgs.srv import MarkPolylines, StartSweep
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
@@ -143,6 +147,36 @@ def test_call_without_resending_waits_for_its_deadline(ros_context, add_node):
     outcome, error = _run(caller, lambda: caller.call(caller.flaky, Trigger.Request(), 1.5))
     assert outcome == "error" and isinstance(error, DeadlineExpired)
     assert "did not answer within 1.5 s" in str(error)
+
+
+@contextmanager
+def tool_client(context):
+    """A client of ``flaky`` on a node of its own, spun only by the call, as in an operator tool."""
+    tool = Node("tool", namespace=DEFAULT_NAMESPACE, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(tool)
+    try:
+        yield executor, tool.create_client(Trigger, "flaky")
+    finally:
+        executor.shutdown()
+        tool.destroy_node()
+
+
+def test_a_tool_sends_again_after_a_lost_answer_and_takes_the_later_answer(ros_context, add_node):
+    server = add_node(DropsFirstAnswer(context=ros_context))
+    with tool_client(ros_context) as (executor, client):
+        began = time.monotonic()
+        answer = call_and_wait(executor, client, Trigger.Request(), 20.0, resend_after_s=0.5)
+    assert answer is not None and answer.message == "answer to request 2", answer
+    assert time.monotonic() - began < 10.0 and server.requests == 2
+
+
+def test_a_tool_without_resending_gives_up_at_its_deadline(ros_context, add_node):
+    server = add_node(DropsFirstAnswer(context=ros_context))
+    with tool_client(ros_context) as (executor, client):
+        began = time.monotonic()
+        assert call_and_wait(executor, client, Trigger.Request(), 1.5) is None
+    assert 1.4 <= time.monotonic() - began < 10.0 and server.requests == 1
 
 
 def test_the_simulated_scanner_starts_one_sweep_for_a_repeated_request(start_cell):

@@ -19,6 +19,7 @@ from sensor_msgs.msg import PointCloud2
 from rclpy.parameter import Parameter
 
 from gls_calibration import kinematics
+from gls_calibration.cli.client import RESEND_AFTER_S
 from gls_calibration.nodes.conversions import pointcloud2_to_array
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration_msgs.srv import CorrectSetpoints
@@ -107,7 +108,7 @@ def test_cloud_and_service_between_nodes_in_one_process(ros_context, add_node, t
     client = publisher_node.create_client(CorrectSetpoints, SERVICE_NAME)
     assert publisher_node.resolve_service_name(client.srv_name) == "/gls/correct_setpoints"
     request, x, y = request_for(seed)
-    assert_nominal_answer(call_service(publisher_node, client, request, TIMEOUT_S), x, y)
+    assert_nominal_answer(call_service(publisher_node, client, request, TIMEOUT_S, RESEND_AFTER_S), x, y)
 
 
 def test_cloud_and_service_across_processes(ros_context, add_node, tmp_path):
@@ -129,7 +130,7 @@ def test_cloud_and_service_across_processes(ros_context, add_node, tmp_path):
         client = node.create_client(CorrectSetpoints, SERVICE_NAME)
         wait_for_peer_service(node, client, correction, correction_log, PROCESS_START_TIMEOUT_S)
         request, x, y = request_for(seed)
-        assert_nominal_answer(call_service(node, client, request, TIMEOUT_S), x, y)
+        assert_nominal_answer(call_service(node, client, request, TIMEOUT_S, RESEND_AFTER_S), x, y)
 
         wait_for(lambda: inbox.count() > 0 or cloud_peer.poll() is not None, PROCESS_START_TIMEOUT_S,
                  what="the peer's latched PointCloud2")
@@ -201,7 +202,7 @@ def test_call_service_spins_a_node_outside_any_executor(ros_context, add_node, t
     try:
         client = client_node.create_client(CorrectSetpoints, SERVICE_NAME)
         request, x, y = request_for(1)
-        assert_nominal_answer(call_service(client_node, client, request, TIMEOUT_S), x, y)
+        assert_nominal_answer(call_service(client_node, client, request, TIMEOUT_S, RESEND_AFTER_S), x, y)
     finally:
         client_node.destroy_node()
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from contextlib import contextmanager
 import math
 import sys
+import time
 from typing import Any, Iterator, Optional, Sequence, TextIO
 
 import rclpy
@@ -12,6 +13,7 @@ from rclpy.context import Context
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 
 
@@ -42,17 +44,45 @@ def client_node(name: str, namespace: str, ros_arguments: Sequence[str] = ()
         context.try_shutdown()
 
 
-def call_and_wait(executor: Executor, client, request: Any, timeout_s: float) -> Optional[Any]:
-    """Call ``client`` asynchronously and spin ``executor`` until the answer or the timeout (None)."""
+RESEND_AFTER_S = 1.0
+"""An idempotent request unanswered this long is sent again, then after twice as long, and so on. A
+server that has not yet discovered this client's answer reader drops its answer (Fast DDS waits
+100 ms for the match, then logs "failed to send response (timeout)"): a tool's process is new to the
+graph at every call, and on a busy host that first answer can be lost."""
+
+
+def call_and_wait(executor: Executor, client, request: Any, timeout_s: float,
+                  resend_after_s: Optional[float] = None) -> Optional[Any]:
+    """Call ``client`` asynchronously and spin ``executor`` until the answer or the timeout (None).
+
+    ``resend_after_s`` (only for requests a server may receive twice): when no answer came within
+    that time, send the request again, then after twice that time, and so on; the first answer to any
+    copy counts."""
     deadline_s = min(timeout_s, 30.0)
     if not client.wait_for_service(timeout_sec=deadline_s):
         raise TimeoutError(f"service {client.srv_name} is not available (waited {deadline_s:g} s)")
-    future = client.call_async(request)
-    executor.spin_until_future_complete(future, timeout_sec=timeout_s)
-    if not future.done():
-        future.cancel()
-        return None
-    return future.result()
+    deadline = time.monotonic() + timeout_s
+    answered: Future = Future()
+    sent: list[Future] = []
+    wait_s = resend_after_s
+    try:
+        while True:
+            future = client.call_async(request)
+            future.add_done_callback(lambda done: answered.done() or answered.set_result(done))
+            sent.append(future)
+            remaining = deadline - time.monotonic()
+            attempt_s = remaining if wait_s is None else min(remaining, wait_s)
+            executor.spin_until_future_complete(answered, timeout_sec=max(attempt_s, 1e-3))
+            if answered.done():
+                return answered.result().result()
+            if attempt_s >= remaining:
+                return None
+            print(f"no answer from {client.srv_name} after {attempt_s:g} s: request sent again", file=sys.stderr)
+            wait_s *= 2.0
+    finally:
+        for future in sent:
+            if not future.done():
+                client.remove_pending_request(future)
 
 
 class ProgressBar:
