@@ -11,7 +11,7 @@ import sys
 
 from rclpy.action import ActionClient
 
-from gls_calibration.cli.client import ProgressBar, client_node, split_ros_arguments, summary_table
+from gls_calibration.cli.client import ProgressBar, client_node, send_goal, split_ros_arguments, summary_table
 from gls_calibration_msgs.action import Calibrate
 
 CANCEL_WAIT_S = 300.0   # the current step (a sweep, a marking job) ends before the run stops
@@ -45,11 +45,11 @@ def main(argv: list[str] | None = None) -> int:
         goal = Calibrate.Goal(iterations=args.iterations, validate=not args.no_validate, force=args.force)
         goal_handle = None
         try:
-            sent = client.send_goal_async(goal, feedback_callback=lambda message: bar.update(message.feedback))
-            executor.spin_until_future_complete(sent, timeout_sec=wait_s)
-            goal_handle = sent.result() if sent.done() else None
-            if goal_handle is None or not goal_handle.accepted:
-                print(f"action {name} refused the goal (a calibration is already running?)", file=sys.stderr)
+            goal_handle = send_goal(executor, node, client, Calibrate, "calibrate", goal, wait_s,
+                                    feedback_callback=lambda message: bar.update(message.feedback))
+            if goal_handle is None:
+                print(f"action {name} refused the goal or did not answer within {wait_s:g} s "
+                      "(a calibration already running is refused)", file=sys.stderr)
                 return 1
             result_future = goal_handle.get_result_async()
             executor.spin_until_future_complete(result_future, timeout_sec=args.timeout)

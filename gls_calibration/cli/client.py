@@ -6,15 +6,20 @@ from contextlib import contextmanager
 import math
 import sys
 import time
+import uuid
 from typing import Any, Iterator, Optional, Sequence, TextIO
 
+from action_msgs.msg import GoalStatusArray
 import rclpy
+from rclpy.action.client import ClientGoalHandle
 from rclpy.context import Context
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.qos import qos_profile_action_status_default
 from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
+from unique_identifier_msgs.msg import UUID
 
 
 def split_ros_arguments(argv: Sequence[str] | None) -> tuple[list[str], list[str]]:
@@ -83,6 +88,62 @@ def call_and_wait(executor: Executor, client, request: Any, timeout_s: float,
         for future in sent:
             if not future.done():
                 client.remove_pending_request(future)
+
+
+def send_goal(executor: Executor, node: Node, client, action_type: type, action_name: str, goal: Any,
+              wait_s: float, feedback_callback=None, resend_after_s: Optional[float] = RESEND_AFTER_S):
+    """Send ``goal`` through ``client``, an ActionClient of ``node`` for ``action_type`` named
+    ``action_name``, and return its accepted goal handle, or None when the server refused it or gave
+    no sign within ``wait_s``.
+
+    The goal's answer can be lost like a service's (see ``RESEND_AFTER_S``) while the goal runs. So
+    the goal carries an id of its own: unanswered after ``resend_after_s`` (then twice as long, ...),
+    it is sent again with the same id, which a server refuses rather than starting a second run; and
+    the action's status topic (``action_name``/_action/status), where the server lists the goals it
+    accepted, shows an accepted goal whose answer never came."""
+    goal_id = UUID(uuid=list(uuid.uuid4().bytes))
+    key = bytes(goal_id.uuid)
+    listed: set[bytes] = set()
+    status = node.create_subscription(
+        GoalStatusArray, f"{action_name}/_action/status",
+        lambda message: listed.update(bytes(entry.goal_info.goal_id.uuid) for entry in message.status_list),
+        qos_profile_action_status_default)
+
+    def accepted_handle() -> ClientGoalHandle:
+        """The handle of our goal, which the server lists although its answer was lost."""
+        return ClientGoalHandle(client, goal_id, action_type.Impl.SendGoalService.Response(accepted=True))
+    deadline = time.monotonic() + wait_s
+    answered: Future = Future()
+    wait = resend_after_s
+    try:
+        while True:
+            sent = client.send_goal_async(goal, feedback_callback=feedback_callback, goal_uuid=goal_id)
+            sent.add_done_callback(lambda done: answered.done() or answered.set_result(done))
+            remaining = deadline - time.monotonic()
+            attempt_s = remaining if wait is None else min(remaining, wait)
+            _spin_until(executor, lambda: answered.done() or key in listed, attempt_s)
+            if answered.done():
+                handle = answered.result().result()
+                if handle.accepted:
+                    return handle
+                # Refused: a copy whose first answer was lost is refused as a known id; the status says.
+                _spin_until(executor, lambda: key in listed, min(wait_s, 2.0))
+                return accepted_handle() if key in listed else None
+            if key in listed:
+                return accepted_handle()
+            if attempt_s >= remaining:
+                return None
+            print(f"no answer from action {action_name} after {attempt_s:g} s: goal sent again", file=sys.stderr)
+            wait *= 2.0
+    finally:
+        node.destroy_subscription(status)
+
+
+def _spin_until(executor: Executor, condition, timeout_s: float) -> None:
+    """Spin ``executor`` until ``condition()`` holds or ``timeout_s`` has passed."""
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=min(0.05, max(deadline - time.monotonic(), 0.0)))
 
 
 class ProgressBar:
