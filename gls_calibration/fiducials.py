@@ -23,10 +23,11 @@ What we know is used throughout: every fiducial is two concentric rings of known
    level, linear shading and the rings' blur.
 4. Quality per centre: the ring amplitude is measured on 24 angular sectors at the fitted circle;
    ``coverage`` is the share of sectors where the rings are seen, and rays of unseen sectors are
-   left out of the final fit. The standard uncertainty per axis comes from the fit: a
-   delete-one-sector jackknife of the edge points' ring fit (neighbouring rays are correlated, whole
-   sectors much less), its variances raised towards the plate's typical one where they came out low
-   by chance (``_moderated``), plus ``MODEL_SIGMA_MM``.
+   left out of the final fit. The standard uncertainty per axis comes from the fit: the larger of a
+   delete-one-sector jackknife of the edge points' ring fit (a fiducial's own local trouble) and a
+   spectral estimate (edge noise correlated along the ring, whose power in the first harmonic, the
+   centre, the residuals do not show; ``_spectral_covariance``), its variances raised towards the
+   plate's typical one where they came out low by chance (``_moderated``), plus ``MODEL_SIGMA_MM``.
 5. Status: candidates are rejected with a reason (``spurious``: coverage below ``SPURIOUS_COVERAGE``,
    no ring there; ``partial``: coverage below ``MIN_COVERAGE``;
    ``radius``: a ring's semi-axes (mean radius +- its second harmonic) off the nominal radius, which
@@ -83,6 +84,15 @@ MIN_VALID_RAY_FRACTION = 0.5
 MODEL_SIGMA_MM = 0.001
 """Uncertainty of the method itself, added in quadrature: its error on noise-free renders is a
 fraction of this (interpolation and the template's line shape)."""
+
+SPECTRUM_FIT_HARMONICS = (3, 12)
+"""Harmonics of the ring's residuals (the fit leaves 3 and up) whose straight line gives the edge
+noise's power at harmonics 0-2 (``_spectral_covariance``); 8 or 16 as the last changed the stated
+uncertainties under speckle by about 3 %."""
+
+SPECTRUM_SAMPLE_MIN_SHARE = 0.9
+"""Candidates with at least this share of their rays used give the plate's spectrum shape (gaps blur
+a periodogram)."""
 
 MAX_SIGMA_MM = 0.010
 """Candidates whose stated uncertainty exceeds this (per axis) are rejected as ``uncertain``."""
@@ -659,22 +669,76 @@ def _sector_jackknife(sector_normal: np.ndarray, sector_right: np.ndarray, prese
 def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarray,
                        sector_of_ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Covariance (M, 2, 2) of the fitted centre (plate axes, mm^2) from the radial residuals, and its
-    degrees of freedom (M,) (sectors used - 1): the sector jackknife of the linearised circle fit
-    (sectors of 0.7 mm of arc are much longer than the residuals' correlation along the ring).
+    degrees of freedom (M,): per candidate the larger (by trace) of two estimates, each blind to
+    what the other sees.
+
+    - The delete-one-sector jackknife of the linearised circle fit (dof: sectors used - 1) follows a
+      fiducial's own trouble, a scratch or a speckle grain on a few sectors.
+    - The spectral estimate (``_spectral_covariance``) follows noise correlated around the whole ring,
+      whose share in the first harmonic (the centre) no sector sees.
     """
     count, rays = residual.shape
     parameters = design.shape[-1]
     u = used.astype(float)
-    design = np.broadcast_to(design, (count, rays, parameters))
-    sector_normal = _sector_sums(np.einsum("mai,ma,maj->maij", design, u, design), sector_of_ray)
-    sector_score = _sector_sums(design * np.where(used, residual, 0.0)[..., None], sector_of_ray)
-    covariance, groups = _sector_jackknife(sector_normal, sector_score, _sector_sums(u, sector_of_ray) > 0,
-                                           total_right=np.zeros((count, parameters)))
-    return covariance[:, 1:3, 1:3], groups - 1
+    full_design = np.broadcast_to(design, (count, rays, parameters))
+    sector_normal = _sector_sums(np.einsum("mai,ma,maj->maij", full_design, u, full_design), sector_of_ray)
+    sector_score = _sector_sums(full_design * np.where(used, residual, 0.0)[..., None], sector_of_ray)
+    jackknife, groups = _sector_jackknife(sector_normal, sector_score, _sector_sums(u, sector_of_ray) > 0,
+                                          total_right=np.zeros((count, parameters)))
+    jackknife = jackknife[:, 1:3, 1:3]
+    spectral, spectral_dof = _spectral_covariance(design, residual, used)
+    larger = np.trace(jackknife, axis1=1, axis2=2) >= np.trace(spectral, axis1=1, axis2=2)
+    return (np.where(larger[:, None, None], jackknife, spectral),
+            np.where(larger, groups - 1.0, spectral_dof))
+
+
+def _spectral_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance (M, 2, 2) of the fitted centre from the edge noise's spectrum around the ring, and
+    its degrees of freedom (M,).
+
+    The edge errors of neighbouring rays are correlated (speckle grains span several rays), and their
+    power falls with the harmonic number; the centre is the first harmonic, which the fit takes out of
+    the residuals along with harmonics 0 and 2. So the spectrum's shape is pooled over the plate's
+    well-seen candidates (residual periodograms, each over its own residual variance), fitted by a
+    straight line over ``SPECTRUM_FIT_HARMONICS`` and extended by it to harmonics 0-2; each candidate
+    scales it by its own residual variance s^2. With the rays' covariance C the circulant of that
+    spectrum, the fit's covariance is the sandwich B^-1 (W X)^T C (W X) B^-1 (X the design, W the
+    used rays, B = X^T W X). Degrees of freedom: the used rays over the noise's integrated
+    correlation (the spectrum at harmonic 0 over its mean).
+    """
+    count, rays = residual.shape
+    weight = used.astype(float)
+    kept = np.where(used, residual, 0.0)
+    share = weight.mean(axis=1)
+    variance = (kept**2).sum(axis=1) / np.maximum(weight.sum(axis=1), 1.0)
+    periodogram = np.abs(np.fft.rfft(kept, axis=1)) ** 2 / rays                    # harmonics 0..A/2
+    sample = (share >= SPECTRUM_SAMPLE_MIN_SHARE) & (variance > 0)
+    if np.count_nonzero(sample) < MODERATION_MIN_REFERENCE:
+        sample = variance > 0
+    if not sample.any():
+        return np.zeros((count, 2, 2)), np.full(count, 2.0)
+    shape = (periodogram[sample] / (variance[sample] * share[sample])[:, None]).mean(axis=0)
+    first, last = SPECTRUM_FIT_HARMONICS
+    band = np.arange(first, last + 1)
+    line = np.polyfit(band, shape[band], 1)
+    shape[:first] = np.maximum(np.polyval(line, np.arange(first)), 0.0)
+    weighted = weight[..., None] * design                                               # (M, A, P)
+    correlated = np.fft.irfft(np.fft.rfft(weighted, axis=1) * shape[None, :, None], n=rays, axis=1)
+    transposed = np.swapaxes(weighted, 1, 2)                                            # (M, P, A)
+    meat = variance[:, None, None] * (transposed @ correlated)
+    normal = transposed @ design
+    normal[~(np.linalg.cond(normal) < 1e10)] = np.eye(design.shape[-1])
+    inverse = np.linalg.inv(normal)
+    covariance = inverse @ meat @ inverse
+    # The mean over all A harmonics of the symmetric spectrum, from its half.
+    full_mean = (2.0 * shape.sum() - shape[0] - shape[-1]) / rays
+    correlation_time = max(shape[0] / max(full_mean, 1e-12), 1.0)
+    return covariance[:, 1:3, 1:3], np.maximum(weight.sum(axis=1) / correlation_time, 2.0)
 
 
 def _moderated(covariance: np.ndarray, dof: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """Jackknife covariances (M, 2, 2) with each axis' variance raised to its empirical-Bayes
+    """Centre covariances (M, 2, 2) with each axis' variance raised to its empirical-Bayes
     posterior, never lowered.
 
     A variance estimated from ~24 sectors (``dof`` (M,) degrees of freedom) comes out well below the

@@ -21,10 +21,10 @@ ISSUE_CONDITIONS = ("clean", "speckle_0.3", "speckle_0.3_corr2", "marks_85pct", 
                     "pitch_0.07", "pitch_0.15", "pitch_0.07x0.15", "unorganized", "rotation_15deg",
                     "rotation_-15deg", "tilt_3deg", "dropouts_1pct", "unorganized_irregular",
                     "unorganized_turned_20deg")
-# Missed target, kept visible: under correlated speckle the stated uncertainty is still a little too
-# small (19x19: RMS of error / sigma 1.06, worst accepted centre 3.6x its sigma; this 5x5 render of
-# 1.5 px speckle: 4.6x; see README, fiducial measurement). The 2 px render passes since the moderated
-# uncertainties (worst 2.7x).
+# Missed target, kept visible: one centre of this 5x5 render of 1.5 px speckle is 20 um off, 4.2x its
+# sigma (4.6x before the spectral estimate). Over 30 seeds of this render the RMS of error / sigma is
+# 0.99-1.02 and 0.5 % of the axes lie beyond 3 sigma; at 50 axes per plate an honest sigma puts one
+# beyond 3 sigma on 13 % of plates (README, fiducial measurement).
 SIGMA_MISSED = {"speckle_0.3"}
 
 
@@ -52,7 +52,7 @@ def test_every_fiducial_found_within_target(name):
 
 
 @pytest.mark.parametrize("name", [pytest.param(name, marks=pytest.mark.xfail(
-    strict=True, reason="target missed under 0.3 speckle (1.5 px): worst centre 4.6x its sigma"))
+    strict=True, reason="target missed under 0.3 speckle (1.5 px): worst centre 4.2x its sigma"))
     if name in SIGMA_MISSED else name for name in ISSUE_CONDITIONS])
 def test_accepted_centres_within_three_sigma(name):
     measurement, truth = measured(name)
@@ -98,9 +98,8 @@ def test_half_erased_rings_are_rejected_or_accurate(arc_rad, speckle):
     measurement = measure_fiducials(xyz, intensity, estimate_plate_pose(xyz), expected_count=PER_SIDE**2)
     error, index = per_axis_errors(measurement, truth)
     assert np.abs(error).max() <= 0.030
-    if speckle == 0.0:
-        # Under correlated speckle the stated uncertainty is too small (see SIGMA_MISSED).
-        assert np.all(np.abs(error) <= 3 * measurement.sigma_xy_mm)
+    # With 0.1 speckle this failed (3.3-3.4x) before the spectral uncertainty (2.97x now).
+    assert np.all(np.abs(error) <= 3 * measurement.sigma_xy_mm)
     damaged = np.isin(index, list(erased))
     if arc_rad == np.pi:
         # Half a ring: listed as partial, never accepted.

@@ -240,6 +240,31 @@ def test_moderated_uncertainties_are_raised_towards_the_plate_never_lowered():
                                   covariance[:few])
 
 
+@pytest.mark.parametrize("correlation_rays", [0.0, 2.5, 6.0])
+def test_centre_uncertainty_holds_for_edge_noise_correlated_along_the_ring(correlation_rays):
+    """Stationary Gaussian edge noise around the ring (correlation exp(-k^2 / 2 l^2) between rays k
+    apart), fitted with the refinement's design: the stated variance of the centre is never well
+    below the true one (Monte Carlo over 2000 rings). At l = 6 rays the sector jackknife alone gives
+    half of it; the spectral estimate follows the noise's power in the first harmonic."""
+    from gls_calibration.fiducials import (RAY_COUNT, SECTORS, _centre_covariance, _harmonic_design,
+                                           _spectral_covariance)
+    rng = np.random.default_rng(3)
+    count = 2000
+    design = _harmonic_design(np.linspace(0.0, 2 * np.pi, RAY_COUNT, endpoint=False))
+    lag = np.minimum(np.arange(RAY_COUNT), RAY_COUNT - np.arange(RAY_COUNT))
+    spectrum = np.fft.fft(np.exp(-lag**2 / (2 * max(correlation_rays, 1e-3) ** 2))).real.clip(0.0)
+    noise = np.fft.ifft(np.fft.fft(rng.standard_normal((count, RAY_COUNT)), axis=1) * np.sqrt(spectrum), axis=1).real
+    solution = np.linalg.lstsq(design, noise.T, rcond=None)[0].T
+    residual = noise - solution @ design.T
+    true_variance = np.mean(solution[:, 1:3] ** 2)
+    used = np.ones(noise.shape, bool)
+    sector_of_ray = (np.arange(RAY_COUNT) * SECTORS) // RAY_COUNT
+    stated, _ = _centre_covariance(design, residual, used, sector_of_ray)
+    spectral, _ = _spectral_covariance(design, residual, used)
+    assert 0.85 <= np.mean(np.diagonal(spectral, axis1=1, axis2=2)) / true_variance <= 1.2
+    assert 0.85 <= np.mean(np.diagonal(stated, axis1=1, axis2=2)) / true_variance <= 1.4
+
+
 @pytest.mark.parametrize("offset_px, scale, shear, turn_rad, size_px", [
     (0.0, 1.0, 0.0, 0.0, 400), (0.5, 1.0, 0.0, 0.0, 400), (0.3, 1.0, 0.0, 0.0, 400),
     (0.3, 1.0008, 0.0015, 0.0, 400), (0.2, 1.0, 0.00024, 0.00135, 2000), (0.3, 1.0, 0.0, 0.35, 400),
