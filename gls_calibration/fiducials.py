@@ -181,13 +181,15 @@ class FiducialMeasurement:
 
 @dataclass(frozen=True)
 class _PlateImage:
-    """Intensity image with a per-pixel plane position: uv = offset + pixel_to_plane @ (col, row)."""
+    """Intensity image with a per-pixel plane position: the organized cloud's point (through the plate
+    pose) or uv = raster_origin + raster_matrix @ (col, row)."""
 
     intensity: np.ndarray          # (H, W) float32, marks dark, no NaN
-    plane_uv: np.ndarray | None    # (H, W, 2) plane coordinates per pixel (organized clouds), NaN allowed
+    cloud_xyz: np.ndarray | None   # (H, W, 3) the organized cloud's point per pixel, NaN allowed
     raster_origin: np.ndarray | None  # (2,) plane coordinates of pixel (0, 0) (rasterised clouds)
     pitch: tuple[float, float]     # (row, column) pixel pitch in mm
     raster_matrix: np.ndarray | None = None   # (2, 2) uv = raster_origin + raster_matrix @ (col, row)
+    pose: PlatePose | None = None  # plane coordinates of ``cloud_xyz``
 
 
 def _fill_missing(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -239,12 +241,12 @@ def _fill_missing(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return filled
 
 
-def _median_spacing(uv: np.ndarray, axis: int) -> float:
-    """Median distance between neighbouring pixels' plane positions along an image axis (mm)."""
-    # Every 8th line across the axis is plenty for a median and eight times cheaper.
-    lines = uv[:, ::8] if axis == 0 else uv[::8]
-    steps = np.diff(lines, axis=axis)
-    lengths = np.hypot(steps[..., 0], steps[..., 1]).ravel()
+def _median_spacing(lines_uv: np.ndarray, axis: int) -> float:
+    """Median distance (mm) between neighbouring pixels' plane positions ``lines_uv`` (..., 2) along
+    image axis ``axis``."""
+    with np.errstate(invalid="ignore", over="ignore"):     # missing or absurd points drop out below
+        steps = np.diff(lines_uv, axis=axis)
+        lengths = np.hypot(steps[..., 0], steps[..., 1]).ravel()
     lengths = lengths[np.isfinite(lengths)]
     if lengths.size == 0:
         raise ValueError("organized cloud has no two neighbouring finite points")
@@ -253,13 +255,15 @@ def _median_spacing(uv: np.ndarray, axis: int) -> float:
 
 def _organized_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose) -> _PlateImage:
     """Image of an organized cloud: one pixel per point."""
-    height, width = intensity.shape
-    uv = pose.to_plane(xyz.reshape(-1, 3)).reshape(height, width, 2)
-    valid = np.isfinite(intensity) & np.isfinite(uv).all(axis=2)
+    valid = np.isfinite(intensity)
+    for axis in range(3):           # column by column: cheaper than isfinite(xyz).all(axis=2)
+        valid &= np.isfinite(xyz[..., axis])
     if np.count_nonzero(valid) == 0:
         raise ValueError("intensity image has no finite pixels")
-    pitch = (_median_spacing(uv, 0), _median_spacing(uv, 1))
-    return _PlateImage(_fill_missing(intensity, valid), uv, None, pitch)
+    # Every 8th line across each axis is plenty for a median: the plane coordinates of the whole
+    # cloud are never needed (the local affines take those of their windows).
+    pitch = (_median_spacing(pose.to_plane(xyz[:, ::8]), 0), _median_spacing(pose.to_plane(xyz[::8]), 1))
+    return _PlateImage(_fill_missing(intensity, valid), xyz, None, pitch, pose=pose)
 
 
 def _scan_lattice(uv: np.ndarray, pixel_size_mm: float) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -394,7 +398,7 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
 def _local_affines(plate: _PlateImage, centres_px: np.ndarray, half_px: int):
     """Per candidate: plane offset (M, 2) and 2x2 Jacobian (M, 2, 2) with uv = offset + J @ (col, row)."""
     count = len(centres_px)
-    if plate.plane_uv is None:
+    if plate.cloud_xyz is None:
         jacobian = np.broadcast_to(plate.raster_matrix, (count, 2, 2)).copy()
         return np.broadcast_to(plate.raster_origin, (count, 2)).copy(), jacobian, np.ones(count, bool)
     # Least-squares affine fit of the cloud's plane coordinates over a window around each candidate:
@@ -407,7 +411,7 @@ def _local_affines(plate: _PlateImage, centres_px: np.ndarray, half_px: int):
     rows = base[:, 1, None, None] + offsets_1d[None, :, None]
     cols, rows = np.broadcast_arrays(cols, rows)
     inside = (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
-    uv = plate.plane_uv[np.clip(rows, 0, height - 1), np.clip(cols, 0, width - 1)]
+    uv = plate.pose.to_plane(plate.cloud_xyz[np.clip(rows, 0, height - 1), np.clip(cols, 0, width - 1)])
     weight = (inside & np.isfinite(uv).all(axis=-1)).astype(float)
     uv = np.where(weight[..., None] > 0, uv, 0.0)
     # Design matrix relative to the candidate pixel for conditioning.
@@ -418,11 +422,22 @@ def _local_affines(plate: _PlateImage, centres_px: np.ndarray, half_px: int):
     weighted = design * weight[..., None]
     normal_matrix = np.matmul(weighted.transpose(0, 2, 1), design)
     right = np.matmul(weighted.transpose(0, 2, 1), uv)
-    usable = weight.sum(axis=1) >= 10
+    # Enough pixels, and not all on one line (a window missing all but a row of its points).
+    usable = (weight.sum(axis=1) >= 10) & (np.linalg.cond(normal_matrix) < 1e10)
     normal_matrix[~usable] = np.eye(3)
     solution = np.linalg.solve(normal_matrix, right)            # (M, 3, 2)
-    jacobian = np.transpose(solution[:, 1:, :], (0, 2, 1))      # (M, 2 [u,v], 2 [col,row])
+    jacobian = np.ascontiguousarray(np.transpose(solution[:, 1:, :], (0, 2, 1)))   # (M, 2 [u,v], 2 [col,row])
     offset = solution[:, 0, :] - np.einsum("mij,mj->mi", jacobian, base.astype(float))
+    usable &= np.isfinite(offset).all(axis=1) & np.isfinite(jacobian).all(axis=(1, 2))
+    usable[usable] &= np.linalg.cond(jacobian[usable]) < 1e6
+    if not usable.all():
+        # A window without a usable fit (points missing or absurd) borrows its nearest usable
+        # neighbour's map, so that its candidate is still placed (and turned down as ``fit``).
+        if usable.any():
+            nearest = np.flatnonzero(usable)[cKDTree(centres_px[usable]).query(centres_px[~usable])[1]]
+            offset[~usable], jacobian[~usable] = offset[nearest], jacobian[nearest]
+        else:
+            offset[~usable], jacobian[~usable] = 0.0, np.diag(plate.pitch[::-1])
     return offset, jacobian, usable
 
 

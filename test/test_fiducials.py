@@ -201,6 +201,37 @@ def test_bad_input(small_scan, change, message):
         measure_fiducials(xyz, intensity, pose)
 
 
+def _missing_but_one_row(xyz, centre):
+    """Every point within 3.5 mm of ``centre`` missing except one row of them."""
+    near = (np.abs(xyz[..., 0] - centre[0]) < 3.5) & (np.abs(xyz[..., 1] - centre[1]) < 3.5)
+    rows = np.flatnonzero(near.any(axis=1))
+    near[rows[len(rows) // 2]] = False
+    xyz[near] = np.nan
+
+
+def _absurd_height(xyz, centre):
+    """A band of 10 x 60 points across the fiducial's window at a height of 1e300 mm."""
+    row = int(np.argmin(np.abs(xyz[:, 0, 1] - centre[1] - 2.0)))
+    column = int(np.argmin(np.abs(xyz[0, :, 0] - centre[0])))
+    xyz[row:row + 10, column - 30:column + 30, 2] = 1e300
+
+
+@pytest.mark.parametrize("spoil", [_missing_but_one_row, _absurd_height])
+def test_a_window_without_a_usable_pixel_map_turns_its_fiducial_down(spoil):
+    """Points around one fiducial of a tilted organized cloud that give no pixel-to-plane map there:
+    its candidates are turned down as ``fit`` and every other fiducial is measured; nothing reported
+    is NaN. Until 2026-11-23 the first raised numpy's "Singular matrix" from the map's fit."""
+    from rendering import render_condition
+    xyz, intensity, truth, _ = render_condition("clean", 5, seed=3)
+    pose = estimate_plate_pose(xyz)
+    spoil(xyz, truth[0])
+    measurement = measure_fiducials(xyz, intensity, pose, expected_count=len(truth), marks_darker=None)
+    assert len(measurement.centres) == len(truth) - 1 and "fit" in measurement.rejected_reasons
+    assert cKDTree(measurement.centres[:, :2]).query(truth[0, :2])[0] > 1.0
+    for values in (measurement.centres, measurement.sigma_xy_mm, measurement.rejected_centres):
+        assert np.isfinite(values).all()
+
+
 @pytest.mark.parametrize("kwargs, message", [
     (dict(ring_radii_mm=(2.5, 2.5)), r"ring_radii_mm must be distinct positive radii"),
     (dict(ring_radii_mm=(-1.0, 2.7)), r"ring_radii_mm must be distinct positive radii"),
