@@ -441,8 +441,9 @@ def _local_affines(plate: _PlateImage, centres_px: np.ndarray, half_px: int):
     return offset, jacobian, usable
 
 
-def _sample_bilinear(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``image`` at float32 (column, row) positions (M, ...); NaN outside."""
+def _sample_bicubic(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    """Bicubic samples (``cv2.INTER_CUBIC``) of ``image`` at float32 (column, row) positions (M, ...);
+    NaN outside."""
     count = len(map_x)
     shape = map_x.shape
     map_x, map_y = map_x.reshape(count, -1), map_y.reshape(count, -1)
@@ -930,7 +931,7 @@ def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, in
     heading = np.einsum("mij,aj->mai", inverse, directions).astype(np.float32)          # (M, A, 2)
     map_x = start[:, None, None, 0] + heading[..., 0, None] * radial                    # (M, A, S)
     map_y = start[:, None, None, 1] + heading[..., 1, None] * radial
-    return _sample_bilinear(image, map_x, map_y)
+    return _sample_bicubic(image, map_x, map_y)
 
 
 def _merged(mean_width: np.ndarray, harmonic: np.ndarray, covariance: np.ndarray, groups: np.ndarray,
