@@ -423,7 +423,8 @@ def _local_affines(plate: _PlateImage, centres_px: np.ndarray, half_px: int):
     normal_matrix = np.matmul(weighted.transpose(0, 2, 1), design)
     right = np.matmul(weighted.transpose(0, 2, 1), uv)
     # Enough pixels, and not all on one line (a window missing all but a row of its points).
-    usable = (weight.sum(axis=1) >= 10) & (np.linalg.cond(normal_matrix) < 1e10)
+    with np.errstate(divide="ignore", invalid="ignore"):    # a singular window's condition is inf
+        usable = (weight.sum(axis=1) >= 10) & (np.linalg.cond(normal_matrix) < 1e10)
     normal_matrix[~usable] = np.eye(3)
     solution = np.linalg.solve(normal_matrix, right)            # (M, 3, 2)
     jacobian = np.ascontiguousarray(np.transpose(solution[:, 1:, :], (0, 2, 1)))   # (M, 2 [u,v], 2 [col,row])
