@@ -425,7 +425,9 @@ class CalibrationStore:
     """A directory of calibrations: an append-only history and a pointer to the active one."""
 
     def __init__(self, directory: str | os.PathLike) -> None:
-        self.directory = Path(directory)
+        # Absolute from the start: the paths it hands out (``save``) must name their files for
+        # ``load``, which takes a relative path as a name inside the history.
+        self.directory = Path(directory).absolute()
         self.history_directory = self.directory / HISTORY_DIR_NAME
         self.pointer_path = self.directory / ACTIVE_FILE_NAME
 

@@ -165,6 +165,20 @@ def test_store_round_trip_history_and_active_switch(tmp_path):
     assert leftover_temp_files(tmp_path) == []
 
 
+def test_a_store_opened_by_a_relative_directory_hands_out_paths_it_can_load(tmp_path, monkeypatch):
+    # `make sim` opens reports/sim-cell/calibrations: the saved candidate's path came back relative,
+    # and loading it took it as a name inside the history (.../history/reports/sim-cell/...), so the
+    # main job failed from a fresh clone (2026-11-22 17:10 to 2026-11-23).
+    monkeypatch.chdir(tmp_path)
+    store = CalibrationStore(Path("reports") / "cell")
+    record = make_record(1)
+    saved = store.save(record, activate=False)
+    assert saved.is_absolute() and saved == tmp_path / "reports" / "cell" / "history" / saved.name
+    assert store.load(saved) == record
+    store.activate(saved)
+    assert store.active_path() == saved and store.load_active() == record
+
+
 def test_history_sorted_by_sequence_number(tmp_path):
     store = CalibrationStore(tmp_path)
     paths = [store.save(make_record(seed)) for seed in range(3)]
