@@ -35,10 +35,13 @@ STOP_TIMEOUT_S = 15.0
 
 
 def start_serving_cell(out: Path, log_path: Path) -> subprocess.Popen:
-    """``gls-sim-cell --serve`` on a 3x3 grid in another process, its store in ``out``/calibrations."""
+    """``gls-sim-cell --serve`` on a 3x3 grid in another process, its store in ``out``/calibrations.
+
+    ``--out`` is given relative to the child's working directory, as ``make sim`` gives it: a store
+    opened by a relative directory once made every calibration fail after training."""
     with open(log_path, "w") as log:
         return subprocess.Popen([sys.executable, "-m", "gls_calibration.cli.sim_cell", "--serve", "--grid", "3",
-                                 "--out", str(out)], stdout=log, stderr=subprocess.STDOUT,
+                                 "--out", out.name], cwd=out.parent, stdout=log, stderr=subprocess.STDOUT,
                                 preexec_fn=default_sigint)
 
 
