@@ -241,6 +241,14 @@ def _fill_missing(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return filled
 
 
+def _finite_points(xyz: np.ndarray, intensity: np.ndarray) -> np.ndarray:
+    """Mask (intensity's shape) of the points whose coordinates (xyz (..., 3)) and intensity are finite."""
+    finite = np.isfinite(intensity)
+    for axis in range(3):           # column by column: a third of the time of isfinite(xyz).all(axis=-1)
+        finite &= np.isfinite(xyz[..., axis])
+    return finite
+
+
 def _median_spacing(lines_uv: np.ndarray, axis: int) -> float:
     """Median distance (mm) between neighbouring pixels' plane positions ``lines_uv`` (..., 2) along
     image axis ``axis``."""
@@ -255,9 +263,7 @@ def _median_spacing(lines_uv: np.ndarray, axis: int) -> float:
 
 def _organized_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose) -> _PlateImage:
     """Image of an organized cloud: one pixel per point."""
-    valid = np.isfinite(intensity)
-    for axis in range(3):           # column by column: cheaper than isfinite(xyz).all(axis=2)
-        valid &= np.isfinite(xyz[..., axis])
+    valid = _finite_points(xyz, intensity)
     if np.count_nonzero(valid) == 0:
         raise ValueError("intensity image has no finite pixels")
     # Every 8th line across each axis is plenty for a median: the plane coordinates of the whole
@@ -323,9 +329,7 @@ def _scan_lattice(uv: np.ndarray, pixel_size_mm: float) -> tuple[np.ndarray, np.
 def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
                       pixel_size_mm: float) -> _PlateImage:
     """Image of an unorganized cloud: mean intensity of the points falling in each plane pixel."""
-    keep = np.isfinite(intensity)
-    for axis in range(3):           # column by column: a third of the time of isfinite(xyz).all(axis=1)
-        keep &= np.isfinite(xyz[:, axis])
+    keep = _finite_points(xyz, intensity)
     if not keep.any():
         raise ValueError("cloud has no finite point with a finite intensity")
     step = max(1, len(xyz) // LATTICE_SAMPLE_POINTS)

@@ -66,24 +66,11 @@ def call_and_wait(executor: Executor, client, request: Any, timeout_s: float,
     deadline_s = min(timeout_s, 30.0)
     if not client.wait_for_service(timeout_sec=deadline_s):
         raise TimeoutError(f"service {client.srv_name} is not available (waited {deadline_s:g} s)")
-    deadline = time.monotonic() + timeout_s
-    answered: Future = Future()
     sent: list[Future] = []
-    wait_s = resend_after_s
     try:
-        while True:
-            future = client.call_async(request)
-            future.add_done_callback(lambda done: answered.done() or answered.set_result(done))
-            sent.append(future)
-            remaining = deadline - time.monotonic()
-            attempt_s = remaining if wait_s is None else min(remaining, wait_s)
-            executor.spin_until_future_complete(answered, timeout_sec=max(attempt_s, 1e-3))
-            if answered.done():
-                return answered.result().result()
-            if attempt_s >= remaining:
-                return None
-            print(f"no answer from {client.srv_name} after {attempt_s:g} s: request sent again", file=sys.stderr)
-            wait_s *= 2.0
+        answered = _send_until_answered(executor, lambda: client.call_async(request), sent, timeout_s,
+                                        resend_after_s, f"service {client.srv_name}")
+        return None if answered is None else answered.result()
     finally:
         for future in sent:
             if not future.done():
@@ -108,35 +95,43 @@ def send_goal(executor: Executor, node: Node, client, action_type: type, action_
         GoalStatusArray, f"{action_name}/_action/status",
         lambda message: listed.update(bytes(entry.goal_info.goal_id.uuid) for entry in message.status_list),
         qos_profile_action_status_default)
-
-    def accepted_handle() -> ClientGoalHandle:
-        """The handle of our goal, which the server lists although its answer was lost."""
-        return ClientGoalHandle(client, goal_id, action_type.Impl.SendGoalService.Response(accepted=True))
-    deadline = time.monotonic() + wait_s
-    answered: Future = Future()
-    wait = resend_after_s
     try:
-        while True:
-            sent = client.send_goal_async(goal, feedback_callback=feedback_callback, goal_uuid=goal_id)
-            sent.add_done_callback(lambda done: answered.done() or answered.set_result(done))
-            remaining = deadline - time.monotonic()
-            attempt_s = remaining if wait is None else min(remaining, wait)
-            _spin_until(executor, lambda: answered.done() or key in listed, attempt_s)
-            if answered.done():
-                handle = answered.result().result()
-                if handle.accepted:
-                    return handle
-                # Refused: a copy whose first answer was lost is refused as a known id; the status says.
-                _spin_until(executor, lambda: key in listed, min(wait_s, 2.0))
-                return accepted_handle() if key in listed else None
-            if key in listed:
-                return accepted_handle()
-            if attempt_s >= remaining:
-                return None
-            print(f"no answer from action {action_name} after {attempt_s:g} s: goal sent again", file=sys.stderr)
-            wait *= 2.0
+        answered = _send_until_answered(
+            executor, lambda: client.send_goal_async(goal, feedback_callback=feedback_callback, goal_uuid=goal_id),
+            [], wait_s, resend_after_s, f"action {action_name}", given_up=lambda: key in listed)
+        if answered is not None and answered.result().accepted:
+            return answered.result()
+        if answered is not None:
+            # Refused: a copy whose first answer was lost is refused as a known id; the status says.
+            _spin_until(executor, lambda: key in listed, min(wait_s, 2.0))
+        # Listed by the server although no accepting answer came: the handle of our goal.
+        return (ClientGoalHandle(client, goal_id, action_type.Impl.SendGoalService.Response(accepted=True))
+                if key in listed else None)
     finally:
         node.destroy_subscription(status)
+
+
+def _send_until_answered(executor: Executor, send, sent: list, timeout_s: float,
+                         resend_after_s: Optional[float], what: str, given_up=lambda: False):
+    """Call ``send()`` (it returns a future, kept in ``sent``) and spin ``executor`` until one of its
+    futures is done (returned), ``given_up()`` holds or ``timeout_s`` has passed (None). With
+    ``resend_after_s``, send again when unanswered that long, then after twice as long, and so on."""
+    deadline = time.monotonic() + timeout_s
+    answered: Future = Future()
+    wait_s = resend_after_s
+    while True:
+        future = send()
+        future.add_done_callback(lambda done: answered.done() or answered.set_result(done))
+        sent.append(future)
+        remaining = deadline - time.monotonic()
+        attempt_s = remaining if wait_s is None else min(remaining, wait_s)
+        _spin_until(executor, lambda: answered.done() or given_up(), attempt_s)
+        if answered.done():
+            return answered.result()
+        if given_up() or attempt_s >= remaining:
+            return None
+        print(f"no answer from {what} after {attempt_s:g} s: sent again", file=sys.stderr)
+        wait_s *= 2.0
 
 
 def _spin_until(executor: Executor, condition, timeout_s: float) -> None:
