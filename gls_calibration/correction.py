@@ -147,6 +147,10 @@ class Correction:
             raise ValueError("calibrated_region is required when models are given")
         if calibrated_region is not None and not isinstance(calibrated_region, CalibratedRegion):
             raise ValueError(f"calibrated_region must be a CalibratedRegion, got {type(calibrated_region).__name__}")
+        if calibrated_region is not None and abs(calibrated_region.plane_z_mm) > geometry.focus_range_mm:
+            # The plate was marked and scanned there: it must have been within the focus range.
+            raise ValueError(f"calibration plane z = {calibrated_region.plane_z_mm:g} mm lies outside the "
+                             f"head's focus range (+-{geometry.focus_range_mm:g} mm)")
         self.geometry = geometry
         self.models = models
         self.calibrated_region = calibrated_region
@@ -193,8 +197,11 @@ class Correction:
         """
         single = _single_target(x, y, z)
         if single is not None and self.models:
+            if abs(single[2]) >= self.geometry.working_distance_mm:     # scalar test: this path is hot
+                self._check_heights(np.array([single[2]]))
             return self._correct_one(*single)
         x, y, z = as_coordinate_arrays(x, y, z)
+        self._check_heights(z)
         parts = _worker_slices(x.size, available_workers() if workers is None else
                                as_integer_at_least(workers, "workers", 1))
         if len(parts) == 1:
@@ -202,6 +209,17 @@ class Correction:
         pieces = list(_pool(len(parts)).map(lambda part: self._correct_many(x[part], y[part], z[part]), parts))
         return CorrectedSetpoints(*(np.concatenate([getattr(piece, field.name) for piece in pieces])
                                     for field in fields(CorrectedSetpoints)))
+
+    def _check_heights(self, z: np.ndarray) -> None:
+        """ValueError unless every height is within +- the working distance: no ray reaches a point at
+        or above the mirrors, and nothing as far below the plane as the head is above it is a target."""
+        limit = self.geometry.working_distance_mm
+        outside = np.abs(z) >= limit
+        if outside.any():
+            first = int(np.argmax(outside))
+            raise ValueError(f"z must lie within +-{limit:g} mm (the head's working distance): "
+                             f"{int(np.count_nonzero(outside))} target(s) outside, first z = {z[first]:g} mm "
+                             f"at index {first}")
 
     def _correct_many(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> CorrectedSetpoints:
         """:meth:`correct` for validated 1-D arrays, in this thread."""

@@ -91,6 +91,22 @@ def test_correct_setpoints_refuses_bad_and_oversized_requests_and_keeps_serving(
     assert good.success, good.message
 
 
+@pytest.mark.parametrize("service", ["correct_setpoints", "correct_setpoints_batch"])
+def test_correct_setpoints_refuses_heights_beyond_the_working_distance_and_keeps_serving(ros_context, add_node,
+                                                                                       client, tmp_path, service):
+    """A target at the mirrors' height divided by zero in the ray transfer: the node's thread died and
+    no request was answered again. Now refused, one target (scalar path) or many, and served after."""
+    store_dir = tmp_path / "store"
+    CalibrationStore(store_dir).save(trained_record()[0], activate=True)
+    add_node(CorrectionNode(context=ros_context, parameter_overrides=[Parameter("calibration_dir", value=str(store_dir))]))
+    correct = client(CorrectSetpoints, service)
+    distance = GEOMETRY.working_distance_mm
+    for z in ([distance], [0.0, distance], [1e308], [-1e308]):
+        correct.refuses(CorrectSetpoints.Request(x=[10.0] * len(z), y=[10.0] * len(z), z=z), "working distance")
+    good = correct(CorrectSetpoints.Request(x=[10.0], y=[10.0], z=[0.0]))
+    assert good.success, good.message
+
+
 def test_correct_setpoints_in_chunks_equals_one_piece(ros_context, add_node, client, tmp_path):
     store_dir = tmp_path / "store"
     record, _ = trained_record()

@@ -1,4 +1,6 @@
 """Tests of the setpoint correction: composition, calibrated region, taper and flags."""
+import re
+
 import numpy as np
 import pytest
 
@@ -135,6 +137,8 @@ def test_limit_flags_come_from_the_kinematics_of_the_commanded_point(first_model
     ({"models": [lambda p: p]}, "calibrated_region is required when models are given"),
     ({"models": [1.0], "calibrated_region": REGION}, r"models\[0\] is not callable"),
     ({"taper_mm": -1.0}, "taper_mm must be a non-negative finite number"),
+    ({"models": [lambda p: p], "calibrated_region": CalibratedRegion(-1.0, 1.0, -1.0, 1.0, plane_z_mm=490.0)},
+     r"calibration plane z = 490 mm lies outside the head's focus range \(\+-25 mm\)"),
 ])
 def test_correction_rejects_bad_configuration(kwargs, message):
     with pytest.raises(ValueError, match=message):
@@ -184,3 +188,15 @@ def test_correct_rejects_bad_coordinates():
         Correction(GEOMETRY).correct([0.0, 1.0], [0.0])
     with pytest.raises(ValueError, match="calibrated region is empty"):
         CalibratedRegion(1.0, 0.0, 0.0, 1.0)
+
+
+@pytest.mark.parametrize("with_model", [False, True])
+@pytest.mark.parametrize("z", [[490.0], [0.0, 490.0], [1e308], [-490.0]])
+def test_correct_rejects_heights_at_or_beyond_the_working_distance(first_model, with_model, z):
+    # At the mirrors' height the ray transfer divided by zero; far beyond it the focus shift was inf.
+    correction = Correction(GEOMETRY, [first_model], REGION) if with_model else Correction(GEOMETRY)
+    first = next(index for index, value in enumerate(z) if abs(value) >= 490.0)
+    message = (f"z must lie within +-490 mm (the head's working distance): 1 target(s) outside, "
+               f"first z = {z[first]:g} mm at index {first}")
+    with pytest.raises(ValueError, match=re.escape(message)):
+        correction.correct([10.0] * len(z), [10.0] * len(z), z)

@@ -8,6 +8,7 @@ import os
 import signal
 import threading
 import time
+import traceback
 from typing import Any, Callable, Optional, Sequence
 
 import rclpy
@@ -63,13 +64,21 @@ def answers_errors(*errors: type[BaseException]) -> Callable:
     """Decorate a service handler ``(self, request, response)``: when it raises one of ``errors``
     (default ValueError), answer ``success=false`` with the error's text instead of failing the call.
 
-    Works on plain and coroutine handlers. Only expected, explained errors belong in ``errors``; a
-    bug still surfaces as an exception in the executor's log.
+    Works on plain and coroutine handlers. Only expected, explained errors belong in ``errors``. Any
+    other exception is a bug: it is logged with its traceback and answered ``success=false``
+    ("internal error ..."), so that the caller learns at once and the node goes on serving (raised
+    into the executor, it ended the node's spinning thread: every later call went unanswered).
     """
     caught = errors or (ValueError,)
 
     def refuse(response: Any, error: BaseException) -> Any:
         response.success, response.message = False, str(error)
+        return response
+
+    def internal(node: Node, handler: Callable, response: Any, error: Exception) -> Any:
+        node.get_logger().error(f"{handler.__name__} failed (a bug):\n{traceback.format_exc()}")
+        response.success = False
+        response.message = f"internal error: {type(error).__name__}: {error} (see the node's log)"
         return response
 
     def decorate(handler: Callable) -> Callable:
@@ -80,6 +89,8 @@ def answers_errors(*errors: type[BaseException]) -> Callable:
                     return await handler(self, request, response)
                 except caught as error:
                     return refuse(response, error)
+                except Exception as error:
+                    return internal(self, handler, response, error)
             return answer_async
 
         @functools.wraps(handler)
@@ -88,6 +99,8 @@ def answers_errors(*errors: type[BaseException]) -> Callable:
                 return handler(self, request, response)
             except caught as error:
                 return refuse(response, error)
+            except Exception as error:
+                return internal(self, handler, response, error)
         return answer
     return decorate
 
@@ -332,16 +345,24 @@ class NodeThreads:
         self.threads = []
         for node, executor in zip(self.nodes, self.executors):
             executor.add_node(node)
-            thread = threading.Thread(target=self._spin, args=(executor,), name=node.get_name(), daemon=True)
+            thread = threading.Thread(target=self._spin, args=(executor, node), name=node.get_name(), daemon=True)
             self.threads.append(thread)
             thread.start()
 
     @staticmethod
-    def _spin(executor: SingleThreadedExecutor) -> None:
-        try:
-            executor.spin()
-        except ExternalShutdownException:
-            pass
+    def _spin(executor: SingleThreadedExecutor, node: Node) -> None:
+        # A callback's exception ends executor.spin(): logged, and spinning goes on, or the node
+        # would stay in the graph and never answer again.
+        while True:
+            try:
+                executor.spin()
+                return
+            except ExternalShutdownException:
+                return
+            except Exception:
+                if not executor.context.ok():
+                    return
+                node.get_logger().error(f"a callback failed (a bug); still serving:\n{traceback.format_exc()}")
 
     def join(self) -> None:
         """Block until the executors stop (shutdown of the context)."""
