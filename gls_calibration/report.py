@@ -68,6 +68,7 @@ class ReportData:
     true_metrics_after: Mapping[str, Mapping[str, float]] | None = None
     correction_field: Callable[[np.ndarray], np.ndarray] | CorrectionGrid | None = None
     extra_lines: tuple[str, ...] = ()
+    extra_files: tuple[str, ...] = ()    # further '- `name`: what it is' lines of the Files section
     title: str = "Galvo laser scanner calibration report"
     full_field_label: str = "190x190 (full)"
 
@@ -223,7 +224,7 @@ def _markdown(data: ReportData, figures: list[tuple[str, str]]) -> str:
         lines += ["No correction field was given.", ""]
     lines += ["## Files", "",
               "- `fiducials.csv`: one row per fiducial and stage (before/after).",
-              "- `summary.json`: the run summary (NaN written as null).", ""]
+              "- `summary.json`: the run summary (NaN written as null)."] + list(data.extra_files) + [""]
     if data.extra_lines:
         lines += ["## Notes", ""] + list(data.extra_lines) + [""]
     return "\n".join(lines)

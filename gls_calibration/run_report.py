@@ -58,6 +58,10 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: Ru
         + (outcome.message,)
         + run_verdict_lines(first.paired_targets_xy, first.deviations,
                             correction.geometry if correction is not None else None),
+        extra_files=("- `training.csv`: the first plate's fiducials as `gls-train` reads them "
+                     "(`x_cmd,y_cmd,z_cmd,x_meas,y_meas`).",)
+        + (("- `calibrations/`: the calibration store (history and the active calibration).",)
+           if (Path(out_dir) / "calibrations").is_dir() else ()),
     )
     write_report(out_dir, data)
     (out_dir / "training.csv").write_text(training_csv_text(first), encoding="utf-8")

@@ -213,7 +213,8 @@ def _plot_residual_fields(result: DiscrepancyResult, path: Path) -> None:
         axes[2].scatter([o.position_mm[0] for o in result.outliers], [o.position_mm[1] for o in result.outliers],
                         marker="x", s=80, color="tab:red", label="outliers (excluded)")
         axes[2].legend(loc="upper right", fontsize=8)
-    axes[2].set_title(f"{result.verdict.verdict}: {result.verdict.unexplained_rms_mm:.4f} mm above the floor",
+    axes[2].set_title(f"{result.verdict.verdict}: {result.verdict.unexplained_rms_mm:.4f} mm "
+                      + ("of structure below the floor" if result.verdict.below_floor else "above the floor"),
                       fontsize=10, loc="left")
     for axis in axes:
         axis.set_xlabel("x (mm, gls)")
@@ -451,7 +452,9 @@ def main(argv: list[str] | None = None) -> int:
     named = ", ".join(result.named_effects) or "none"
     print(f"named effects: {named}; residual RMS {result.rms_before_mm:.4f} -> {result.rms_after_mm:.4f} mm "
           f"({result.floor.source} noise floor {result.noise_floor_mm:.4f} mm); verdict {result.verdict.verdict}"
-          + (f", {result.verdict.unexplained_rms_mm:.4f} mm unexplained: {result.verdict.pattern}"
+          + (f", {result.verdict.unexplained_rms_mm:.4f} mm unexplained"
+             + (" (smooth structure below the noise floor)" if result.verdict.below_floor else "")
+             + f": {result.verdict.pattern}"
              if result.verdict.verdict != "explained" else "") + f"; wrote {args.out}")
     return EXIT_OK
 

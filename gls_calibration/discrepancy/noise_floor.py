@@ -25,6 +25,8 @@ from gls_calibration.validation import as_finite_array
 NOISE_SOURCES = ("repeats", "per_point", "stated", "residual")
 #: The residual estimate and the independent floor disagree when their ratio leaves [1/x, x].
 DISAGREEMENT_RATIO = 1.3
+#: Per-axis scatter of repeats (mm) at or below which they count as identical (copies, not repeats).
+NO_SCATTER_MM = 1e-9
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,6 +44,8 @@ def average_repeats(measured) -> tuple[np.ndarray, float]:
 
     Every repeat is aligned onto the current mean (twice: the first mean is that of the raw repeats);
     sigma^2 = sum of squared departures from the mean / (2 N (R - 1) - 3 (R - 1)).
+    Repeats without scatter (identical up to a rigid motion, sigma <= ``NO_SCATTER_MM``) carry no
+    evidence of the noise: ValueError, rather than a zero floor nothing can be compared with.
     """
     stack = as_finite_array(measured, "measured_xy", ndim=3)
     repeats, points = stack.shape[0], stack.shape[1]
@@ -54,6 +58,10 @@ def average_repeats(measured) -> tuple[np.ndarray, float]:
     mean = aligned.mean(axis=0)
     dof = max(2 * points * (repeats - 1) - 3 * (repeats - 1), 1)
     sigma = math.sqrt(float(np.sum((aligned - mean) ** 2)) / dof)
+    if not sigma > NO_SCATTER_MM:
+        raise ValueError(f"repeats show no scatter: the noise floor cannot be estimated from them (the {repeats} "
+                         f"repeats are identical up to a rigid motion, per-axis scatter {sigma:.3g} mm; "
+                         f"give one set without the repeat column and state the uncertainty: --sigma or a sigma column)")
     return mean, sigma
 
 

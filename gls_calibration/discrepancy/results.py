@@ -251,8 +251,10 @@ class Verdict:
     """Is the gap explained by the named effects, measured against the independent floor?"""
 
     verdict: str                   # explained | unexplained_structure
-    unexplained_rms_mm: float      # residual RMS above the floor, in quadrature
+    unexplained_rms_mm: float      # residual RMS above the floor, in quadrature; with below_floor the RMS
+                                   # of the smooth structure the F-test found
     ratio_to_floor: float          # residual RMS / noise floor
     chi2_p_value: float            # residual consistent with the floor (chi-square test)
     pattern: str                   # the dominant pattern in words
     findings: tuple[str, ...]      # further observations
+    below_floor: bool = False      # structure found although the residual RMS is not above the floor

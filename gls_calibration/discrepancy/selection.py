@@ -337,6 +337,8 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
         steps.append(named)
         structure = selection.structure(current)
     structure_after = selection.structure(current)
+    # an effect implausible at one step but named at a later one is named, not "not named"
+    implausible = {name: entry for name, entry in implausible.items() if name not in current.names}
     if not steps:
         notes.append("No missing effect named: " + stop_reason + ".")
     if implausible:

@@ -3,7 +3,8 @@
 ``explained`` needs the final residual to be consistent with the floor (chi-square test at
 ``alpha``, or an RMS within 10 % of the floor, which a slightly mis-stated sigma gives) AND no smooth
 structure left (the F-test of :func:`.residual_statistics.structure_test`). Otherwise the verdict is
-``unexplained_structure`` with the RMS above the floor (in quadrature) and the dominant pattern in
+``unexplained_structure`` with the RMS above the floor (in quadrature; when the residual is not above
+the floor but the F-test finds smooth structure, the RMS of that smooth field) and the dominant pattern in
 words: local near (x, y), periodic along x or y with period P, growing with r, a smooth field, or
 point-to-point scatter. Nothing above the floor is ever called noise.
 """
@@ -133,8 +134,22 @@ def judge(points_xy: np.ndarray, residual_xy: np.ndarray, floor: FloorEvidence, 
         pattern = (f"none above the {floor.source} floor: residual RMS {residual_rms:.4f} mm vs floor "
                    f"{floor.noise_floor_mm:.4f} mm")
         return Verdict("explained", unexplained, ratio, p_value, pattern, findings)
-    return Verdict("unexplained_structure", unexplained, ratio, p_value,
-                   dominant_pattern(points_xy, residual_xy, location, structure), findings)
+    pattern = dominant_pattern(points_xy, residual_xy, location, structure)
+    if unexplained > 0.0:
+        return Verdict("unexplained_structure", unexplained, ratio, p_value, pattern, findings)
+    # The residual is not above the floor, yet the F-test finds smooth structure in it (the floor is
+    # pessimistic, or the structure is small): it is structure, not noise, and its size is the RMS of
+    # the smooth field, not the (zero) excess over the floor.
+    structured = math.sqrt(smooth_share(points_xy, residual_xy)) * residual_rms
+    return Verdict("unexplained_structure", structured, ratio, p_value, pattern, findings, below_floor=True)
+
+
+def unexplained_phrase(verdict: Verdict, floor: FloorEvidence) -> str:
+    """What is left unexplained, in words consistent with the verdict's figure."""
+    if verdict.below_floor:
+        return (f"{verdict.unexplained_rms_mm:.4f} mm RMS of smooth structure (F-test) remains below the "
+                f"{floor.source} noise floor")
+    return f"{verdict.unexplained_rms_mm:.4f} mm RMS remains above the {floor.source} noise floor"
 
 
 def verdict_lines(result: DiscrepancyResult) -> list[str]:
@@ -145,13 +160,16 @@ def verdict_lines(result: DiscrepancyResult) -> list[str]:
         lines = [f"**Verdict: explained.** With {named} named, the residual is {result.rms_after_mm:.4f} mm RMS "
                  f"against a {floor.source} noise floor of {floor.noise_floor_mm:.4f} mm (ratio {verdict.ratio_to_floor:.2f})."]
     else:
-        lines = [f"**Verdict: unexplained structure.** With {named} named, {verdict.unexplained_rms_mm:.4f} mm RMS "
-                 f"remains above the {floor.source} noise floor (residual {result.rms_after_mm:.4f} mm vs floor "
+        lines = [f"**Verdict: unexplained structure.** With {named} named, {unexplained_phrase(verdict, floor)} "
+                 f"(residual {result.rms_after_mm:.4f} mm vs floor "
                  f"{floor.noise_floor_mm:.4f} mm, {verdict.ratio_to_floor:.2f}x) that no effect of the library"
                  + (" or the user effects" if result.user_effects else "")
                  + (" explains within the steps allowed (the search stopped at max_steps; more steps may explain more)."
                     if result.stop_reason.startswith("reached max_steps") else " explains."),
                  f"Dominant pattern: {verdict.pattern}."]
+        if verdict.below_floor:
+            lines.append("The residual is smaller than the stated noise floor, yet not noise: a smooth field explains "
+                         "part of it beyond chance, so the floor is pessimistic or the structure is small.")
     if floor.source == "residual":
         lines.append("The floor was estimated from the residual itself (no repeats, per-point sigma or stated sigma): "
                      "structure finer than a smooth field would be counted in it, so this verdict cannot rule it out.")
