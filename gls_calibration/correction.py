@@ -113,6 +113,14 @@ class CorrectedSetpoints:
     within_limits: np.ndarray
 
 
+def check_calibration_plane(geometry: HeadGeometry, plane_z_mm: float) -> None:
+    """ValueError unless the calibration plane lies within the focus range: the plate was marked and
+    scanned there."""
+    if not abs(plane_z_mm) <= geometry.focus_range_mm:
+        raise ValueError(f"calibration plane z = {plane_z_mm:g} mm lies outside the head's focus range "
+                         f"(+-{geometry.focus_range_mm:g} mm)")
+
+
 def taper_weight(distance_mm: np.ndarray, taper_mm: float) -> np.ndarray:
     """Raised-cosine fade: 1 at the boundary, 0 from ``taper_mm`` beyond it (a step when taper is 0)."""
     distance_mm = np.asarray(distance_mm, dtype=float)
@@ -147,10 +155,8 @@ class Correction:
             raise ValueError("calibrated_region is required when models are given")
         if calibrated_region is not None and not isinstance(calibrated_region, CalibratedRegion):
             raise ValueError(f"calibrated_region must be a CalibratedRegion, got {type(calibrated_region).__name__}")
-        if calibrated_region is not None and abs(calibrated_region.plane_z_mm) > geometry.focus_range_mm:
-            # The plate was marked and scanned there: it must have been within the focus range.
-            raise ValueError(f"calibration plane z = {calibrated_region.plane_z_mm:g} mm lies outside the "
-                             f"head's focus range (+-{geometry.focus_range_mm:g} mm)")
+        if calibrated_region is not None:
+            check_calibration_plane(geometry, calibrated_region.plane_z_mm)
         self.geometry = geometry
         self.models = models
         self.calibrated_region = calibrated_region

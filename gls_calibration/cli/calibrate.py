@@ -6,11 +6,11 @@ ROS arguments follow ``--ros-args`` (e.g. ``--ros-args -r __ns:=/cell2``).
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 
 from rclpy.action import ActionClient
 
+from gls_calibration.cli import timeout_seconds
 from gls_calibration.cli.client import ProgressBar, client_node, send_goal, split_ros_arguments, summary_table
 from gls_calibration_msgs.action import Calibrate
 
@@ -27,12 +27,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-validate", action="store_true", help="skip the validation grid")
     parser.add_argument("--force", action="store_true",
                         help="train even when within tolerance, and mark a plate that carries old marks")
-    parser.add_argument("--timeout", type=float, default=900.0, help="give up after this (s)")
+    parser.add_argument("--timeout", type=timeout_seconds, default=900.0, help="give up after this (s)")
     args = parser.parse_args(own_arguments)
     if not 0 <= args.iterations <= 255:
         parser.error("--iterations must be between 0 and 255 (the manager refuses more than its max_iterations)")
-    if not math.isfinite(args.timeout) or args.timeout <= 0.0:
-        parser.error("--timeout must be a positive number of seconds")
     bar = ProgressBar(sys.stderr)
     with client_node("gls_calibrate_client", args.namespace, ros_arguments) as (node, executor):
         client = ActionClient(node, Calibrate, "calibrate")

@@ -108,14 +108,17 @@ def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: S
 def main(argv: Optional[list[str]] = None) -> int:
     """Exit 0 on success, 1 when targets are unreachable or the service failed, 2 on bad input. ROS
     arguments (remaps, namespace) follow ``--ros-args``."""
+    from gls_calibration.cli import timeout_seconds
     from gls_calibration.cli.client import split_ros_arguments
     own_arguments, ros_arguments = split_ros_arguments(argv)
     parser = argparse.ArgumentParser(prog="gls-correct", description=__doc__.split("\n\n")[0])
     parser.add_argument("targets", type=Path, help="CSV with columns x,y[,z] (mm)")
     parser.add_argument("--out", type=Path, required=True, help="CSV to write")
     parser.add_argument("--calibration", type=Path, help="calibration file: correct without a running cell")
-    parser.add_argument("--namespace", default="gls")
-    parser.add_argument("--timeout", type=float, default=30.0)
+    parser.add_argument("--namespace", default="gls",
+                        help="namespace of the cell's correction node (default: gls; without --calibration)")
+    parser.add_argument("--timeout", type=timeout_seconds, default=30.0,
+                        help="give up on the correction service after this (s, default 30; without --calibration)")
     args = parser.parse_args(own_arguments)
     try:
         require_regular_output(args.out)   # checked before anything is asked of the cell

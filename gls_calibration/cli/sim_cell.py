@@ -20,6 +20,7 @@ import time
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
+import yaml
 
 from gls_calibration.config_files import config_path
 from gls_calibration.simulation.measurement import PRESETS
@@ -35,12 +36,40 @@ from gls_calibration.nodes.rbf_trainer import RbfTrainerNode
 from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import SimScannerNode
+from gls_calibration.cli import timeout_seconds
 from gls_calibration.cli.client import ProgressBar, call_and_wait, split_ros_arguments, summary_table
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import Calibrate
 
 NODE_TYPES = (SimGalvoNode, SimScannerNode, ScanAcquisitionNode, PlatePoseNode, FiducialMeasurementNode,
               RbfTrainerNode, CorrectionNode, CalibrationManager)
+
+SEED_MAX = 2 ** 31 - 1    # the nodes declare ``seed`` as an integer parameter in [0, 2^31 - 1]
+GRID_MAX = 101            # the manager's range of ``grid.per_side`` (3 to 101)
+
+
+def max_iterations() -> int:
+    """Most iterations the cell's manager accepts: ``max_iterations`` of config/gls.yaml, the file it
+    is given (``procedure.ProcedureSettings``' default when the file does not say)."""
+    from gls_calibration.procedure import ProcedureSettings
+    try:
+        parameters = yaml.safe_load(config_path("gls.yaml").read_text())["/**"]["ros__parameters"]
+        value = parameters.get("max_iterations", ProcedureSettings.max_iterations)
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        value = ProcedureSettings.max_iterations
+    return value if isinstance(value, int) and not isinstance(value, bool) and value >= 1 \
+        else ProcedureSettings.max_iterations
+
+
+def output_folder_problem(folder: Path) -> str:
+    """Why ``folder`` cannot be the cell's output folder (empty when it can): it must be a folder or
+    not exist yet, below an existing folder (nothing is created here)."""
+    if folder.exists() or folder.is_symlink():
+        return "" if folder.is_dir() else f"--out {folder} exists and is not a folder"
+    for parent in folder.absolute().parents:
+        if parent.exists():
+            return "" if parent.is_dir() else f"--out {folder}: {parent} is not a folder"
+    return ""
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -51,9 +80,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=Path("reports/sim-cell"),
                         help="folder for the report, summary.json and the calibration store (OUT/calibrations; "
                              "a one-shot run is a new cell and starts that store afresh)")
-    parser.add_argument("--seed", type=int, default=1, help="seed of the simulated cell's random draws")
-    parser.add_argument("--grid", type=int, default=19, help="fiducials per side of the grid")
-    parser.add_argument("--iterations", type=int, default=1, help="calibration iterations (1 or 2)")
+    parser.add_argument("--seed", type=int, default=1,
+                        help=f"seed of the simulated cell's random draws (0 to {SEED_MAX})")
+    parser.add_argument("--grid", type=int, default=19, help=f"fiducials per side of the grid (3 to {GRID_MAX})")
+    most_iterations = max_iterations()
+    parser.add_argument("--iterations", type=int, default=1,
+                        help=f"calibration iterations, each on a fresh plate (1 to {most_iterations}, the "
+                             "manager's max_iterations in config/gls.yaml)")
     parser.add_argument("--sim-config", type=Path, default=None,
                         help="YAML parameter file of the simulated head's defects and noise "
                              "(default: the package's config/sim.yaml)")
@@ -63,7 +96,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="fit the named physical effects first and the RBF on what they leave")
     parser.add_argument("--serve", action="store_true",
                         help="start every node and serve until interrupted, without calibrating")
-    parser.add_argument("--timeout", type=float, default=600.0, help="give up on calibrate after this (s)")
+    parser.add_argument("--timeout", type=timeout_seconds, default=600.0,
+                        help="give up on calibrate after this (s)")
     parser.add_argument("--verbose", action="store_true", help="show the nodes' info logs")
     parser.add_argument("--measurement", choices=None, default=None, metavar="|".join(PRESETS),
                         help="measurement-chain preset of the simulated robot, scanner, marks and plate "
@@ -81,10 +115,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                              "one, so that concurrent one-shot cells on the same ROS domain never meet)")
     args = parser.parse_args(own_arguments)
     args.user_ros_arguments = user_ros_arguments if own_arguments != user_ros_arguments else []
-    if args.grid < 3:
-        parser.error("--grid must be at least 3")
-    if not 1 <= args.iterations <= 5:
-        parser.error("--iterations must be between 1 and 5")
+    if not 3 <= args.grid <= GRID_MAX:
+        parser.error(f"--grid must be between 3 and {GRID_MAX}, got {args.grid}")
+    if not 1 <= args.iterations <= most_iterations:
+        parser.error(f"--iterations must be between 1 and {most_iterations} (the manager's max_iterations), "
+                     f"got {args.iterations}")
+    if not 0 <= args.seed <= SEED_MAX:
+        parser.error(f"--seed must be between 0 and {SEED_MAX}, got {args.seed}")
+    problem = output_folder_problem(args.out)
+    if problem:
+        parser.error(problem)
     if args.sim_config is not None and not args.sim_config.is_file():
         parser.error(f"--sim-config {args.sim_config}: no such file")
     if args.sweep_plan is not None:
@@ -142,8 +182,12 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
 
 def main(argv: list[str] | None = None) -> int:
     """Run the simulated cell; exit 0 when the calibration succeeded."""
-    args = parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
+    args = parse_args(argv)   # every argument is checked before anything starts or is created
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        print(f"gls-sim-cell: cannot create --out {args.out}: {error.strerror or error}", file=sys.stderr)
+        return 2
     if args.reference_plate:
         return run_reference_plate(args)
     # The store lives beside the report, so the summary names the calibration file where it stays.

@@ -20,11 +20,12 @@ from typing import Any, Mapping, Optional
 import numpy as np
 
 from gls_calibration.config_files import config_path, read_config_file
-from gls_calibration.correction import CalibratedRegion
+from gls_calibration.correction import CalibratedRegion, check_calibration_plane
 from gls_calibration.head_config import default_head_config_path, load_head_config
-from gls_calibration.persistence import atomic_write_text, dump_record, new_record
+from gls_calibration.persistence import atomic_write_text, dump_record, new_record, require_regular_output
 from gls_calibration.registration import align_rigid_2d
 from gls_calibration.training import TrainingOptions, train_correction
+from gls_calibration.validation import as_config_number, as_integer_at_least
 
 COLUMNS = ("x_cmd", "y_cmd", "x_meas", "y_meas")
 TAPER_MM = 10.0
@@ -54,13 +55,102 @@ def read_measured(path: Path) -> tuple[np.ndarray, np.ndarray, Optional[float]]:
     return values[:, :2], values[:, 2:4], float(np.mean(values[:, 4])) if values.shape[1] > 4 else None
 
 
+TRAINER_NODE = "rbf_trainer"
+GRID_SEARCH_PARAMETERS = ("spreads_mm", "mse_goals_mm2", "tps_smoothings", "folds", "seed", "cv_block_mm")
+TRAINER_PARAMETERS = GRID_SEARCH_PARAMETERS + ("physics_first", "max_points")   # what rbf_trainer declares
+LAYOUT = (f"a ROS parameter file '/**:' or '{TRAINER_NODE}:' -> 'ros__parameters:' holding the trainer's "
+          f"parameters ({', '.join(GRID_SEARCH_PARAMETERS)}), as config/gls.yaml")
+
+
+def _flatten(parameters: Mapping, prefix: str = "") -> dict[str, Any]:
+    """Dotted parameter names (how ROS reads nested blocks) -> values."""
+    flat: dict[str, Any] = {}
+    for key, value in parameters.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping) and value:
+            flat.update(_flatten(value, name + "."))
+        else:
+            flat[name] = value
+    return flat
+
+
+def _package_parameter_names() -> set[str]:
+    """Every parameter name of the package's own parameter files (gls.yaml, head.yaml, sim.yaml): what
+    the cell's nodes read from the ``/**`` block they share."""
+    names: set[str] = set(TRAINER_PARAMETERS)
+    for name in ("gls.yaml", "head.yaml", "sim.yaml"):
+        document = read_config_file(config_path(name), "parameter file", lambda document: document)
+        names |= set(_flatten(document["/**"]["ros__parameters"]))
+    return names
+
+
+def _known(name: str, known: set[str]) -> bool:
+    # head.effects.<effect> is an open list of named effects (head_config checks the names)
+    return name in known or name.startswith(("head.effects.", "effects."))
+
+
+def _numbers(value: Any, key: str, *, positive: bool, allow_empty: bool) -> tuple[float, ...]:
+    if not isinstance(value, list) or (not value and not allow_empty):
+        raise ValueError(f"trainer parameter {key!r} must be a {'' if allow_empty else 'non-empty '}list of "
+                         f"numbers, got {value!r}")
+    numbers = tuple(as_config_number(item, key, "trainer parameter") for item in value)
+    if any(number <= 0.0 if positive else number < 0.0 for number in numbers):
+        raise ValueError(f"trainer parameter {key!r} must hold {'positive' if positive else 'non-negative'} "
+                         f"numbers, got {value!r}")
+    return numbers
+
+
+def trainer_parameters(document: Any) -> dict[str, Any]:
+    """The rbf_trainer's parameters of a ROS parameter file: the ``/**`` block every node reads, then
+    the ``rbf_trainer`` block (which wins, as for the node; a namespaced ``/ns/rbf_trainer`` too).
+    ValueError when neither holds a grid-search parameter or a block names a parameter nobody reads."""
+    if not isinstance(document, Mapping):
+        raise ValueError(f"expected {LAYOUT}; got a {type(document).__name__} (not a parameter file)")
+    merged: dict[str, Any] = {}
+    blocks = [key for key in document if str(key).rstrip("/").split("/")[-1] == TRAINER_NODE]
+    for key in (["/**"] if "/**" in document else []) + blocks:
+        block = document[key]
+        parameters = block.get("ros__parameters") if isinstance(block, Mapping) else None
+        if not isinstance(parameters, Mapping):
+            raise ValueError(f"'{key}' must hold a mapping 'ros__parameters:'; expected {LAYOUT}")
+        flat = _flatten(parameters)
+        # the wildcard block is every node's; the trainer's own block holds its parameters and the head's
+        known = _package_parameter_names() if key == "/**" else set(TRAINER_PARAMETERS)
+        unknown = sorted(name for name in flat
+                         if not (_known(name, known) or (key != "/**" and name.startswith("head."))))
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {', '.join(map(repr, unknown))} under '{key}'; the trainer reads "
+                             f"{', '.join(TRAINER_PARAMETERS)}")
+        merged.update(flat)
+    if not any(name in merged for name in GRID_SEARCH_PARAMETERS):
+        raise ValueError(f"no trainer parameters found; expected {LAYOUT}")
+    return merged
+
+
 def training_options(config: Path) -> TrainingOptions:
-    """The trainer's grid search from a parameter file (the keys the rbf_trainer node reads)."""
+    """The trainer's grid search from a parameter file (the keys the rbf_trainer node reads, with its ranges)."""
     def parse(document: Any) -> TrainingOptions:
-        parameters = document.get("/**", {}).get("ros__parameters", {}) if isinstance(document, Mapping) else {}
+        parameters = trainer_parameters(document)
         defaults = TrainingOptions()
-        return TrainingOptions(**{name: parameters.get(name, getattr(defaults, name))
-                                  for name in ("spreads_mm", "mse_goals_mm2", "tps_smoothings", "folds", "seed")})
+        options = {}
+        for key, positive, allow_empty in (("spreads_mm", True, False), ("mse_goals_mm2", True, False),
+                                           ("tps_smoothings", False, True)):
+            if key in parameters:
+                options[key] = _numbers(parameters[key], key, positive=positive, allow_empty=allow_empty)
+        if "folds" in parameters:
+            options["folds"] = as_integer_at_least(parameters["folds"], "trainer parameter 'folds'", 2)
+            if options["folds"] > 50:
+                raise ValueError(f"trainer parameter 'folds' must be at most 50, got {options['folds']}")
+        if "seed" in parameters:
+            options["seed"] = as_integer_at_least(parameters["seed"], "trainer parameter 'seed'", 0)
+        if "cv_block_mm" in parameters:
+            block = as_config_number(parameters["cv_block_mm"], "cv_block_mm", "trainer parameter")
+            if block < 0.0:
+                raise ValueError(f"trainer parameter 'cv_block_mm' must be >= 0, got {block:g}")
+            options["block_mm"] = block or None
+        return TrainingOptions(**{name: options.get(name, getattr(defaults, name))
+                                  for name in ("spreads_mm", "mse_goals_mm2", "tps_smoothings", "folds", "seed",
+                                               "block_mm")})
     return read_config_file(config, "parameter file", parse)
 
 
@@ -71,6 +161,7 @@ def train_file(measured_csv: Path, head_file: Path, config: Path, physics_first:
     if plane_z_mm is None:
         plane_z_mm = commanded_height if commanded_height is not None else 0.0
     geometry, _known = load_head_config(head_file)
+    check_calibration_plane(geometry, plane_z_mm)      # before the training, not when the file is loaded
     aligned = align_rigid_2d(measured, commanded)[1]
     # Commanding Q through the nominal model landed at P: Q - P is the correction to add at P.
     corrections = commanded - aligned
@@ -113,13 +204,13 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--plane-z", type=float, default=None,
                         help="height the targets were commanded at (mm; default: mean z_cmd of the CSV, else 0)")
     args = parser.parse_args(argv)
-    report_path = args.out.with_name(args.out.name + ".report.md")
     try:
         if args.plane_z is not None and not np.isfinite(args.plane_z):
             raise ValueError(f"--plane-z must be finite, got {args.plane_z}")
-        for output in (args.out, report_path):
-            if not output.parent.is_dir():
-                raise ValueError(f"cannot write {output}: folder {output.parent} does not exist")
+        # both outputs checked before the training: a device, FIFO, folder or symlink is refused
+        require_regular_output(args.out)
+        report_path = args.out.with_name(args.out.name + ".report.md")
+        require_regular_output(report_path)
         record, report = train_file(args.measured, args.head or default_head_config_path(),
                                     args.config or config_path("gls.yaml"), args.physics_first, args.plane_z)
         text = dump_record(record)
@@ -130,10 +221,10 @@ def main(argv: Optional[list[str]] = None) -> int:
     try:   # the report first: a failed calibration write then leaves no new report behind
         atomic_write_text(report_path, report)
         atomic_write_text(args.out, text)
-    except OSError as error:
+    except (OSError, ValueError) as error:   # ValueError: an output replaced by a non-regular file meanwhile
         if not report_existed:
             report_path.unlink(missing_ok=True)
-        print(f"cannot write {args.out}: {error.strerror or error}", file=sys.stderr)
+        print(f"cannot write {args.out}: {getattr(error, 'strerror', None) or error}", file=sys.stderr)
         return 2
     print(f"calibration written to {args.out} ({record['hyper_parameters']['trained_models'][0]['method']}); "
           f"report {report_path}")
