@@ -15,7 +15,10 @@ from gls_calibration.kinematics import HeadGeometry, inverse
 from gls_calibration.optics import PhysicalHead
 from gls_calibration.report import ReportData, write_report
 from test_cli_discrepancy import TARGETS, measured_rows
-from test_cli_measure import _save_npz, scan  # noqa: F401  (module fixture: a rendered 3x3 plate)
+import test_cli_measure
+from test_cli_measure import _save_npz
+
+scan = test_cli_measure.scan      # module fixture: a rendered 3x3 plate
 
 
 def _csv(path, header, rows):

@@ -12,7 +12,9 @@ from gls_calibration.cli import calibrate, export, sim_cell, train
 from gls_calibration.cli.correct import main as correct_main
 from gls_calibration.config_files import config_path
 from gls_calibration.training import TrainingOptions
-from test_offline_tools import calibration_file  # noqa: F401  (fixture: a TPS calibration over 190 mm)
+import test_offline_tools
+
+calibration_file = test_offline_tools.calibration_file      # fixture: a TPS calibration over 190 mm
 
 
 def files_in(folder: Path) -> list[str]:
