@@ -42,13 +42,20 @@ the table and its 3 x 3 interpolation check per cell are evaluated (measured: 1.
 points), so the limit keeps an export near 2.5 GB; it allows a 0.2 mm pitch over a 190 mm field."""
 
 
+def axis_points(low: float, high: float, pitch_mm: float) -> float:
+    """Table points along one axis from ``low`` to ``high`` at ``pitch_mm`` (inf when absurdly many:
+    counted as a float first, so a tiny pitch never reaches an allocation)."""
+    ratio = (high - low) / pitch_mm
+    return math.ceil(ratio - 1e-9) + 1 if math.isfinite(ratio) and ratio < 1e12 else math.inf
+
+
 def table_axes(correction: Correction, pitch_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """Grid axes from the region's low corner at ``pitch_mm``, covering the whole region."""
     region = correction.calibrated_region
     if region is None:
         raise ValueError("the calibration holds no model: there is nothing to tabulate")
     def axis(low: float, high: float) -> np.ndarray:
-        return low + pitch_mm * np.arange(math.ceil((high - low) / pitch_mm - 1e-9) + 1)
+        return low + pitch_mm * np.arange(axis_points(low, high, pitch_mm))
     return axis(region.x_min, region.x_max), axis(region.y_min, region.y_max)
 
 
@@ -60,12 +67,9 @@ def table_size_problem(correction: Correction, pitch_mm: float, heights: int) ->
     if region is None:
         return ""   # table_axes names that problem
     width, height = region.x_max - region.x_min, region.y_max - region.y_min
-    ratios = (width / pitch_mm, height / pitch_mm)   # a float: a tiny pitch gives inf, not an allocation
-    if all(math.isfinite(ratio) and ratio < 1e12 for ratio in ratios):
-        points = math.prod(math.ceil(ratio - 1e-9) + 1 for ratio in ratios) * heights   # as table_axes
-        count = f"{points:,}"
-    else:
-        points, count = math.inf, "more than 10^24"
+    points = (axis_points(region.x_min, region.x_max, pitch_mm) * axis_points(region.y_min, region.y_max, pitch_mm)
+              * heights)
+    count = f"{points:,}" if math.isfinite(points) else "more than 10^24"
     if points > MAX_TABLE_POINTS:
         return (f"table would have {count} points (limit {MAX_TABLE_POINTS:,}: about 2.5 kB of memory each "
                 f"while computed); choose a larger --pitch (or fewer --z heights)")

@@ -20,9 +20,8 @@ import time
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
-import yaml
 
-from gls_calibration.config_files import config_path
+from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.simulation.measurement import PRESETS
 from gls_calibration.simulation.world import load_sim_config
 from gls_calibration.sweep_plan import parse_plan
@@ -52,11 +51,16 @@ def max_iterations() -> int:
     """Most iterations the cell's manager accepts: ``max_iterations`` of config/gls.yaml, the file it
     is given (``procedure.ProcedureSettings``' default when the file does not say)."""
     from gls_calibration.procedure import ProcedureSettings
+
+    def parse(document) -> object:
+        try:
+            return document["/**"]["ros__parameters"].get("max_iterations", ProcedureSettings.max_iterations)
+        except (KeyError, TypeError, AttributeError):
+            return None
     try:
-        parameters = yaml.safe_load(config_path("gls.yaml").read_text())["/**"]["ros__parameters"]
-        value = parameters.get("max_iterations", ProcedureSettings.max_iterations)
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
-        value = ProcedureSettings.max_iterations
+        value = read_config_file(config_path("gls.yaml"), "parameter file", parse)
+    except ValueError:
+        value = None
     return value if isinstance(value, int) and not isinstance(value, bool) and value >= 1 \
         else ProcedureSettings.max_iterations
 
