@@ -32,7 +32,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.rbf import BLOCK_ROWS, DeviationModel
+from gls_calibration.rbf import BLOCK_ROWS, TILED_MIN_ROWS, DeviationModel
 from gls_calibration.validation import (as_coordinate_arrays, as_finite_array, as_integer_at_least,
                                         as_non_negative_number, as_points)
 
@@ -176,6 +176,14 @@ class Correction:
             combined = self.calibrated_region.intersection(region)
         return Correction(self.geometry, self.models + (model,), combined, self.taper_mm)
 
+    def prepare(self) -> None:
+        """Build what the models evaluate large requests with (a spline's tiles: 60-150 ms) now, not
+        on the first large request; safe to call from another thread while this correction serves."""
+        for model in self.models:
+            prepare = getattr(model, "prepare", None)
+            if prepare is not None:
+                prepare()
+
     def deviation(self, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Summed, clamped and tapered model correction (dx, dy) in mm and the inside flags."""
         x, y, _ = as_coordinate_arrays(x, y)
@@ -287,7 +295,9 @@ class Correction:
                                   np.array([within]))
 
 
-_MIN_ROWS_PER_WORKER = 8 * BLOCK_ROWS     # below this a thread's hand-over costs more than it saves
+# Below this a thread's hand-over costs more than it saves; and no part may fall below the size from
+# which a spline changes its evaluator (a target's value must not depend on the sharing).
+_MIN_ROWS_PER_WORKER = max(8 * BLOCK_ROWS, TILED_MIN_ROWS)
 _pool_lock = threading.Lock()
 _shared_pool: list[tuple[int, ThreadPoolExecutor]] = []    # (threads, pool): one, replaced by a larger one
 
@@ -301,13 +311,17 @@ def available_workers() -> int:
 
 
 def _worker_slices(count: int, workers: int) -> list[slice]:
-    """Contiguous parts of ``count`` targets for up to ``workers`` threads, cut at multiples of BLOCK_ROWS."""
+    """Contiguous parts of ``count`` targets for up to ``workers`` threads, cut at multiples of BLOCK_ROWS,
+    none shorter than ``_MIN_ROWS_PER_WORKER`` (a short last part joins the one before it)."""
     workers = max(1, min(workers, count // _MIN_ROWS_PER_WORKER))
     if workers == 1:
         return [slice(0, count)]
     size = -(-count // workers)
     size = -(-size // BLOCK_ROWS) * BLOCK_ROWS
-    return [slice(start, min(start + size, count)) for start in range(0, count, size)]
+    starts = list(range(0, count, size))
+    if count - starts[-1] < _MIN_ROWS_PER_WORKER:
+        starts.pop()
+    return [slice(start, end) for start, end in zip(starts, starts[1:] + [count])]
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:

@@ -21,6 +21,7 @@ from typing import Any, Optional, Protocol
 import cv2
 import numpy as np
 
+from gls_calibration import tps_tiles
 from gls_calibration.validation import (as_integer_at_least, as_matching_points, as_non_negative_number,
                                         as_points, as_positive_number, require_key, require_type)
 
@@ -29,6 +30,10 @@ LN2 = math.log(2.0)
 # only on the block it falls in: batches split at multiples of it give bit-identical results.
 BLOCK_ROWS = 512
 _SMALL_BATCH = 64            # up to this many points, plain differences beat any set-up
+# From this many points on, a thin-plate spline sums its kernels through its tiled evaluator
+# (gls_calibration.tps_tiles; below, its fixed cost per tile outweighs the saving). The correction's
+# worker threads never get fewer rows, so a target's value does not depend on how a request is shared.
+TILED_MIN_ROWS = 8 * BLOCK_ROWS
 
 
 _thread_scratch = threading.local()
@@ -369,6 +374,21 @@ class ThinPlateSplineModel:
         # phi = 0.5 r^2 ln r^2: the 0.5 goes into the weights.
         self._half_weights = np.ascontiguousarray(0.5 * self.weights)
         self._centres_by_axis = np.ascontiguousarray(self.centres.T)
+        self._tiles_lock = threading.Lock()
+        self._tiles: Optional[list] = None      # [evaluator or None] once built (on the first large batch)
+
+    def prepare(self) -> None:
+        """Build the evaluator of large batches now rather than on the first large batch."""
+        self._tiled()
+
+    def _tiled(self) -> Optional[tps_tiles.TiledKernelSum]:
+        """The tiled evaluator, built once on first use (60-150 ms; loading a file stays fast), or None
+        where it failed its accuracy check."""
+        if self._tiles is None:
+            with self._tiles_lock:
+                if self._tiles is None:
+                    self._tiles = [tps_tiles.build(self.centres, self._half_weights)]
+        return self._tiles[0]
 
     def at_point(self, x: float, y: float) -> tuple[float, float]:
         """Predicted deviation (mm) at one point (mm): the same value as ``model([[x, y]])``, faster."""
@@ -396,6 +416,24 @@ class ThinPlateSplineModel:
         if points.shape[0] <= _SMALL_BATCH:
             result += self._kernel_part(points)
             return result
+        tiled = self._tiled() if points.shape[0] >= TILED_MIN_ROWS else None
+        if tiled is not None:
+            if tiled.covers(points):
+                result += tiled(points)
+                return result
+            inside = tiled.inside(points)
+            # Beyond the centres' box (never from Correction, which clamps to the calibrated region).
+            result[inside] += tiled(points[inside])
+            result[~inside] = self._blocks(points[~inside])
+            return result
+        return self._blocks(points, result)
+
+    def _blocks(self, points: np.ndarray, result: Optional[np.ndarray] = None) -> np.ndarray:
+        """The spline (M, 2) at ``points`` (M, 2) summed exactly block by block (added to ``result``
+        when given: its affine part)."""
+        if result is None:
+            result = points @ self.affine[1:]
+            result += self.affine[0]
         rows = min(BLOCK_ROWS, points.shape[0])
         augmented = _scratch("augmented", rows, 4)
         augmented[:, 3] = 1.0

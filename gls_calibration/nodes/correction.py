@@ -13,6 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
+import threading
 from typing import Any, Optional
 
 import numpy as np
@@ -61,7 +62,7 @@ class CorrectionNode(GlsNode):
         self.max_targets = self.declare(
             "max_targets", 1_000_000, "most targets in one correct_setpoints request (about 300 bytes of "
             "memory each while served)", minimum=1, maximum=10_000_000)
-        self.chunk_targets = self.declare("chunk_targets", 20_000, "targets computed between two chances for "
+        self.chunk_targets = self.declare("chunk_targets", 50_000, "targets computed between two chances for "
                                           "other requests to be served", minimum=100, maximum=10_000_000)
         self.workers = self.declare("workers", 0, "threads that share a large request (0: every CPU the "
                                     "process may use; the answer is the same whatever their number)",
@@ -126,6 +127,8 @@ class CorrectionNode(GlsNode):
             self._serve(None, str(self.store.pointer_path), problem)
             return False, problem
         self._serve(correction, str(path), "", *record_identity(record), summary=record_summary(record))
+        # Off the executor: a large request arriving meanwhile waits for it, nothing else does.
+        threading.Thread(target=correction.prepare, name="correction-prepare", daemon=True).start()
         self.get_logger().info(f"calibration {self.served.calibration_id} loaded from {path}")
         return True, f"calibration {self.served.calibration_id} loaded from {path}"
 
