@@ -148,8 +148,11 @@ class FiducialMeasurement:
     accepted fiducial (reason ``duplicate``; two fiducials merged into one detection are rejected
     with the reason ``merged`` instead), ``rejected`` all candidates turned down; those are listed in
     ``rejected_centres`` (J, 3) with ``rejected_reasons`` (J,), ``rejected_sigma_xy_mm`` (J, 2)
-    and ``rejected_coverage`` (J,). ``missing`` is ``expected_count - K`` (negative for extra
-    centres) or None. ``image_shape`` is (rows, columns) of the analysed image and
+    and ``rejected_coverage`` (J,).
+    ``missing`` (int) is ``max(0, expected_count - K)``, the expected fiducials not found; never negative.
+    ``extra`` (int) is ``max(0, K - expected_count)``, the fiducials found beyond the expected count.
+    Both are None when no count was expected; ``extra`` also when unknown (rebuilt from a message).
+    ``image_shape`` is (rows, columns) of the analysed image and
     ``pixel_pitch_mm`` its (row, column) pitch. Arrays not given (a result rebuilt from a message)
     default to NaN of the right shape, the rejected list to empty.
     """
@@ -171,6 +174,7 @@ class FiducialMeasurement:
     rejected_reasons: tuple[str, ...] = ()
     rejected_sigma_xy_mm: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
     rejected_coverage: np.ndarray = field(default_factory=lambda: np.empty(0))
+    extra: int | None = None    # defaulted: the service response carries ``missing`` only
 
     def __post_init__(self) -> None:
         count = len(np.asarray(self.centres).reshape(-1, 3))
@@ -1091,7 +1095,9 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=(2.5, 2.
         centres=pose.from_plane(centres_uv[kept]).reshape(-1, 3), centres_plane=centres_uv[kept],
         quality=fit["rms"][kept], radii=fit["radii"][kept, -1], inner_radii=fit["radii"][kept, 0],
         merged=int(np.count_nonzero(reasons == "duplicate")), rejected=int(len(turned_down)),
-        missing=None if expected_count is None else int(expected_count) - len(kept),
+        # Split so neither count goes negative: a shortfall and a surplus mean different things.
+        missing=None if expected_count is None else max(0, int(expected_count) - len(kept)),
+        extra=None if expected_count is None else max(0, len(kept) - int(expected_count)),
         image_shape=(height, width), pixel_pitch_mm=plate.pitch,
         sigma_xy_mm=sigma_xy[kept], sigma_plane_mm=sigma_plane[kept], coverage=fit["coverage"][kept],
         rejected_centres=pose.from_plane(centres_uv[turned_down]).reshape(-1, 3),

@@ -258,6 +258,28 @@ def test_fiducial_measurement_refuses_bad_clouds_and_poses_and_then_measures(ros
     assert good.success and len(good.x) == 3, good.message
 
 
+def test_fiducial_measurement_logs_a_surplus_and_answers_missing_never_negative(ros_context, add_node, client,
+                                                                                  monkeypatch):
+    node = add_node(FiducialMeasurementNode(context=ros_context))
+    warnings = []
+    monkeypatch.setattr(node.get_logger(), "warning", lambda message, **_: warnings.append(message))
+    measure = client(MeasureFiducials, "fiducials/measure")
+    centres = np.array([[-10.0, -10.0], [10.0, -10.0], [0.0, 10.0]])
+    xyz, intensity = render_plate_scan(centres, size_mm=(40.0, 40.0), offset_mm=(0.0, 0.0, 300.0))
+    request = MeasureFiducials.Request(cloud=cloud_to_msg(xyzi_array(xyz, intensity), "scanner"),
+                                       pose=plate_pose_to_msg(estimate_plate_pose(xyz)))
+    for expected_count, missing in ((4, 1), (3, 0), (0, 0)):   # 0: nothing expected
+        request.expected_count = expected_count
+        response = measure(request)
+        assert response.success and len(response.x) == 3 and response.missing == missing, response.message
+    assert warnings == []
+    request.expected_count = 1
+    response = measure(request)
+    assert response.success and len(response.x) == 3 and response.missing == 0, response.message
+    assert warnings == ["3 fiducials found, 2 more than the 1 expected: check expected_count or the scan for "
+                        "spurious rings"]
+
+
 def test_trainer_refuses_bad_training_data_and_then_trains(ros_context, add_node, client):
     add_node(RbfTrainerNode(context=ros_context, parameter_overrides=[Parameter("max_points", value=100)]))
     train = client(TrainCorrection, "rbf/train")

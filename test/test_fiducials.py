@@ -140,7 +140,20 @@ def test_missing_and_extra_counts(truth, clean):
     xyz, intensity = render_plate_scan(truth, tilt_rad=TILT, offset_mm=OFFSET, size_mm=(60.0, 60.0), seed=1)
     pose = estimate_plate_pose(xyz)
     assert measure_fiducials(xyz, intensity, pose, expected_count=27).missing == 2
-    assert measure_fiducials(xyz, intensity, pose, expected_count=23).missing == -2
+    surplus = measure_fiducials(xyz, intensity, pose, expected_count=23)
+    assert surplus.missing == 0 and surplus.extra == 2
+
+
+@pytest.mark.parametrize("expected_count, missing, extra", [
+    (28, 3, 0),          # fewer found than expected
+    (25, 0, 0),          # exactly as many
+    (21, 0, 4),          # more found: the surplus goes to extra, missing never goes negative
+    (None, None, None),  # nothing expected
+])
+def test_missing_and_extra_split_the_difference_to_the_expected_count(truth, expected_count, missing, extra):
+    measurement, _ = _measure(truth, seed=1, measure_kwargs=dict(expected_count=expected_count))
+    assert len(measurement.centres) == len(truth) == 25
+    assert (measurement.missing, measurement.extra) == (missing, extra)
 
 
 def test_duplicates_keep_the_most_certain_of_close_centres():

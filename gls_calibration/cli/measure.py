@@ -182,8 +182,8 @@ def summary(measurement: FiducialMeasurement, pose: PlatePose, args, seconds: fl
         "accepted": len(measurement.centres),
         "rejected": int(measurement.rejected),
         "rejected_by_reason": dict(Counter(measurement.rejected_reasons)),
-        "missing": max(0, expected - len(measurement.centres)),      # never negative: extra ones are "extra"
-        "extra": max(0, len(measurement.centres) - expected),
+        "missing": measurement.missing,
+        "extra": measurement.extra,
         "sigma_x_um": stats(sigma_um[:, 0]),
         "sigma_y_um": stats(sigma_um[:, 1]),
         "coverage": ({"median": float(np.median(measurement.coverage)), "min": float(np.min(measurement.coverage))}
@@ -235,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as error:
         print(f"gls-measure: cannot write to {args.out}: {error}", file=sys.stderr)
         return 2
-    if found > args.grid**2:
+    if measurement.extra:
         print(f"gls-measure: warning: {found} fiducials accepted, more than the {args.grid**2} of a "
               f"{args.grid}x{args.grid} grid: check --grid", file=sys.stderr)
     print(f"{found} of {args.grid**2} fiducials accepted, {measurement.rejected} candidate(s) rejected "

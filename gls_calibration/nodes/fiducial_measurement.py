@@ -28,6 +28,11 @@ class FiducialMeasurementNode(GlsNode):
             xyz, intensity, pose, ring_radii_mm=self.ring_radii_mm, pixel_size_mm=self.pixel_size_mm,
             expected_count=request.expected_count or None, marks_darker=self.marks_darker)
         conversions.fiducials_to_response(measurement, response)
+        if measurement.extra:
+            # The response has no field for a surplus (missing is then 0), so say it here.
+            self.get_logger().warning(
+                f"{len(measurement.centres)} fiducials found, {measurement.extra} more than the "
+                f"{request.expected_count} expected: check expected_count or the scan for spurious rings")
         response.success = True
         response.message = f"{len(measurement.centres)} fiducials found"
         return response
