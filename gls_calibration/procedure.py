@@ -91,6 +91,9 @@ class Cell(Protocol):
         plain plate carries no old marks. Not a coroutine: the cloud is here."""
 
 
+ITERATIONS_LIMIT = 10    # most iterations max_iterations (and default_iterations) may allow: the manager's range
+
+
 @dataclass(frozen=True)
 class ProcedureSettings:
     """Settings of one calibration (mm unless named otherwise)."""

@@ -8,10 +8,11 @@ simulation) trains the same way.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Any, Mapping, Optional, Sequence
 
 from gls_calibration import rbf
 from gls_calibration.kinematics import HeadGeometry
+from gls_calibration.parameter_specs import ParameterSpec
 from gls_calibration.physical_model import train_physics_then_rbf
 from gls_calibration.validation import as_matching_points
 
@@ -45,6 +46,43 @@ class TrainingOptions:
         return dict(spreads_mm=tuple(self.spreads_mm), mse_goals_mm2=tuple(self.mse_goals_mm2),
                     tps_smoothings=tuple(self.tps_smoothings), folds=self.folds, seed=self.seed,
                     block_mm=self.block_mm)
+
+
+_DEFAULTS = TrainingOptions()
+# The rbf_trainer node's parameters: the node declares them from this table and ``gls-train --config``
+# checks a parameter file against it, so both take and refuse the same values.
+TRAINER_PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec("spreads_mm", list(_DEFAULTS.spreads_mm), "Gaussian spreads tried by the grid search (mm)",
+                  kind="numbers"),
+    ParameterSpec("mse_goals_mm2", list(_DEFAULTS.mse_goals_mm2),
+                  "training MSE goals tried by the grid search (mm^2)", kind="numbers"),
+    ParameterSpec("tps_smoothings", list(_DEFAULTS.tps_smoothings),
+                  "thin-plate-spline smoothings tried ([] disables the TPS)", minimum=0.0, kind="numbers",
+                  allow_empty=True),
+    ParameterSpec("folds", _DEFAULTS.folds, "folds of the cross-validation", minimum=2, maximum=50, kind="integer"),
+    ParameterSpec("seed", _DEFAULTS.seed, "seed of the fold assignment", minimum=0, kind="integer"),
+    ParameterSpec("cv_block_mm", 0.0, "side of the square blocks held out together by the cross-validation (mm): "
+                  "honest when measurement errors are correlated between neighbours; 0: points at random",
+                  minimum=0.0),
+    ParameterSpec("physics_first", False, "fit the named physical effects first and the RBF on what they leave "
+                  "(needs deviations of a plate marked through the nominal model)", kind="flag"),
+    ParameterSpec("max_points", 5000, "most training points of one request", minimum=3, maximum=100_000,
+                  kind="integer"),
+)
+GRID_SEARCH_PARAMETERS = ("spreads_mm", "mse_goals_mm2", "tps_smoothings", "folds", "seed", "cv_block_mm")
+
+
+def training_options_from(values: Mapping[str, Any]) -> TrainingOptions:
+    """The grid search of checked trainer parameter values (names as in TRAINER_PARAMETERS; a missing
+    one keeps its default)."""
+    options = {("block_mm" if name == "cv_block_mm" else name): values[name]
+               for name in GRID_SEARCH_PARAMETERS if name in values}
+    for field in ("spreads_mm", "mse_goals_mm2", "tps_smoothings"):
+        if field in options:
+            options[field] = tuple(float(value) for value in options[field])
+    if "block_mm" in options:
+        options["block_mm"] = options["block_mm"] or None     # 0: points at random
+    return TrainingOptions(**options)
 
 
 def train_correction(landed_xy, corrections, geometry: Optional[HeadGeometry] = None, *,

@@ -148,6 +148,19 @@ def no_cell(monkeypatch):
     (["--iterations", "4"], "--iterations must be between 1 and 3 (the manager's max_iterations), got 4"),
     (["--iterations", "0"], "--iterations must be between 1 and 3"),
     (["--grid", "102"], "--grid must be between 3 and 101, got 102"),
+    # --iterations against a max_iterations override of the manager
+    (["--iterations", "3", "--ros-args", "-p", "max_iterations:=2"],
+     "--iterations must be between 1 and 2 (the manager's max_iterations, set by -p max_iterations:=2), got 3"),
+    (["--iterations", "3", "--ros-args", "--param", "max_iterations:=2"], "between 1 and 2"),
+    # a node-prefixed rule beats the others, but rcl applies it only to a manager in the root namespace
+    (["--iterations", "5", "--ros-args", "-p", "calibration_manager:max_iterations:=5"], "between 1 and 3"),
+    (["--namespace", "/", "--iterations", "4", "--ros-args", "-p", "calibration_manager:max_iterations:=3",
+      "-p", "max_iterations:=5"], "between 1 and 3 (the manager's max_iterations, set by -p calibration_manager:"),
+    (["--ros-args", "-p", "max_iterations:=abc"],
+     "--ros-args -p max_iterations:=abc: the manager's max_iterations must be an integer between 1 and 10, got 'abc'"),
+    (["--ros-args", "-p", "max_iterations:=2.0"], "max_iterations must be an integer between 1 and 10, got '2.0'"),
+    (["--ros-args", "-p", "max_iterations:=11"], "max_iterations must be an integer between 1 and 10, got '11'"),
+    (["--ros-args", "-p", "max_iterations:=0"], "max_iterations must be an integer between 1 and 10, got '0'"),
 ])
 def test_gls_sim_cell_refuses_bad_options_before_starting_or_creating_anything(tmp_path, capsys, no_cell,
                                                                               options, message):
@@ -234,3 +247,118 @@ def test_gls_export_refuses_a_pitch_that_leaves_no_cell_inside_the_field(tmp_pat
     assert ("--pitch 1000 mm leaves no table cell inside the calibrated field (190 x 190 mm)" in error
             and len(error.splitlines()) == 1), error
     assert not out.exists()
+
+
+# --- F: gls-sim-cell --iterations against a max_iterations the ROS arguments set -------------------------
+
+@pytest.mark.parametrize("ros, iterations", [
+    (["-p", "max_iterations:=5"], "5"),
+    (["--param", "max_iterations:=5"], "4"),
+    (["-p", "max_iterations:=2", "-p", "max_iterations:=6"], "6"),     # the last rule wins, as for rcl
+])
+def test_gls_sim_cell_takes_the_iterations_a_max_iterations_override_allows(tmp_path, no_cell, ros, iterations):
+    args = sim_cell.parse_args(["--out", str(tmp_path / "cell"), "--iterations", iterations, "--ros-args", *ros])
+    assert args.iterations == int(iterations) and not (tmp_path / "cell").exists()
+
+
+@pytest.mark.parametrize("options", [
+    ["--iterations", "5", "--ros-args", "-p", "max_iterations:=5"],
+    ["--iterations", "2", "--ros-args", "--param", "max_iterations:=2"],
+    ["--namespace", "/", "--iterations", "4", "--ros-args", "-p", "calibration_manager:max_iterations:=4",
+     "-p", "max_iterations:=2"],
+    ["--iterations", "3", "--ros-args", "-p", "calibration_manager:max_iterations:=7"],
+])
+def test_gls_sim_cell_and_its_manager_read_the_same_max_iterations(tmp_path, options):
+    # the manager started with the cell's ROS arguments, as main() gives them: its limit is the tool's
+    from gls_calibration.nodes.calibration_manager import CalibrationManager
+    args = sim_cell.parse_args(["--out", str(tmp_path / "cell"), *options])
+    context = sim_cell.rclpy.Context()
+    cell_arguments = sim_cell.ros_arguments(args, tmp_path / "store", tmp_path)
+    sim_cell.rclpy.init(args=cell_arguments + ["--", *args.user_ros_arguments], context=context)
+    try:
+        manager = CalibrationManager(context=context, namespace=sim_cell.cell_namespace(args))
+        assert manager.settings.max_iterations == sim_cell.iterations_limit(sim_cell.manager_parameter_override(
+            args.user_ros_arguments, sim_cell.cell_namespace(args), "max_iterations"))
+        manager.destroy_node()
+    finally:
+        context.try_shutdown()
+
+
+def test_gls_sim_cell_help_names_the_max_iterations_override(capsys):
+    with pytest.raises(SystemExit):
+        sim_cell.parse_args(["--help"])
+    assert "or N when '--ros-args -p max_iterations:=N' sets it" in " ".join(capsys.readouterr().out.split())
+
+
+# --- G: one table of the trainer's parameters, read by the node and by gls-train --config --------------------
+
+def trainer_config(folder: Path, line: str) -> Path:
+    config = folder / "trainer.yaml"
+    config.write_text(f"rbf_trainer:\n  ros__parameters:\n    {line}\n")
+    return config
+
+
+def start_trainer(config: Path):
+    """The rbf_trainer node started with ``config`` as its parameter file (the cell's way); shut down by the caller."""
+    from gls_calibration.nodes.rbf_trainer import RbfTrainerNode
+    context = sim_cell.rclpy.Context()
+    sim_cell.rclpy.init(args=["node", "--ros-args", "--params-file", str(config)], context=context)
+    try:
+        return RbfTrainerNode(context=context, namespace="")
+    except Exception:
+        context.try_shutdown()
+        raise
+
+
+def test_the_trainer_node_declares_the_table_of_its_parameters(ros_context):
+    from gls_calibration.nodes.rbf_trainer import RbfTrainerNode
+    from gls_calibration.parameter_specs import FLOAT_LIMITS, INTEGER_LIMITS
+    from gls_calibration.training import TRAINER_PARAMETERS
+    node = RbfTrainerNode(context=ros_context)
+    try:
+        declared = {name for name in node._parameters
+                    if not name.startswith("head.") and name not in ("use_sim_time", "start_type_description_service")}
+        assert declared == {spec.name for spec in TRAINER_PARAMETERS}
+        for spec in TRAINER_PARAMETERS:
+            descriptor = node.describe_parameter(spec.name)
+            assert (descriptor.description, descriptor.read_only) == (spec.description, True), spec.name
+            assert node.get_parameter(spec.name).value == spec.default, spec.name
+            ranges = [(r.from_value, r.to_value) for r in (*descriptor.integer_range, *descriptor.floating_point_range)]
+            assert ranges == ([spec.bounds] if spec.bounds else []), spec.name
+            if spec.kind == "integer" and spec.bounds:
+                assert descriptor.integer_range and spec.bounds[1] <= INTEGER_LIMITS[1]
+            if spec.kind == "number" and spec.bounds:
+                assert descriptor.floating_point_range and spec.bounds[1] <= FLOAT_LIMITS[1]
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize("line, message", [
+    ("seed: 2147483648", "trainer parameter 'seed' must be at most 2147483647, got 2147483648"),
+    ("cv_block_mm: 1.7e+308", "trainer parameter 'cv_block_mm' must be at most 1e+308, got 1.7e+308"),
+    ("cv_block_mm: .inf", "trainer parameter 'cv_block_mm' must be a finite number, got inf"),
+    ("cv_block_mm: 5", "trainer parameter 'cv_block_mm' must be a floating-point number"),
+    ("spreads_mm: [25, 35]", "trainer parameter 'spreads_mm' must be a list of floating-point numbers"),
+    ("folds: 3\n    max_points: 2", "trainer parameter 'max_points' must be an integer >= 3, got 2"),
+])
+def test_gls_train_and_the_trainer_node_refuse_the_same_values(tmp_path, capsys, no_training, line, message):
+    config = trainer_config(tmp_path, line)
+    with pytest.raises(Exception):
+        start_trainer(config)
+    measured = measured_csv(tmp_path)
+    assert train.main(["--measured", str(measured), "--out", str(tmp_path / "c.yaml"), "--config", str(config)]) == 2
+    error = capsys.readouterr().err
+    assert message in error and len(error.splitlines()) == 1, error
+    assert not (tmp_path / "c.yaml").exists()
+
+
+@pytest.mark.parametrize("line", ["tps_smoothings: []", "seed: 2147483647", "cv_block_mm: 1.0e+308"])
+def test_gls_train_and_the_trainer_node_take_the_same_values(tmp_path, line):
+    config = trainer_config(tmp_path, line)
+    node = start_trainer(config)
+    try:
+        assert node.options == train.training_options(config)
+    finally:
+        context = node.context
+        node.destroy_node()
+        context.try_shutdown()

@@ -30,6 +30,20 @@ def split_ros_arguments(argv: Sequence[str] | None) -> tuple[list[str], list[str
     return remove_ros_args(["tool"] + argv)[1:], argv
 
 
+def ros_rules(argv: Sequence[str], *flags: str) -> list[str]:
+    """The values given to ``flags`` (e.g. ``-p``, ``--param``) among the ROS arguments of ``argv`` (from
+    ``--ros-args`` to ``--`` or the end), in their order: rcl applies them so, the last one of a name wins."""
+    rules, inside, tokens = [], False, iter(argv)
+    for token in tokens:
+        if token in ("--ros-args", "--"):
+            inside = token == "--ros-args"
+        elif inside and token in flags:
+            value = next(tokens, None)
+            if value is not None:
+                rules.append(value)
+    return rules
+
+
 @contextmanager
 def client_node(name: str, namespace: str, ros_arguments: Sequence[str] = ()
                 ) -> Iterator[tuple[Node, SingleThreadedExecutor]]:

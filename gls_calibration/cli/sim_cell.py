@@ -17,11 +17,14 @@ from pathlib import Path
 import shutil
 import sys
 import time
+from typing import Optional
 
 import rclpy
+import yaml
 from rclpy.executors import SingleThreadedExecutor
 
 from gls_calibration.config_files import config_path, read_config_file
+from gls_calibration.procedure import ITERATIONS_LIMIT
 from gls_calibration.simulation.measurement import PRESETS
 from gls_calibration.simulation.world import load_sim_config
 from gls_calibration.sweep_plan import parse_plan
@@ -36,13 +39,15 @@ from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import SimScannerNode
 from gls_calibration.cli import timeout_seconds
-from gls_calibration.cli.client import ProgressBar, call_and_wait, split_ros_arguments, summary_table
+from gls_calibration.cli.client import (ProgressBar, call_and_wait, ros_rules, split_ros_arguments,
+                                        summary_table)
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import Calibrate
 
 NODE_TYPES = (SimGalvoNode, SimScannerNode, ScanAcquisitionNode, PlatePoseNode, FiducialMeasurementNode,
               RbfTrainerNode, CorrectionNode, CalibrationManager)
 
+MANAGER_NODE = "calibration_manager"
 SEED_MAX = 2 ** 31 - 1    # the nodes declare ``seed`` as an integer parameter in [0, 2^31 - 1]
 GRID_MAX = 101            # the manager's range of ``grid.per_side`` (3 to 101)
 
@@ -63,6 +68,41 @@ def max_iterations() -> int:
         value = None
     return value if isinstance(value, int) and not isinstance(value, bool) and value >= 1 \
         else ProcedureSettings.max_iterations
+
+
+def manager_parameter_override(ros_arguments: list[str], namespace: str, name: str) -> Optional[str]:
+    """The ``-p``/``--param`` rule of ``ros_arguments`` that sets the cell manager's parameter ``name``
+    (None when none does), as rcl picks it: the last ``calibration_manager:name:=V``, which beats any
+    ``name:=V`` but reaches only a manager in the root namespace (rcl matches the node's full name), else
+    the last ``name:=V``. ``namespace``: the cell's, unless a ``-r __ns:=...`` rule moves the nodes."""
+    for rule in ros_rules(ros_arguments, "-r", "--remap"):
+        target, _, value = rule.partition(":=")
+        if target in ("__ns", f"{MANAGER_NODE}:__ns"):
+            namespace = value
+    everyone = own = None
+    for rule in ros_rules(ros_arguments, "-p", "--param"):
+        target = rule.partition(":=")[0]
+        if target == name:
+            everyone = rule
+        elif target == f"{MANAGER_NODE}:{name}" and not namespace.strip("/"):
+            own = rule
+    return own or everyone
+
+
+def iterations_limit(override: Optional[str]) -> int:
+    """The manager's ``max_iterations`` given by the ``-p`` rule ``override`` (config/gls.yaml's
+    without one); ValueError naming the rule when the manager would not take its value."""
+    if override is None:
+        return max_iterations()
+    text = override.partition(":=")[2]
+    try:
+        value = yaml.safe_load(text)    # how rcl reads a -p value
+    except yaml.YAMLError:
+        value = None
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= ITERATIONS_LIMIT:
+        raise ValueError(f"--ros-args -p {override}: the manager's max_iterations must be an integer between 1 and "
+                         f"{ITERATIONS_LIMIT}, got {text!r}")
+    return value
 
 
 def output_folder_problem(folder: Path) -> str:
@@ -87,10 +127,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=1,
                         help=f"seed of the simulated cell's random draws (0 to {SEED_MAX})")
     parser.add_argument("--grid", type=int, default=19, help=f"fiducials per side of the grid (3 to {GRID_MAX})")
-    most_iterations = max_iterations()
     parser.add_argument("--iterations", type=int, default=1,
-                        help=f"calibration iterations, each on a fresh plate (1 to {most_iterations}, the "
-                             "manager's max_iterations in config/gls.yaml)")
+                        help=f"calibration iterations, each on a fresh plate (1 to {max_iterations()}, the "
+                             "manager's max_iterations in config/gls.yaml, or N when '--ros-args -p "
+                             "max_iterations:=N' sets it)")
     parser.add_argument("--sim-config", type=Path, default=None,
                         help="YAML parameter file of the simulated head's defects and noise "
                              "(default: the package's config/sim.yaml)")
@@ -121,8 +161,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args.user_ros_arguments = user_ros_arguments if own_arguments != user_ros_arguments else []
     if not 3 <= args.grid <= GRID_MAX:
         parser.error(f"--grid must be between 3 and {GRID_MAX}, got {args.grid}")
+    # the manager refuses more iterations than its max_iterations, which a -p rule may set
+    override = manager_parameter_override(user_ros_arguments, cell_namespace(args), "max_iterations")
+    try:
+        most_iterations = iterations_limit(override)
+    except ValueError as error:
+        parser.error(str(error))
     if not 1 <= args.iterations <= most_iterations:
-        parser.error(f"--iterations must be between 1 and {most_iterations} (the manager's max_iterations), "
+        origin = f", set by -p {override}" if override else ""
+        parser.error(f"--iterations must be between 1 and {most_iterations} (the manager's max_iterations{origin}), "
                      f"got {args.iterations}")
     if not 0 <= args.seed <= SEED_MAX:
         parser.error(f"--seed must be between 0 and {SEED_MAX}, got {args.seed}")
@@ -146,6 +193,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     except ValueError as error:
         parser.error(str(error))
     return args
+
+
+def cell_namespace(args: argparse.Namespace) -> str:
+    """The namespace the cell's nodes get (a user's ``-r __ns:=...`` aside)."""
+    return args.namespace or ("gls" if args.serve else f"gls_sim_{os.getpid()}")
 
 
 def reference_plan(args: argparse.Namespace):
@@ -205,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     # "--" ends the cell's ROS arguments; the user's command line follows with its own --ros-args.
     user = ["--", *args.user_ros_arguments] if args.user_ros_arguments else []
     rclpy.init(args=ros_arguments(args, store, args.out) + user, context=context)
-    namespace = args.namespace or ("gls" if args.serve else f"gls_sim_{os.getpid()}")
+    namespace = cell_namespace(args)
     nodes = [node_type(context=context, namespace=namespace) for node_type in NODE_TYPES]
     threads = NodeThreads(nodes)
     try:

@@ -24,8 +24,8 @@ from gls_calibration.correction import CalibratedRegion, check_calibration_plane
 from gls_calibration.head_config import default_head_config_path, load_head_config
 from gls_calibration.persistence import atomic_write_text, dump_record, new_record, require_regular_output
 from gls_calibration.registration import align_rigid_2d
-from gls_calibration.training import TrainingOptions, train_correction
-from gls_calibration.validation import as_config_number, as_integer_at_least
+from gls_calibration.training import (GRID_SEARCH_PARAMETERS, TRAINER_PARAMETERS, TrainingOptions, train_correction,
+                                      training_options_from)
 
 COLUMNS = ("x_cmd", "y_cmd", "x_meas", "y_meas")
 TAPER_MM = 10.0
@@ -56,8 +56,7 @@ def read_measured(path: Path) -> tuple[np.ndarray, np.ndarray, Optional[float]]:
 
 
 TRAINER_NODE = "rbf_trainer"
-GRID_SEARCH_PARAMETERS = ("spreads_mm", "mse_goals_mm2", "tps_smoothings", "folds", "seed", "cv_block_mm")
-TRAINER_PARAMETERS = GRID_SEARCH_PARAMETERS + ("physics_first", "max_points")   # what rbf_trainer declares
+TRAINER_PARAMETER_NAMES = tuple(spec.name for spec in TRAINER_PARAMETERS)   # what rbf_trainer declares
 LAYOUT = (f"a ROS parameter file '/**:' or '{TRAINER_NODE}:' -> 'ros__parameters:' holding the trainer's "
           f"parameters ({', '.join(GRID_SEARCH_PARAMETERS)}), as config/gls.yaml")
 
@@ -77,7 +76,7 @@ def _flatten(parameters: Mapping, prefix: str = "") -> dict[str, Any]:
 def _package_parameter_names() -> set[str]:
     """Every parameter name of the package's own parameter files (gls.yaml, head.yaml, sim.yaml): what
     the cell's nodes read from the ``/**`` block they share."""
-    names: set[str] = set(TRAINER_PARAMETERS)
+    names: set[str] = set(TRAINER_PARAMETER_NAMES)
     for name in ("gls.yaml", "head.yaml", "sim.yaml"):
         document = read_config_file(config_path(name), "parameter file", lambda document: document)
         names |= set(_flatten(document["/**"]["ros__parameters"]))
@@ -87,17 +86,6 @@ def _package_parameter_names() -> set[str]:
 def _known(name: str, known: set[str]) -> bool:
     # head.effects.<effect> is an open list of named effects (head_config checks the names)
     return name in known or name.startswith(("head.effects.", "effects."))
-
-
-def _numbers(value: Any, key: str, *, positive: bool, allow_empty: bool) -> tuple[float, ...]:
-    if not isinstance(value, list) or (not value and not allow_empty):
-        raise ValueError(f"trainer parameter {key!r} must be a {'' if allow_empty else 'non-empty '}list of "
-                         f"numbers, got {value!r}")
-    numbers = tuple(as_config_number(item, key, "trainer parameter") for item in value)
-    if any(number <= 0.0 if positive else number < 0.0 for number in numbers):
-        raise ValueError(f"trainer parameter {key!r} must hold {'positive' if positive else 'non-negative'} "
-                         f"numbers, got {value!r}")
-    return numbers
 
 
 def trainer_parameters(document: Any) -> dict[str, Any]:
@@ -115,12 +103,12 @@ def trainer_parameters(document: Any) -> dict[str, Any]:
             raise ValueError(f"'{key}' must hold a mapping 'ros__parameters:'; expected {LAYOUT}")
         flat = _flatten(parameters)
         # the wildcard block is every node's; the trainer's own block holds its parameters and the head's
-        known = _package_parameter_names() if key == "/**" else set(TRAINER_PARAMETERS)
+        known = _package_parameter_names() if key == "/**" else set(TRAINER_PARAMETER_NAMES)
         unknown = sorted(name for name in flat
                          if not (_known(name, known) or (key != "/**" and name.startswith("head."))))
         if unknown:
             raise ValueError(f"unknown parameter(s) {', '.join(map(repr, unknown))} under '{key}'; the trainer reads "
-                             f"{', '.join(TRAINER_PARAMETERS)}")
+                             f"{', '.join(TRAINER_PARAMETER_NAMES)}")
         merged.update(flat)
     if not any(name in merged for name in GRID_SEARCH_PARAMETERS):
         raise ValueError(f"no trainer parameters found; expected {LAYOUT}")
@@ -131,26 +119,9 @@ def training_options(config: Path) -> TrainingOptions:
     """The trainer's grid search from a parameter file (the keys the rbf_trainer node reads, with its ranges)."""
     def parse(document: Any) -> TrainingOptions:
         parameters = trainer_parameters(document)
-        defaults = TrainingOptions()
-        options = {}
-        for key, positive, allow_empty in (("spreads_mm", True, False), ("mse_goals_mm2", True, False),
-                                           ("tps_smoothings", False, True)):
-            if key in parameters:
-                options[key] = _numbers(parameters[key], key, positive=positive, allow_empty=allow_empty)
-        if "folds" in parameters:
-            options["folds"] = as_integer_at_least(parameters["folds"], "trainer parameter 'folds'", 2)
-            if options["folds"] > 50:
-                raise ValueError(f"trainer parameter 'folds' must be at most 50, got {options['folds']}")
-        if "seed" in parameters:
-            options["seed"] = as_integer_at_least(parameters["seed"], "trainer parameter 'seed'", 0)
-        if "cv_block_mm" in parameters:
-            block = as_config_number(parameters["cv_block_mm"], "cv_block_mm", "trainer parameter")
-            if block < 0.0:
-                raise ValueError(f"trainer parameter 'cv_block_mm' must be >= 0, got {block:g}")
-            options["block_mm"] = block or None
-        return TrainingOptions(**{name: options.get(name, getattr(defaults, name))
-                                  for name in ("spreads_mm", "mse_goals_mm2", "tps_smoothings", "folds", "seed",
-                                               "block_mm")})
+        # the node's own table and checks: a value one refuses, the other refuses too
+        return training_options_from({spec.name: spec.check(parameters[spec.name], "trainer parameter")
+                                      for spec in TRAINER_PARAMETERS if spec.name in parameters})
     return read_config_file(config, "parameter file", parse)
 
 

@@ -21,6 +21,8 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 
+from gls_calibration.parameter_specs import FLOAT_LIMITS, INTEGER_LIMITS, ParameterSpec
+
 DEFAULT_NAMESPACE = "gls"
 POLL_PERIOD_S = 0.05          # how often a pending call checks its deadline and its server
 SERVER_GONE_CONFIRM_S = 0.3   # a server absent from the graph this long is gone (not a discovery blip)
@@ -131,12 +133,12 @@ class GlsNode(Node):
                 raise TypeError(f"parameter {name}: a range makes no sense for a bool")
             if isinstance(default, int):
                 descriptor.integer_range = [IntegerRange(
-                    from_value=int(minimum if minimum is not None else -(2 ** 31)),
-                    to_value=int(maximum if maximum is not None else 2 ** 31 - 1), step=0)]
+                    from_value=int(minimum if minimum is not None else INTEGER_LIMITS[0]),
+                    to_value=int(maximum if maximum is not None else INTEGER_LIMITS[1]), step=0)]
             else:
                 descriptor.floating_point_range = [FloatingPointRange(
-                    from_value=float(minimum if minimum is not None else -1e308),
-                    to_value=float(maximum if maximum is not None else 1e308), step=0.0)]
+                    from_value=float(minimum if minimum is not None else FLOAT_LIMITS[0]),
+                    to_value=float(maximum if maximum is not None else FLOAT_LIMITS[1]), step=0.0)]
         return self.declare_parameter(name, default, descriptor).value
 
     def apply_parameter_changes(self, names: Sequence[str],
@@ -164,6 +166,8 @@ class GlsNode(Node):
         finite, positive (or not negative), not empty unless allowed, of ``length`` when given.
         ValueError naming the parameter otherwise, so a bad value stops the node at start with the reason."""
         values = self.declare(name, default, description)
+        if values is None and allow_empty:
+            values = []    # rcl reads "[]" (file or -p) as no value: an empty list has no element type
         numbers = [float(value) for value in values] if isinstance(values, (list, tuple)) else None
         bound_ok = numbers is not None and all(
             math.isfinite(value) and (value > 0.0 if positive else value >= 0.0) for value in numbers)
@@ -172,6 +176,18 @@ class GlsNode(Node):
             raise ValueError(f"parameter {name}: {size}finite {'positive' if positive else 'non-negative'} "
                              f"numbers are needed, got {values!r}")
         return numbers
+
+    def declare_specs(self, specs: Sequence[ParameterSpec]) -> dict[str, Any]:
+        """Declare the parameters ``specs`` describe (see ``parameter_specs``) and return their values."""
+        values = {}
+        for spec in specs:
+            if spec.kind == "numbers":
+                values[spec.name] = self.declare_numbers(spec.name, list(spec.default), spec.description,
+                                                         positive=spec.positive, allow_empty=spec.allow_empty)
+            else:
+                values[spec.name] = self.declare(spec.name, spec.default, spec.description, minimum=spec.minimum,
+                                                 maximum=spec.maximum)
+        return values
 
     def client(self, srv_type: type, name: str):
         """A client in the reentrant group, so that coroutine callbacks can await it, with a deep

@@ -223,10 +223,11 @@ class CalibrationManager(GlsNode):
                                          "...and this fraction of the RMS deviation it was trained on",
                                          minimum=0.01, maximum=100.0),
             default_iterations=self.declare("default_iterations", defaults.default_iterations,
-                                            "iterations when a request says 0", minimum=1, maximum=10),
+                                            "iterations when a request says 0", minimum=1,
+                                            maximum=procedure.ITERATIONS_LIMIT),
             max_iterations=self.declare("max_iterations", defaults.max_iterations,
                                         "most iterations a request may ask for (each marks a fresh plate)",
-                                        minimum=1, maximum=10),
+                                        minimum=1, maximum=procedure.ITERATIONS_LIMIT),
             sweep_plan=parse_plan(self.declare(
                 "sweep.plan", plan_label(defaults.sweep_plan),
                 "passes over the marked plate, orientation (0|90 deg) and direction (+|-) each, e.g. "

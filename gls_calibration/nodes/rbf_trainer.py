@@ -10,7 +10,7 @@ import yaml
 
 from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
 from gls_calibration.nodes.head_parameters import declare_head_geometry
-from gls_calibration.training import TrainingOptions, train_correction
+from gls_calibration.training import TRAINER_PARAMETERS, train_correction, training_options_from
 from gls_calibration_msgs.srv import TrainCorrection
 
 
@@ -19,27 +19,10 @@ class RbfTrainerNode(GlsNode):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("rbf_trainer", **kwargs)
-        defaults = TrainingOptions()
-        self.options = TrainingOptions(
-            spreads_mm=tuple(self.declare_numbers("spreads_mm", list(defaults.spreads_mm),
-                                                  "Gaussian spreads tried by the grid search (mm)")),
-            mse_goals_mm2=tuple(self.declare_numbers("mse_goals_mm2", list(defaults.mse_goals_mm2),
-                                                     "training MSE goals tried by the grid search (mm^2)")),
-            tps_smoothings=tuple(self.declare_numbers("tps_smoothings", list(defaults.tps_smoothings),
-                                                      "thin-plate-spline smoothings tried ([] disables the TPS)",
-                                                      positive=False, allow_empty=True)),
-            folds=self.declare("folds", defaults.folds, "folds of the cross-validation", minimum=2, maximum=50),
-            seed=self.declare("seed", defaults.seed, "seed of the fold assignment", minimum=0),
-            block_mm=self.declare("cv_block_mm", 0.0,
-                                  "side of the square blocks held out together by the cross-validation (mm): "
-                                  "honest when measurement errors are correlated between neighbours; 0: points "
-                                  "at random", minimum=0.0) or None)
-        self.physics_first = self.declare(
-            "physics_first", False,
-            "fit the named physical effects first and the RBF on what they leave (needs deviations of a "
-            "plate marked through the nominal model)")
-        self.max_points = self.declare("max_points", 5000, "most training points of one request",
-                                       minimum=3, maximum=100_000)
+        values = self.declare_specs(TRAINER_PARAMETERS)
+        self.options = training_options_from(values)
+        self.physics_first = values["physics_first"]
+        self.max_points = values["max_points"]
         self.geometry = declare_head_geometry(self)
         self.create_service(TrainCorrection, "rbf/train", self.on_train)
 
