@@ -38,6 +38,10 @@ from sensor_msgs.msg import PointCloud2
 
 LISTENER_WAIT_S = 3.0   # a sweep waits this long at most for subscribers on its topics
 
+# The marks query is read-only, so a repeat is harmless: asked again when unanswered (a galvo just
+# restarted may drop the first answer while DDS still matches it: "failed to send response").
+MARKS_RESEND_AFTER_S = 2.0
+
 
 class SimScannerNode(GlsNode):
     """Publishes a sweep's profiles in batches from a timer, so that subscribers keep up."""
@@ -124,7 +128,8 @@ class SimScannerNode(GlsNode):
                                   "nobody listens on", "sweep published anyway")
 
     async def _load_marks(self) -> None:
-        answer = await self.call(self.marks_client, GetMarkedPaths.Request(), 10.0)
+        answer = await self.call(self.marks_client, GetMarkedPaths.Request(), 10.0,
+                                 resend_after_s=MARKS_RESEND_AFTER_S)
         paths = answer.paths
         self.plate.load_clean([self.config.seed, paths.plate_id])
         points = np.column_stack([conversions.float64_array(paths.x), conversions.float64_array(paths.y),
