@@ -37,6 +37,8 @@ TILED_MIN_ROWS = 8 * BLOCK_ROWS
 
 
 _thread_scratch = threading.local()
+# Serialises building splines' tiled evaluators (one module lock: a model stays picklable).
+_TILES_LOCK = threading.Lock()
 
 
 def _scratch(name: str, rows: int, columns: int) -> np.ndarray:
@@ -374,7 +376,6 @@ class ThinPlateSplineModel:
         # phi = 0.5 r^2 ln r^2: the 0.5 goes into the weights.
         self._half_weights = np.ascontiguousarray(0.5 * self.weights)
         self._centres_by_axis = np.ascontiguousarray(self.centres.T)
-        self._tiles_lock = threading.Lock()
         self._tiles: Optional[list] = None      # [evaluator or None] once built (on the first large batch)
 
     def prepare(self) -> None:
@@ -385,7 +386,7 @@ class ThinPlateSplineModel:
         """The tiled evaluator, built once on first use (60-150 ms; loading a file stays fast), or None
         where it failed its accuracy check."""
         if self._tiles is None:
-            with self._tiles_lock:
+            with _TILES_LOCK:
                 if self._tiles is None:
                     self._tiles = [tps_tiles.build(self.centres, self._half_weights)]
         return self._tiles[0]

@@ -87,3 +87,12 @@ def test_a_correction_prepares_its_splines_tiles_before_the_first_large_request(
     assert spline._tiles is None                   # loading builds nothing
     correction.prepare()
     assert spline._tiles is not None and spline._tiles[0] is not None
+
+
+def test_a_spline_with_its_tiles_built_survives_pickling(spline):
+    import pickle
+
+    points = np.random.default_rng(8).uniform(-95.0, 95.0, (TILED_MIN_ROWS, 2))
+    values = spline(points)
+    assert spline._tiles is not None
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(spline))(points), values)
