@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
-import signal
 import subprocess
 import sys
 import tempfile
@@ -29,7 +28,7 @@ from gls_calibration.persistence import CalibrationStore, load_record
 from gls_calibration_msgs.srv import CorrectSetpoints
 
 from bench_services import default_main_job_calibration
-from correction_peer import call
+from correction_peer import call, stop_process
 
 # Both servers answer on correct_setpoints; argv[1] is the echo's sleep in ms (the correction node
 # gets none). The stamps travel in the answer's message.
@@ -102,11 +101,7 @@ def timeline(command: list[str], calls: int, warm_up: int) -> np.ndarray:
         return 1e3 * np.median(np.array(rows), axis=0)
     finally:
         rclpy.try_shutdown()
-        server.send_signal(signal.SIGINT)
-        try:
-            server.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        stop_process(server)
 
 
 if __name__ == "__main__":

@@ -61,6 +61,15 @@ def call(client, request, timeout_s: float = 120.0):
     return future.result()
 
 
+def stop_process(process: subprocess.Popen) -> None:
+    """Ctrl-C for a node's process (it leaves the DDS graph cleanly); killed when not gone within 10 s."""
+    process.send_signal(signal.SIGINT)
+    try:
+        process.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        process.kill()
+
+
 @contextmanager
 def correction_peer(client_names: tuple[str, ...] = ("bench_client",), *parameters: str) -> Iterator[tuple]:
     """(child process, client nodes, the Correction it serves), all stopped afterwards; ``parameters``
@@ -83,8 +92,4 @@ def correction_peer(client_names: tuple[str, ...] = ("bench_client",), *paramete
         finally:
             threads.stop()
             rclpy.shutdown()
-            child.send_signal(signal.SIGINT)
-            try:
-                child.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                child.kill()
+            stop_process(child)
