@@ -371,3 +371,44 @@ def test_missing_pixels_take_the_mean_of_the_smallest_box_holding_valid_ones(sha
             assert filled[row, col] == pytest.approx(np.median(image[valid]), rel=1e-6)
     np.testing.assert_allclose(filled[valid], image[valid], rtol=1e-6)
     assert np.count_nonzero(~valid) > 150
+
+
+def _lag_one_correlation(image: np.ndarray) -> float:
+    """Mean correlation of horizontally and vertically neighbouring pixels."""
+    centred = image - image.mean()
+    lags = [(centred[:, 1:] * centred[:, :-1]).mean(), (centred[1:] * centred[:-1]).mean()]
+    return float(np.mean(lags) / centred.var())
+
+
+def test_prewhitening_makes_correlated_noise_white_and_leaves_white_noise_alone():
+    import cv2
+    from scipy import ndimage
+
+    from gls_calibration.fiducials import _prewhitening_kernel
+
+    rng = np.random.default_rng(3)
+    # Speckle of 0.3 (log units) correlated over 1.5 px on a white floor of 0.05 (the detector's noise).
+    smooth = ndimage.gaussian_filter(rng.standard_normal((512, 512)), 1.5, mode="wrap")
+    correlated = (0.3 * smooth / smooth.std() + 0.05 * rng.standard_normal((512, 512))).astype(np.float32)
+    # Tiles under a candidate's disc are left out of the spectrum; the rest are plenty.
+    kernel = _prewhitening_kernel(correlated, np.array([[256.0, 256.0]]), 40.0)
+    whitened = cv2.filter2D(correlated, cv2.CV_32F, kernel, borderType=cv2.BORDER_REFLECT)[32:-32, 32:-32]
+    assert _lag_one_correlation(correlated[32:-32, 32:-32]) > 0.75
+    assert abs(_lag_one_correlation(whitened)) < 0.05
+    white = rng.standard_normal((512, 512)).astype(np.float32)
+    kernel = _prewhitening_kernel(white, np.empty((0, 2)), 40.0)
+    # White noise: a unit impulse less the mean of the kernel's window (a mild high pass).
+    centre = kernel.shape[0] // 2
+    assert kernel[centre, centre] > 0.99 and np.abs(np.delete(kernel.ravel(), kernel.size // 2)).max() < 0.05
+
+
+def test_prewhitening_needs_noise_and_bare_steel():
+    from gls_calibration.fiducials import _prewhitening_kernel
+
+    rng = np.random.default_rng(4)
+    assert _prewhitening_kernel(np.full((256, 256), 5.0, np.float32), np.empty((0, 2)), 10.0) is None
+    noise = rng.standard_normal((256, 256)).astype(np.float32)
+    # 64 tiles of 32 px, all under candidates' discs: no bare steel to take a spectrum from.
+    everywhere = np.array([(c, r) for r in range(16, 256, 32) for c in range(16, 256, 32)], float)
+    assert _prewhitening_kernel(noise, everywhere, 30.0) is None
+    assert _prewhitening_kernel(noise[:100, :100], np.empty((0, 2)), 10.0) is None   # 9 tiles
