@@ -7,7 +7,12 @@ how the pair's detection ends (rejected as ``merged``, rejected for another reas
 how far off against the TRUE centres, in units of its stated uncertainty) and how many of the 24
 single fiducials were turned down (false rejections). ``measure_fiducials`` defaults.
 
-Run: .venv/bin/python benchmarks/bench_merged_pairs.py [--placements 10] [--speckle 0.3]
+``--world sim``: the package's simulated cell instead (``config/sim.yaml``, paper_like measurement
+chain, whose marks vary in width and darkness along the path as a marking laser's do): a 19x19 grid
+marked through the nominal model, 3 fiducials per separation (0.11 / 0.16 / 0.21 mm) marked twice,
+one sweep placed by the robot's pose; TRUE centres from the landed rings.
+
+Run: .venv/bin/python benchmarks/bench_merged_pairs.py [--placements 10] [--speckle 0.3] [--world sim]
 """
 from __future__ import annotations
 
@@ -24,6 +29,11 @@ from rendering import BASE_SCAN, GRID_PITCH_MM, plate_to_scanner, render_plate_s
 
 from gls_calibration.fiducials import measure_fiducials  # noqa: E402
 from gls_calibration.plate_pose import estimate_plate_pose  # noqa: E402
+from gls_calibration.procedure import true_fiducial_centres  # noqa: E402
+from gls_calibration.simulation.world import SimulatedCell, load_sim_config  # noqa: E402
+from gls_calibration.targets import rings_polylines  # noqa: E402
+
+SIM_CONFIG = Path(__file__).resolve().parents[1] / "config" / "sim.yaml"
 
 SEPARATIONS_MM = (0.0, 0.11, 0.16, 0.21, 0.32)
 
@@ -62,12 +72,88 @@ def one_plate(separation_mm: float, rng: np.random.Generator, speckle: float, se
     return outcome, single_reasons
 
 
+def sim_plate(seed: int) -> tuple[list[tuple[float, str]], Counter]:
+    """One plate of the simulated cell with 3 pairs per separation: (separation, outcome) per pair and
+    the reasons of the single fiducials turned down."""
+    cell = SimulatedCell(load_sim_config(SIM_CONFIG, "paper_like"))
+    cell.exchange_plate()
+    rng = np.random.default_rng(seed)
+    axis = (np.arange(19) - 9) * GRID_PITCH_MM
+    grid = np.array([(x, y) for y in axis for x in axis])
+    doubled = rng.choice(len(grid), 9, replace=False)
+    separations = np.repeat(SEPARATIONS_MM[1:4], 3)
+    angles = rng.uniform(0.0, np.pi, len(doubled))
+    seconds = grid[doubled] + separations[:, None] * np.column_stack([np.cos(angles), np.sin(angles)])
+    landed = cell.mark_cartesian(rings_polylines(np.vstack([grid, seconds])))
+    truth = true_fiducial_centres(landed, 2)                                       # gls frame, mm
+    data = cell.sweep_data(seed=seed)
+    xyz = data.placed_by_pose()
+    measurement = measure_fiducials(xyz, data.intensity, estimate_plate_pose(xyz.reshape(-1, 3), head_direction=(0.0, 0.0, -1.0)),
+                                    expected_count=len(grid))
+    mounting = cell.config.scanner_to_gls
+
+    def to_gls(points: np.ndarray) -> np.ndarray:
+        return points @ mounting[:3, :3].T + mounting[:3, 3]
+
+    # The CAD mounting is not the true one: align the accepted centres to the true single centres.
+    accepted, rejected = to_gls(measurement.centres), to_gls(measurement.rejected_centres)
+    singles = np.setdiff1d(np.arange(len(grid)), doubled)
+    for _ in range(3):
+        distance, index = cKDTree(truth[singles]).query(accepted)
+        near = distance < 1.0
+        source, target = accepted[near], truth[singles][index[near]]
+        u, _, vt = np.linalg.svd((source - source.mean(0)).T @ (target - target.mean(0)))
+        rotation = (u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt).T
+        shift = target.mean(0) - source.mean(0) @ rotation.T
+        accepted, rejected = accepted @ rotation.T + shift, rejected @ rotation.T + shift
+    outcomes = []
+    for k, separation in zip(doubled, separations):
+        middle = 0.5 * (truth[k] + truth[len(grid) + list(doubled).index(k)])
+        hit = np.nonzero(np.linalg.norm(accepted[:, :2] - middle[:2], axis=1) < 1.0)[0]
+        if len(hit):
+            error = min(np.linalg.norm(accepted[hit[0], :2] - truth[j, :2])
+                        for j in (k, len(grid) + list(doubled).index(k)))
+            outcomes.append((separation, f"ACCEPTED, {1000 * error:.0f} um off"))
+            continue
+        reasons = [r for r, point in zip(measurement.rejected_reasons, rejected)
+                   if np.linalg.norm(point[:2] - middle[:2]) < 1.0]
+        outcomes.append((separation, "rejected: " + ("merged" if "merged" in reasons else "/".join(sorted(set(reasons)))
+                                                     or "not detected")))
+    found = set(cKDTree(truth[singles]).query(accepted)[1][cKDTree(truth[singles]).query(accepted)[0] < 1.0].tolist())
+    lost = Counter()
+    for position in set(range(len(singles))) - found:
+        reasons = [r for r, point in zip(measurement.rejected_reasons, rejected)
+                   if np.linalg.norm(point[:2] - truth[singles][position, :2]) < 1.0]
+        lost[reasons[0] if reasons else "not detected"] += 1
+    return outcomes, lost
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--placements", type=int, default=10)
+    parser.add_argument("--placements", type=int, default=10, help="plates per separation (sim: plates)")
     parser.add_argument("--speckle", type=float, default=0.0, help="speckle contrast (1.5 px correlation)")
     parser.add_argument("--seed", type=int, default=5)
+    parser.add_argument("--world", choices=("render", "sim"), default="render")
     args = parser.parse_args()
+    if args.world == "sim":
+        outcomes, lost = Counter(), Counter()
+        for plate in range(args.placements):
+            pairs, plate_lost = sim_plate(args.seed + plate)
+            outcomes.update(pairs)
+            lost.update(plate_lost)
+        print(f"simulated cell (paper_like), {args.placements} plates, 3 pairs per separation each")
+        for separation in SEPARATIONS_MM[1:4]:
+            kinds = Counter()
+            offs = []
+            for (s, name), count in outcomes.items():
+                if s == separation:
+                    kinds["ACCEPTED" if name.startswith("ACCEPTED") else name] += count
+                    offs += [name.split(", ")[1]] * count if name.startswith("ACCEPTED") else []
+            summary = ", ".join(f"{count} {name}" for name, count in kinds.most_common())
+            print(f"s = {separation:4.2f} mm: {summary}" + (f" ({', '.join(sorted(offs))})" if offs else ""))
+        singles = ", ".join(f"{count} {name}" for name, count in lost.most_common()) or "none"
+        print(f"single fiducials turned down (of {352 * args.placements}): {singles}")
+        return
     rng = np.random.default_rng(args.seed)
     print(f"speckle {args.speckle}, {args.placements} placements per separation, 24 single fiducials each")
     for separation in SEPARATIONS_MM:
