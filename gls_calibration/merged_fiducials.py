@@ -3,8 +3,9 @@
 Two double rings offset by s (about 0.1-0.3 mm) are found as one candidate about s / 2 from either,
 with ring radii and ellipticity an uncalibrated head can also produce. Along the offset their lines
 split, across it they coincide, so the pair darkens and broadens its lines by an amount that
-varies as cos 2(theta - phi) around the ring; one ring seen through a distorted head changes its
-radius (first and second harmonics of the edge), not its line profile.
+varies as cos 2(theta - phi) around the ring, and broadens them on average by as much; one ring
+seen through a distorted head changes its radius (first and second harmonics of the edge), not its
+line profile.
 
 The test works on the pixels themselves (no interpolation: resampling the prewhitened image's
 sharp lines along rays would put its own phase-dependent width pattern on every fiducial):
@@ -15,14 +16,14 @@ sharp lines along rays would put its own phase-dependent width pattern on every 
    the real lines, optics and prewhitening filter make of a mark; nothing is assumed about them.
 2. Per candidate, least squares over the pixels within ``band_mm`` of its rings: the single mark,
    linearised about the fit (amplitude g, centre shift g' n, radius g', ellipse g' cos 2theta /
-   g' sin 2theta, line width g'', shading g cos theta / g sin theta, offset), plus the pair's
-   signature (g'' and g times cos 2theta and sin 2theta), per angular sector. Its four coefficients
-   over the amplitude, minus the plate's median (the part every mark shares: spot shape, unequal
-   pixel pitch).
+   g' sin 2theta, shading g cos theta / g sin theta, offset), plus the pair's signature (line width
+   g'', g'' and g times cos 2theta and sin 2theta), per angular sector. Its five coefficients over
+   the amplitude, minus the plate's median (the part every mark shares: spot shape, unequal pixel
+   pitch).
 3. Their covariance: the candidate's delete-one-sector jackknife (the pixels' misfit is correlated
    along the ring; a covariance from the residuals as if independent made single marks look like
    pairs) plus the variance by which the plate's single marks truly differ (a marking laser's power
-   and focus wander along the path). Hotelling's T^2 against F(4, g - 4) with g sectors.
+   and focus wander along the path). Hotelling's T^2 against F(5, g - 5) with g sectors.
 """
 from __future__ import annotations
 
@@ -33,8 +34,9 @@ from scipy.signal import savgol_filter
 from gls_calibration.robust import robust_sigma
 from gls_calibration.sector_jackknife import sector_jackknife
 
-SIGNATURE_DOF = 4
-"""Coefficients of the pair's signature: line width and darkness, each as cos 2theta and sin 2theta."""
+SIGNATURE_DOF = 5
+"""Coefficients of the pair's signature: the mean line width, and line width and darkness each as
+cos 2theta and sin 2theta."""
 
 PROFILE_BIN_PX = 0.2
 """Bin of the plate's line profile, in pixels: pixel centres fall at every phase against the rings."""
@@ -90,8 +92,8 @@ def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray
                    mid_radius_mm: np.ndarray, harmonic_mm: np.ndarray, reference: np.ndarray,
                    pitch_mm: tuple[float, float], band_mm: float
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each candidate's pair signature over its amplitude (M, 4), its delete-one-sector jackknife
-    covariance (M, 4, 4) and the number of sectors that entered it (M,); NaN where it cannot be fitted.
+    """Each candidate's pair signature over its amplitude (M, 5), its delete-one-sector jackknife
+    covariance (M, 5, 5) and the number of sectors that entered it (M,); NaN where it cannot be fitted.
 
     ``image`` (H, W) is the image the centres were fitted on, marks positive or negative alike;
     ``centres_uv`` (M, 2) the fitted centres in plate mm, ``offset`` (M, 2) and ``jacobian``
@@ -137,8 +139,8 @@ def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray
         rho_b, use_b = rho[block], usable[block]
         profile, slope, bend = (np.interp(rho_b, centres, table) for table in (g0, g1, g2))
         c1, s1, c2, s2 = cos1[block], sin1[block], cos2[block], sin2[block]
-        design = np.stack([profile, slope * c1, slope * s1, slope, slope * c2, slope * s2, bend,
-                           profile * c1, profile * s1, np.ones_like(rho_b),
+        design = np.stack([profile, slope * c1, slope * s1, slope, slope * c2, slope * s2,
+                           profile * c1, profile * s1, np.ones_like(rho_b), bend,
                            bend * c2, bend * s2, profile * c2, profile * s2], -1) * use_b[..., None]
         # Per sector, through the padded index (a zero row at N): one batched product for all sectors.
         design = np.concatenate([design, np.zeros((len(design), 1, parameters))], 1)[:, by_sector]   # (m, S, L, P)
@@ -168,7 +170,7 @@ def merged(signature: np.ndarray, covariance: np.ndarray, groups: np.ndarray, re
     unequal pixel pitch) against its covariance: its own jackknife covariance plus, per coefficient,
     the variance by which the plate's single marks truly differ (a laser's power and focus wander
     along the marking path; robust: the references' squared MAD less their median own variance,
-    never negative). Hotelling's T^2 with g sectors, F(4, g - 4) distributed for a single fiducial;
+    never negative). Hotelling's T^2 with g sectors, F(5, g - 5) distributed for a single fiducial;
     merged where that puts it beyond ``false_alarm``. With fewer than ``min_reference`` usable
     references nothing is called merged.
     """
