@@ -215,3 +215,4 @@ def test_a_killed_node_fails_the_run_fast_and_keeps_the_active_calibration(cell,
 
     again = cell.calibrate()
     assert again.success, f"{again.message}; {name} log:\n{cell.log(name).read_text()[-3000:]}"
+    assert CalibrationStore(store_dir).active_path() == Path(again.calibration_file)
