@@ -30,6 +30,7 @@ from rendering import BASE_SCAN, GRID_PITCH_MM, plate_to_scanner, render_plate_s
 from gls_calibration.fiducials import measure_fiducials  # noqa: E402
 from gls_calibration.plate_pose import estimate_plate_pose  # noqa: E402
 from gls_calibration.procedure import true_fiducial_centres  # noqa: E402
+from gls_calibration.registration import RigidTransform, fit_rigid  # noqa: E402
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config  # noqa: E402
 from gls_calibration.targets import rings_polylines  # noqa: E402
 
@@ -88,40 +89,35 @@ def sim_plate(seed: int) -> tuple[list[tuple[float, str]], Counter]:
     truth = true_fiducial_centres(landed, 2)                                       # gls frame, mm
     data = cell.sweep_data(seed=seed)
     xyz = data.placed_by_pose()
-    measurement = measure_fiducials(xyz, data.intensity, estimate_plate_pose(xyz.reshape(-1, 3), head_direction=(0.0, 0.0, -1.0)),
-                                    expected_count=len(grid))
-    mounting = cell.config.scanner_to_gls
-
-    def to_gls(points: np.ndarray) -> np.ndarray:
-        return points @ mounting[:3, :3].T + mounting[:3, 3]
-
-    # The CAD mounting is not the true one: align the accepted centres to the true single centres.
-    accepted, rejected = to_gls(measurement.centres), to_gls(measurement.rejected_centres)
+    pose = estimate_plate_pose(xyz.reshape(-1, 3), head_direction=(0.0, 0.0, -1.0))
+    measurement = measure_fiducials(xyz, data.intensity, pose, expected_count=len(grid))
+    # Into the gls frame by the CAD mounting, then onto the true single centres (the CAD mounting is
+    # not the true one): a rigid fit to the nearest ones, three times.
+    to_gls = RigidTransform(cell.config.scanner_to_gls[:3, :3], cell.config.scanner_to_gls[:3, 3])
+    accepted, rejected = to_gls.apply(measurement.centres), to_gls.apply(measurement.rejected_centres)
     singles = np.setdiff1d(np.arange(len(grid)), doubled)
+    single_tree = cKDTree(truth[singles])
     for _ in range(3):
-        distance, index = cKDTree(truth[singles]).query(accepted)
+        distance, index = single_tree.query(accepted)
         near = distance < 1.0
-        source, target = accepted[near], truth[singles][index[near]]
-        u, _, vt = np.linalg.svd((source - source.mean(0)).T @ (target - target.mean(0)))
-        rotation = (u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt).T
-        shift = target.mean(0) - source.mean(0) @ rotation.T
-        accepted, rejected = accepted @ rotation.T + shift, rejected @ rotation.T + shift
+        alignment = fit_rigid(accepted[near], truth[singles][index[near]])
+        accepted, rejected = alignment.apply(accepted), alignment.apply(rejected)
     outcomes = []
-    for k, separation in zip(doubled, separations):
-        middle = 0.5 * (truth[k] + truth[len(grid) + list(doubled).index(k)])
+    for pair, (first, separation) in enumerate(zip(doubled, separations)):
+        marks = truth[[first, len(grid) + pair]]
+        middle = marks.mean(axis=0)
         hit = np.nonzero(np.linalg.norm(accepted[:, :2] - middle[:2], axis=1) < 1.0)[0]
         if len(hit):
-            error = min(np.linalg.norm(accepted[hit[0], :2] - truth[j, :2])
-                        for j in (k, len(grid) + list(doubled).index(k)))
+            error = np.linalg.norm(accepted[hit[0], :2] - marks[:, :2], axis=1).min()
             outcomes.append((separation, f"ACCEPTED, {1000 * error:.0f} um off"))
             continue
         reasons = [r for r, point in zip(measurement.rejected_reasons, rejected)
                    if np.linalg.norm(point[:2] - middle[:2]) < 1.0]
         outcomes.append((separation, "rejected: " + ("merged" if "merged" in reasons else "/".join(sorted(set(reasons)))
                                                      or "not detected")))
-    found = set(cKDTree(truth[singles]).query(accepted)[1][cKDTree(truth[singles]).query(accepted)[0] < 1.0].tolist())
+    distance, index = single_tree.query(accepted)
     lost = Counter()
-    for position in set(range(len(singles))) - found:
+    for position in set(range(len(singles))) - set(index[distance < 1.0].tolist()):
         reasons = [r for r, point in zip(measurement.rejected_reasons, rejected)
                    if np.linalg.norm(point[:2] - truth[singles][position, :2]) < 1.0]
         lost[reasons[0] if reasons else "not detected"] += 1
