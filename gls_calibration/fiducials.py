@@ -371,6 +371,15 @@ def _scan_lattice(uv: np.ndarray, pixel_size_mm: float) -> tuple[np.ndarray, np.
     return to_pixel / pixel_size_mm, shift, True
 
 
+def _edge_turn(points: np.ndarray) -> np.ndarray:
+    """Rotation (2, 2) that turns 2-D ``points`` (N, 2) so that the edges of their minimum-area
+    rectangle lie along the axes (by at most 45 deg)."""
+    with np.errstate(over="ignore", invalid="ignore"):     # absurd coordinates fail the size check later
+        edge_deg = cv2.minAreaRect(points.astype(np.float32))[2]
+    turn_rad = np.deg2rad((edge_deg + 45.0) % 90.0 - 45.0)
+    return np.array([[np.cos(turn_rad), np.sin(turn_rad)], [-np.sin(turn_rad), np.cos(turn_rad)]])   # by -turn
+
+
 def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
                       pixel_size_mm: float) -> _PlateImage:
     """Image of an unorganized cloud: mean intensity of the points falling in each plane pixel."""
@@ -379,14 +388,12 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
         raise ValueError("cloud has no finite point with a finite intensity")
     step = max(1, len(xyz) // LATTICE_SAMPLE_POINTS)
     sample = xyz[::step][keep[::step]]
-    sample_uv = pose.to_plane(sample if len(sample) else xyz[keep])
+    sample = sample if len(sample) else xyz[keep]
+    sample_uv = pose.to_plane(sample)
     # Raster axes along the edges of the cloud's minimum-area rectangle: a cloud turned in its plane
     # (into a robot's frame, say) keeps a tight image, and a regular scan's lines come out along the
     # raster, where _scan_lattice can follow them.
-    with np.errstate(over="ignore", invalid="ignore"):     # absurd coordinates fail the size check below
-        edge_deg = cv2.minAreaRect(sample_uv.astype(np.float32))[2]
-    turn_rad = np.deg2rad((edge_deg + 45.0) % 90.0 - 45.0)
-    turn = np.array([[np.cos(turn_rad), np.sin(turn_rad)], [-np.sin(turn_rad), np.cos(turn_rad)]])   # by -turn
+    turn = _edge_turn(sample_uv)
     to_pixel, shift, on_lattice = _scan_lattice(sample_uv @ turn.T, pixel_size_mm)
     to_pixel = to_pixel @ turn
     # Pixel coordinates straight from the cloud, column = xyz @ in_plane[:, 0] + offset[0] (gemv): the
@@ -400,11 +407,7 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
         # on the plate's plane that phase drifts slowly across the plate and stretches it (measured:
         # 41 ppm, 4 um at its edge); on the cloud's x-y it stays put. So the raster lies in x-y, along
         # the edges of the cloud's footprint there, and maps to the plate through the plane (affine).
-        with np.errstate(over="ignore", invalid="ignore"):
-            edge_deg = cv2.minAreaRect((sample if len(sample) else xyz[keep])[:, :2].astype(np.float32))[2]
-        turn_rad = np.deg2rad((edge_deg + 45.0) % 90.0 - 45.0)
-        to_pixel_xy = np.array([[np.cos(turn_rad), np.sin(turn_rad)],
-                                [-np.sin(turn_rad), np.cos(turn_rad)]]) / pixel_size_mm
+        to_pixel_xy = _edge_turn(sample[:, :2]) / pixel_size_mm
         in_plane = np.vstack([to_pixel_xy.T, np.zeros((1, 2))])            # pixel = to_pixel_xy @ (x, y)
         to_pixel = to_pixel_xy @ pose.rotation[:2, :2]     # points on the plane: (x, y) = centre + R uv
         shift = np.zeros(2)
@@ -869,6 +872,12 @@ def _moderated(covariance: np.ndarray, dof: np.ndarray, reference: np.ndarray) -
     return covariance * scale[:, :, None] * scale[:, None, :]
 
 
+def _second_harmonic(radius_per_ray: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """cos 2theta and sin 2theta amplitudes (M, 2) of radii (M, A) at equally spaced ray ``angles`` (A,)."""
+    return np.stack([radius_per_ray @ np.cos(2 * angles), radius_per_ray @ np.sin(2 * angles)], -1) * (
+        2.0 / len(angles))
+
+
 def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacobian: np.ndarray,
             radii_nominal: np.ndarray, pitch_mm: float, fit_image: np.ndarray | None = None) -> dict:
     """Sub-pixel double-ring fit per candidate (see the module docstring, step 3 and 4).
@@ -942,13 +951,13 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
     final_residual, final_used = residual, used
     # The fitted ring about the final centre: mean radius and elliptical second harmonic.
     mid_radius = radius
-    harmonic = np.stack([at @ np.cos(2 * angles), at @ np.sin(2 * angles)], -1) * (2.0 / RAY_COUNT)
+    harmonic = _second_harmonic(at, angles)
     if tracked is not None:
         profiles, used, at, sampled_at, radial = (
             tracked[key] for key in ("profiles", "used", "at", "sampled_at", "radial"))
-    # Second harmonic of the fitted ring (half the difference of its axes): a ring on the plate is a
+    # Second harmonic of the tracked ring (half the difference of its axes): a ring on the plate is a
     # circle, so this is small; the envelope of two offset rings (a merged detection) is not.
-    ellipticity = np.hypot(at @ np.cos(2 * angles), at @ np.sin(2 * angles)) * (2.0 / RAY_COUNT)
+    ellipticity = np.hypot(*_second_harmonic(at, angles).T)
     covariance, dof = _centre_covariance(design, final_residual, final_used, sector_of_ray)
 
     # Each ring's radius about the final centre: darkness centroid in a window of +- half the ring

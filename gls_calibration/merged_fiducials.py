@@ -133,7 +133,6 @@ def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray
     centres, g0, g1, g2 = _profile_tables(rho[taken], values[taken], bin_mm, band_mm)
 
     # 2. Each candidate's fit, the single mark linearised about it plus the pair's signature, per sector.
-    parameters = 14
     for start in range(0, count, CANDIDATE_BLOCK):
         block = slice(start, min(start + CANDIDATE_BLOCK, count))
         rho_b, use_b = rho[block], usable[block]
@@ -142,6 +141,7 @@ def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray
         design = np.stack([profile, slope * c1, slope * s1, slope, slope * c2, slope * s2,
                            profile * c1, profile * s1, np.ones_like(rho_b), bend,
                            bend * c2, bend * s2, profile * c2, profile * s2], -1) * use_b[..., None]
+        parameters = design.shape[-1]
         # Per sector, through the padded index (a zero row at N): one batched product for all sectors.
         design = np.concatenate([design, np.zeros((len(design), 1, parameters))], 1)[:, by_sector]   # (m, S, L, P)
         target = np.concatenate([np.where(use_b, values[block], 0.0), np.zeros((len(design), 1))], 1)[:, by_sector]
