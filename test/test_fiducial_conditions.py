@@ -21,6 +21,8 @@ ISSUE_CONDITIONS = ("clean", "speckle_0.3", "speckle_0.3_corr2", "marks_85pct", 
                     "pitch_0.07", "pitch_0.15", "pitch_0.07x0.15", "unorganized", "rotation_15deg",
                     "rotation_-15deg", "tilt_3deg", "dropouts_1pct", "unorganized_irregular",
                     "unorganized_turned_20deg")
+
+
 @lru_cache(maxsize=None)
 def measured(name: str, per_side: int = PER_SIDE):
     """Measurement (polarity found by the measurement) and true centres of one rendered condition."""

@@ -3,11 +3,13 @@
 Acceptance targets at 0.1 mm pixels: centre RMS <= 0.01 mm on clean scans and <= 0.02 mm with
 intensity noise and speckle (the published measurement reached about 0.09 mm).
 """
+import cv2
 import numpy as np
 import pytest
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from gls_calibration.fiducials import FiducialMeasurement, _duplicates, measure_fiducials
+from gls_calibration.fiducials import FiducialMeasurement, _duplicates, _prewhitening_kernel, measure_fiducials
 from gls_calibration.plate_pose import estimate_plate_pose
 from rendering import BACKGROUND, MARK, plate_to_scanner, render_plate_scan
 
@@ -381,11 +383,6 @@ def _lag_one_correlation(image: np.ndarray) -> float:
 
 
 def test_prewhitening_makes_correlated_noise_white_and_leaves_white_noise_alone():
-    import cv2
-    from scipy import ndimage
-
-    from gls_calibration.fiducials import _prewhitening_kernel
-
     rng = np.random.default_rng(3)
     # Speckle of 0.3 (log units) correlated over 1.5 px on a white floor of 0.05 (the detector's noise).
     smooth = ndimage.gaussian_filter(rng.standard_normal((512, 512)), 1.5, mode="wrap")
@@ -403,8 +400,6 @@ def test_prewhitening_makes_correlated_noise_white_and_leaves_white_noise_alone(
 
 
 def test_prewhitening_needs_noise_and_bare_steel():
-    from gls_calibration.fiducials import _prewhitening_kernel
-
     rng = np.random.default_rng(4)
     assert _prewhitening_kernel(np.full((256, 256), 5.0, np.float32), np.empty((0, 2)), 10.0) is None
     noise = rng.standard_normal((256, 256)).astype(np.float32)
