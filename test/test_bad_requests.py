@@ -474,6 +474,9 @@ class SpoofingScanner(FakeScanner):
             if count[0] == 1:      # complete after one profile: contradicts the announced 20
                 self.done.publish(SweepDone(sweep_id=7, profiles=1, step_mm=0.15, speed_mm_s=15.0,
                                             direction=[0.0, 1.0, 0.0], complete=True))
+            if count[0] == 2:      # cut short after 5, sent after 2: contradicted by the profiles that follow
+                self.done.publish(SweepDone(sweep_id=7, profiles=5, step_mm=0.15, speed_mm_s=15.0,
+                                            direction=[0.0, 1.0, 0.0], complete=False))
             if count[0] == 10:     # cut short after 3: contradicts the 10 received
                 self.done.publish(SweepDone(sweep_id=7, profiles=3, step_mm=0.15, speed_mm_s=15.0,
                                             direction=[0.0, 1.0, 0.0], complete=False))

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Optional
 
 import numpy as np
-from typing import Optional
 
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -33,7 +33,7 @@ MAX_LENGTH_MM = 10000.0
 MAX_SPEED_MM_S = 10000.0
 MAX_STEP_MM = 100.0
 MALFORMED_GRACE_S = 2.0    # profiles still in flight after the end of sweep: wait this before giving up
-MAX_ENDS_KEPT = 16         # ends of sweep remembered during one acquisition (others' sweeps, spoofs)
+MAX_ENDS_KEPT = 16         # ends of sweep remembered during one acquisition, per sweep id and of ids
 SCANNER_TOPICS_WAIT_S = 5.0  # before a sweep: how long to wait for the scanner's topics to match (after a restart)
 
 
@@ -66,7 +66,8 @@ class ScanAcquisitionNode(GlsNode):
         self.collector: Optional[SweepCollector] = None
         self.stamps: dict[float, object] = {}   # stamp message of each kept profile, by its seconds
         self.poses: Optional[PoseTrack] = None
-        self.ends: dict[int, tuple] = {}       # (end of sweep, arrival) received while acquiring, by id
+        self.ends: dict[int, list] = {}        # [(end of sweep, arrival)] received while acquiring, by id
+        self.end: Optional[tuple] = None       # the end of this node's sweep that was believed, and its arrival
         self.sweep_id: Optional[int] = None    # the sweep this node started; other ends of sweep are ignored
         self.expected_profiles = 0             # what the scanner announced for it
         self.ignored_end = ""                  # why an end of sweep with this sweep's id was not believed
@@ -124,15 +125,27 @@ class ScanAcquisitionNode(GlsNode):
         """
         if self.collector is None:
             return
-        if len(self.ends) >= MAX_ENDS_KEPT:
+        if message.sweep_id == self.sweep_id and self._ignored(message):
+            return
+        if message.sweep_id not in self.ends and len(self.ends) >= MAX_ENDS_KEPT:
             self.ends.pop(next(iter(self.ends)))
-        self.ends[message.sweep_id] = (message, time.monotonic())
+        kept = self.ends.setdefault(message.sweep_id, [])
+        if len(kept) >= MAX_ENDS_KEPT:
+            kept.pop(0)
+        kept.append((message, time.monotonic()))
 
     @property
     def done(self) -> Optional[SweepDone]:
-        """The end of the sweep being acquired, once it came."""
-        end = None if self.sweep_id is None else self.ends.get(self.sweep_id)
-        return None if end is None else end[0]
+        """The end of the sweep being acquired, once it came and was believed."""
+        return None if self.end is None else self.end[0]
+
+    def _ignored(self, done: SweepDone) -> bool:
+        """True (with a warning) when ``done``, of this node's sweep, cannot be its end."""
+        problem = self._end_problem(done)
+        if problem:
+            self.ignored_end = f"an end of sweep {done.sweep_id} was ignored: {problem}"
+            self.get_logger().warning(self.ignored_end)
+        return bool(problem)
 
     def _members(self, done: SweepDone):
         """Mask of the kept profiles that form the sweep ``done`` ends (layout and time window)."""
@@ -146,7 +159,7 @@ class ScanAcquisitionNode(GlsNode):
                     f"{self.expected_profiles}")
         if done.profiles > self.expected_profiles:
             return f"it counts {done.profiles} profiles, more than the {self.expected_profiles} announced"
-        received = int(np.count_nonzero(self._members(done))) if math.isfinite(done.speed_mm_s) else 0
+        received = int(np.count_nonzero(self._members(done)))
         if not done.complete and received > done.profiles:
             return f"it says the sweep was cut short after {done.profiles} profiles, but {received} came"
         return ""
@@ -157,17 +170,18 @@ class ScanAcquisitionNode(GlsNode):
 
         An end of sweep that contradicts the scanner's announcement or what was received is not
         believed (a spoof): it is forgotten with a warning and the acquisition waits for the real one,
-        so that it never returns while the scanner is still sweeping."""
-        end = None if self.sweep_id is None else self.ends.get(self.sweep_id)
-        if end is None:
+        so that it never returns while the scanner is still sweeping. An end saying the sweep was cut
+        short is believed only once ``MALFORMED_GRACE_S`` old with no more profiles than it counts."""
+        if self.sweep_id is None:
             return False
-        done, arrived = end
-        problem = self._end_problem(done)
-        if problem:
-            self.ends.pop(self.sweep_id, None)
-            self.ignored_end = f"an end of sweep {done.sweep_id} was ignored: {problem}"
-            self.get_logger().warning(self.ignored_end)
+        ends = self.ends.get(self.sweep_id, [])
+        ends[:] = [(done, arrived) for done, arrived in ends if not self._ignored(done)]
+        if not ends:
             return False
+        done, arrived = ends[0]
+        if not done.complete and time.monotonic() - arrived < MALFORMED_GRACE_S:
+            return False
+        self.end = (done, arrived)
         collector = self.collector
         members = int(np.count_nonzero(self._members(done)))
         accounted = members + collector.dropped
@@ -194,7 +208,7 @@ class ScanAcquisitionNode(GlsNode):
         self.collector, self.sweep_id, self.malformed = SweepCollector(self.max_profiles, self.max_points), None, 0
         self.poses = PoseTrack(self.max_profiles) if self.use_poses else None
         self.ends.clear()
-        self.stamps, self.ignored_end, self.expected_profiles = {}, "", 0
+        self.stamps, self.ignored_end, self.expected_profiles, self.end = {}, "", 0, None
         try:
             await self._wait_for_scanner_topics()
             started = await self.call(self.start_client, StartSweep.Request(
