@@ -70,10 +70,13 @@ def record_models(record: Mapping) -> list[dict]:
 
 
 def correction_from_record(record: Mapping, geometry: HeadGeometry) -> Correction:
-    """The correction a record describes (ValueError when its models or region are unusable)."""
+    """The correction a record describes (ValueError when its models or region are unusable, or
+    when its field is not finite or beyond the physical limit: :meth:`Correction.check_field`)."""
     models = [model_from_dict(model) for model in record["models"]]
     region = CalibratedRegion.from_dict(record["calibrated_region"]) if models else None
-    return Correction(geometry, models, region, record["calibrated_region"].get("taper_mm", TAPER_MM))
+    correction = Correction(geometry, models, region, record["calibrated_region"].get("taper_mm", TAPER_MM))
+    correction.check_field()
+    return correction
 
 
 def record_fiducials(record: Mapping) -> tuple[np.ndarray, np.ndarray]:

@@ -38,6 +38,11 @@ from gls_calibration.validation import (as_coordinate_arrays, as_finite_array, a
 
 
 _INSIDE_TOLERANCE_MM = 1e-9
+#: Largest correction a usable calibration may predict anywhere in its calibrated field: half the
+#: ~190 mm field. The effect table's plausible extremes stay below it (the largest, a 0.05 rad galvo
+#: zero offset, moves the spot ~55 mm); a model predicting more is broken (e.g. weights of 1e308).
+MAX_DEVIATION_MM = 100.0
+FIELD_CHECK_SAMPLES = 41   # per side of the grid on which a loaded correction's field is checked
 
 
 @dataclass(frozen=True)
@@ -199,6 +204,34 @@ class Correction:
         for model in self.models:
             total += as_finite_array(model(points), "model output", ndim=2)
         return weight * total[:, 0], weight * total[:, 1], inside
+
+    def check_field(self, samples_per_side: int = FIELD_CHECK_SAMPLES) -> None:
+        """ValueError unless the summed correction is finite and within ``MAX_DEVIATION_MM`` on a
+        grid over the calibrated region (its edges included; outside it the correction is the
+        edge's, tapered). Called when a calibration is loaded, so that a broken model is refused
+        then and not on every later request."""
+        if not self.models:
+            return
+        region = self.calibrated_region
+        xs = np.linspace(region.x_min, region.x_max, samples_per_side)
+        ys = np.linspace(region.y_min, region.y_max, samples_per_side)
+        grid_x, grid_y = np.meshgrid(xs, ys)
+        total = np.zeros((grid_x.size, 2))
+        points = np.column_stack([grid_x.ravel(), grid_y.ravel()])
+        with np.errstate(all="ignore"):   # overflow is what is checked for
+            for model in self.models:
+                output = np.asarray(model(points), dtype=float)
+                if output.shape != total.shape:
+                    raise ValueError(f"a model of the correction returns shape {output.shape} for "
+                                     f"{len(points)} points; ({len(points)}, 2) is expected")
+                total += output
+            size = np.hypot(total[:, 0], total[:, 1])
+        bad = ~np.isfinite(size) | (size > MAX_DEVIATION_MM)
+        if bad.any():
+            first = int(np.argmax(bad))
+            raise ValueError(f"the correction is unusable: at {int(np.count_nonzero(bad))} of {len(size)} points of "
+                             f"its calibrated field it is not finite or exceeds {MAX_DEVIATION_MM:g} mm "
+                             f"(first at x = {points[first, 0]:.1f}, y = {points[first, 1]:.1f} mm: {size[first]:.3g} mm)")
 
     def correct(self, x, y, z=None, workers: Optional[int] = None) -> CorrectedSetpoints:
         """Corrected setpoints for targets (x, y[, z]) in mm (gls frame); z defaults to the work plane.

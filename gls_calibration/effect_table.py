@@ -79,7 +79,10 @@ _TABLE = (
     EffectSpec("axis_skew", (_symmetric("skew_rad", "rad", 1e-3, 0.02),),
                "The X mirror's rotation axis is tilted by skew_rad about gls x, out of perpendicular to "
                "the Y mirror axis; the mirror normal at zero angle stays nominal. Turning the X mirror "
-               "then also deflects the beam in y: a shear (y changes in proportion to x)."),
+               "then also deflects the beam in y: a shear (y changes in proportion to x). Convention: "
+               "only the axis tilts. A whole X galvo turned by s about the beam reaching it (axis and "
+               "mirror together) fits as skew_rad = 2 s plus a 0.56 s rad galvo_offset_y (or beam_tilt "
+               "tilt_a_rad 1.1 s) and a rigid shift."),
     EffectSpec("mirror_offset", (_symmetric("offset_x_mm", "mm", 0.5, 3.0), _symmetric("offset_y_mm", "mm", 0.5, 3.0)),
                "Each reflecting surface is displaced along its normal (towards the incoming beam when "
                "> 0) from its rotation axis, so the reflection point walks as the mirror turns."),

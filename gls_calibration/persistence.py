@@ -505,14 +505,27 @@ class CalibrationStore:
 
     def confined(self, path: str | os.PathLike) -> Path:
         """``path`` (relative: inside the history) once resolved inside the store's directory;
-        CalibrationFileError when it leads outside (``..``, absolute paths elsewhere, symlinks)."""
+        CalibrationFileError when it leads outside (``..``, absolute paths elsewhere, symlinks).
+
+        Whether a path leads outside is decided before asking whether it exists (symlinks that exist
+        are followed, a missing last part is not an error there): a path outside the store gets the
+        same answer whether or not a file is there, so the service tells nothing about other folders.
+        """
         path = Path(path)
         if not path.is_absolute():
             path = self.history_directory / path
+        store = self.directory.resolve()
+        lexical = Path(os.path.normpath(path))
+        outside = CalibrationFileError(path, f"outside the calibration directory {self.directory}: refused")
+        if not (lexical.is_relative_to(os.path.normpath(self.directory)) or lexical.is_relative_to(store)):
+            raise outside
         try:
-            resolved = path.resolve(strict=True)
-        except (OSError, RuntimeError) as error:  # missing, or a symlink loop
+            followed = path.resolve(strict=False)
+        except (OSError, RuntimeError) as error:  # a symlink loop inside the store
             raise CalibrationFileError(path, f"cannot read file: {getattr(error, 'strerror', None) or error}") from None
-        if not resolved.is_relative_to(self.directory.resolve()):
-            raise CalibrationFileError(path, f"outside the calibration directory {self.directory}: refused")
-        return resolved
+        if not followed.is_relative_to(store):
+            raise outside
+        try:
+            return path.resolve(strict=True)
+        except (OSError, RuntimeError) as error:  # missing inside the store
+            raise CalibrationFileError(path, f"cannot read file: {getattr(error, 'strerror', None) or error}") from None

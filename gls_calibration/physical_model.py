@@ -276,7 +276,7 @@ def train_physics_then_rbf(targets_xy, deviations, geometry: Optional[HeadGeomet
     residual_model, selection = rbf.select_model(targets_xy, residual, **select_kwargs)
     model = residual_model if physical is None else SumModel([physical, residual_model])
     report = PhysicsTrainingReport(
-        named_effects=tuple(result.named_effects),
+        named_effects=tuple(result.fitted_effects),   # what the physical part holds, groups included
         effects=MappingProxyType(dict(result.model_effects.nonzero())),
         deviation_rms_mm=_rms(deviations), residual_rms_mm=_rms(residual),
         noise_floor_mm=float(result.noise_floor_mm), stop_reason=result.stop_reason,

@@ -27,6 +27,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 XYZI_FIELDS = ("x", "y", "z", "intensity")
+# A sweep's profiles are stamped within (profiles - 1) step / speed of each other; a profile stamped
+# beyond this window around them (zero, far in the future, another sweep's) is not of the sweep.
+STAMP_WINDOW_FACTOR = 1.5      # room for a robot slower than commanded
+STAMP_WINDOW_MARGIN_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -65,9 +69,18 @@ def profile_problem(stamp_s: float, profile: np.ndarray) -> str:
     coordinates = np.stack([np.asarray(profile[name], dtype=np.float64).reshape(-1) for name in ("x", "y", "z")])
     if np.isinf(coordinates).any():
         return "profile has infinite coordinates"
-    if not np.isfinite(coordinates).all(axis=0).any():
+    finite = np.isfinite(coordinates).all(axis=0)
+    if not finite.any():
         return "profile has no finite point"
+    if not np.any(coordinates[:, finite]):
+        return "profile has every point at the sensor's origin (0, 0, 0): not a measurement"
     return ""
+
+
+def stamp_window_s(profiles: int, step_mm: float, speed_mm_s: float) -> float:
+    """Length (s) of the time window that holds every profile of a sweep of ``profiles`` profiles."""
+    span = max(profiles - 1, 0) * step_mm / speed_mm_s if speed_mm_s > 0.0 else math.inf
+    return STAMP_WINDOW_FACTOR * span + STAMP_WINDOW_MARGIN_S if math.isfinite(span) else math.inf
 
 
 def nominal_start_pose(length_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> np.ndarray:
@@ -128,7 +141,12 @@ class PoseTrack:
 
 
 class SweepCollector:
-    """Collects the profiles of one sweep with a bound on their number (bounded memory)."""
+    """Collects the profiles of one sweep with a bound on their number (bounded memory).
+
+    Profiles that well-formed junk could slip in among the sweep's are told apart at the end
+    (:meth:`members`): the sweep is the largest set of profiles with one wire layout (field types,
+    byte order) whose stamps fit in the sweep's time window; the others are not assembled.
+    """
 
     def __init__(self, max_profiles: int, max_points_per_profile: int) -> None:
         if max_profiles < 1 or max_points_per_profile < 1:
@@ -137,20 +155,27 @@ class SweepCollector:
         self.max_points = max_points_per_profile
         self._stamps: list[float] = []
         self._profiles: list[np.ndarray] = []
-        self.dropped = 0
+        self._layouts: list[object] = []
+        self.dropped = 0        # over max_profiles: the sweep is truncated
+        self.too_wide = 0       # over max_points_per_profile: dropped, the sweep goes on
 
     def __len__(self) -> int:
         return len(self._profiles)
 
-    def add(self, stamp_s: float, profile: np.ndarray) -> bool:
+    def add(self, stamp_s: float, profile: np.ndarray, layout: object = None) -> bool:
         """Keep a copy of one profile (structured x, y, z, intensity); False when over a bound.
 
-        ValueError (nothing kept) for a profile that cannot be placed: see :func:`profile_problem`.
+        ``layout`` (hashable) names the profile's wire layout; profiles of another layout than most
+        of the sweep's are not assembled. ValueError (nothing kept) for a profile that cannot be
+        placed: see :func:`profile_problem`.
         """
         problem = profile_problem(stamp_s, profile)
         if problem:
             raise ValueError(problem)
-        if len(self._profiles) >= self.max_profiles or profile.size > self.max_points:
+        if profile.size > self.max_points:
+            self.too_wide += 1
+            return False
+        if len(self._profiles) >= self.max_profiles:
             self.dropped += 1
             return False
         flat = np.empty(profile.size, dtype=[(name, np.float32) for name in XYZI_FIELDS])
@@ -158,18 +183,42 @@ class SweepCollector:
             flat[name] = profile[name].reshape(-1)
         self._stamps.append(float(stamp_s))
         self._profiles.append(flat)
+        self._layouts.append(layout)
         return True
 
+    def members(self, window_s: float = math.inf) -> np.ndarray:
+        """Boolean mask of the kept profiles that form the sweep: the most common layout, and of
+        those the most that fit in one time window of ``window_s`` (see :func:`stamp_window_s`)."""
+        mask = np.zeros(len(self._profiles), dtype=bool)
+        if not self._profiles:
+            return mask
+        layouts = {}
+        for layout in self._layouts:
+            layouts[layout] = layouts.get(layout, 0) + 1
+        common = max(layouts, key=layouts.get)       # ties: the layout that came first
+        same = np.array([layout == common for layout in self._layouts])
+        stamps = np.asarray(self._stamps)
+        ordered = np.sort(stamps[same])
+        ends = np.searchsorted(ordered, ordered + window_s, side="right")
+        first = int(np.argmax(ends - np.arange(len(ordered))))
+        return same & (stamps >= ordered[first]) & (stamps <= ordered[first] + window_s)
+
+    def first_stamp_s(self, members: np.ndarray) -> float:
+        """The earliest stamp (s) of the profiles ``members`` selects."""
+        return float(np.min(np.asarray(self._stamps)[np.asarray(members, dtype=bool)]))
+
     def assemble(self, motion: SweepMotion, start_pose: Optional[np.ndarray] = None,
-                 poses: Optional[PoseTrack] = None) -> tuple[np.ndarray, bool]:
+                 poses: Optional[PoseTrack] = None, members: Optional[np.ndarray] = None) -> tuple[np.ndarray, bool]:
         """The organized (profiles, points) structured cloud in the base frame, and whether by pose.
 
         Placed by ``poses`` when they cover every profile's stamp, else by ``motion`` in the start
         frame mapped by ``start_pose`` (4x4, start frame -> base frame; None: the identity).
+        ``members`` (a mask from :meth:`members`) selects the profiles; default: all kept.
         """
-        if not self._profiles:
+        chosen = np.ones(len(self._profiles), dtype=bool) if members is None else np.asarray(members, dtype=bool)
+        if not chosen.any():
             raise ValueError("no profiles were received in this sweep")
-        order = np.argsort(np.asarray(self._stamps), kind="stable")
+        order = np.flatnonzero(chosen)[np.argsort(np.asarray(self._stamps)[chosen], kind="stable")]
         stamps = np.asarray(self._stamps)[order]
         by_pose = poses is not None and poses.covers(stamps)
         if by_pose:
@@ -179,7 +228,7 @@ class SweepCollector:
             rotations = np.repeat(pose[None, :3, :3], len(order), axis=0)
             travel = np.outer(stamps - stamps[0], np.asarray(motion.direction) * motion.speed_mm_s)
             translations = travel @ pose[:3, :3].T + pose[:3, 3]
-        width = max(profile.size for profile in self._profiles)
+        width = max(self._profiles[index].size for index in order)
         cloud = np.full((len(order), width), np.nan,
                         dtype=[(name, np.float32) for name in XYZI_FIELDS])
         for row, index in enumerate(order):

@@ -18,7 +18,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2, PointField
 
 from gls_calibration import kinematics
-from gls_calibration.nodes.conversions import cloud_to_msg, plate_pose_to_msg, xyzi_array
+from gls_calibration.nodes.conversions import array_to_pointcloud2, cloud_to_msg, plate_pose_to_msg, xyzi_array
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
@@ -394,6 +394,115 @@ class HostileScanner(FakeScanner):
         super().stream()
 
 
+WIDE_LIMIT = 60   # max_points_per_profile for the junk test; the fake scanner's profiles have 50
+
+
+def stamped(cloud: PointCloud2, seconds: float) -> PointCloud2:
+    cloud.header.stamp.sec, cloud.header.stamp.nanosec = int(seconds), int(round((seconds % 1.0) * 1e9))
+    return cloud
+
+
+class JunkScanner(FakeScanner):
+    """Issue 31 item 8: well-formed junk in the middle of a sweep placed by pose."""
+
+    def junk(self) -> list[PointCloud2]:
+        profile = self.profiles[0]
+        xyz = np.column_stack([profile["x"], profile["y"], profile["z"]]) * 1e-3        # metres
+        wide = xyzi_array(np.column_stack([np.linspace(-30.0, 30.0, 2 * WIDE_LIMIT), np.zeros(2 * WIDE_LIMIT),
+                                           np.full(2 * WIDE_LIMIT, 325.0)]))      # mm: cloud_to_msg sends metres
+        near = 1000.05                                        # a stamp inside the sweep
+        big_endian = stamped(cloud_to_msg(profile, "scanner_sensor"), near)
+        big_endian.is_bigendian = True
+        float64 = [(name, "f8") for name in ("x", "y", "z", "intensity")]
+        return [
+            stamped(array_to_pointcloud2(xyzi_array(np.zeros((50, 3))).astype(float64), "scanner_sensor"),
+                    near),                                      # float64 zeros
+            stamped(array_to_pointcloud2(xyzi_array(xyz).astype(float64), "scanner_sensor"),
+                    near),                                      # float64 metres, plausible: another layout
+            big_endian,
+            stamped(cloud_to_msg(profile, "scanner_sensor"), 0.0),      # stamp zero
+            stamped(cloud_to_msg(profile, "scanner_sensor"), 2.1e9),    # far in the future (int32 seconds)
+        ] + [stamped(cloud_to_msg(wide, "scanner_sensor"), near) for _ in range(5)]   # wider than the bound
+
+    def stream(self) -> None:
+        junk = self.junk()
+        original = self.points.publish
+        count = [0]
+
+        def publish(message):
+            original(message)
+            count[0] += 1
+            if count[0] == 5:                                   # in the middle of the sweep
+                for cloud in junk:
+                    original(cloud)
+        self.points.publish = publish
+        try:
+            super().stream()
+        finally:
+            self.points.publish = original
+
+
+def test_well_formed_junk_in_a_sweep_is_dropped_by_layout_stamp_and_width(ros_context, add_node, client):
+    add_node(ScanAcquisitionNode(context=ros_context, parameter_overrides=[
+        Parameter("max_points_per_profile", value=WIDE_LIMIT)]))
+    JunkScanner(add_node(Node("fake_scanner", namespace=NAMESPACE, context=ros_context)), "posed")
+    acquire = client(AcquireSweep, "scan/acquire")
+    response = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))
+    assert response.success, response.message
+    assert response.cloud.height == PROFILES                      # 20 rows, not 30
+    assert response.placed_by_pose                                # the junk stamps did not switch to time
+    assert response.cloud.header.stamp.sec == 1000                # stamped with the sweep's first profile
+    dropped = {why: int(count) for count, why in re.findall(r"(\d+) profile\(s\) (malformed|wider|not of)",
+                                                              response.message)}
+    assert dropped["wider"] == 5, response.message
+    assert dropped.get("malformed", 0) + dropped.get("not of", 0) == 5, response.message
+    assert dropped.get("not of", 0) >= 3, response.message        # float64 layout, stamp zero, stamp 2.1e9
+    again = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))
+    assert again.success and again.cloud.height == PROFILES, again.message
+
+
+class SpoofingScanner(FakeScanner):
+    """Issue 31 item 8: ends of sweep with the running sweep's id that contradict it, sent early."""
+
+    def stream(self) -> None:
+        original = self.points.publish
+        count = [0]
+
+        def publish(message):
+            original(message)
+            count[0] += 1
+            if count[0] == 1:      # complete after one profile: contradicts the announced 20
+                self.done.publish(SweepDone(sweep_id=7, profiles=1, step_mm=0.15, speed_mm_s=15.0,
+                                            direction=[0.0, 1.0, 0.0], complete=True))
+            if count[0] == 2:      # cut short after 5, sent after 2: contradicted by the profiles that follow
+                self.done.publish(SweepDone(sweep_id=7, profiles=5, step_mm=0.15, speed_mm_s=15.0,
+                                            direction=[0.0, 1.0, 0.0], complete=False))
+            if count[0] == 10:     # cut short after 3: contradicts the 10 received
+                self.done.publish(SweepDone(sweep_id=7, profiles=3, step_mm=0.15, speed_mm_s=15.0,
+                                            direction=[0.0, 1.0, 0.0], complete=False))
+            time.sleep(0.02)       # a sweep that takes a while: the spoofs come long before its end
+        self.points.publish = publish
+        try:
+            super().stream()
+        finally:
+            self.points.publish = original
+            self.finished = time.monotonic()
+
+
+def test_an_end_of_sweep_that_contradicts_the_sweep_is_ignored_and_the_real_end_awaited(ros_context, add_node,
+                                                                                       client):
+    add_node(ScanAcquisitionNode(context=ros_context))
+    scanner = SpoofingScanner(add_node(Node("fake_scanner", namespace=NAMESPACE, context=ros_context)), "complete")
+    acquire = client(AcquireSweep, "scan/acquire")
+    response = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))
+    answered = time.monotonic()
+    assert response.success, response.message
+    assert response.cloud.height == PROFILES
+    assert answered >= scanner.finished          # not before the scanner's own end: it is not left running
+    again = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))
+    assert again.success and again.cloud.height == PROFILES, again.message
+
+
 def test_malformed_profiles_and_foreign_ends_of_sweep_are_dropped_counted_and_survived(ros_context, add_node,
                                                                                       client):
     add_node(ScanAcquisitionNode(context=ros_context))
@@ -402,6 +511,6 @@ def test_malformed_profiles_and_foreign_ends_of_sweep_are_dropped_counted_and_su
     response = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))
     assert response.success, response.message
     assert response.cloud.height == PROFILES                      # all good profiles, none of the others
-    assert response.message.endswith(f"; {len(malformed_clouds()) + 1} malformed profile(s) dropped")
+    assert response.message.endswith(f"; dropped {len(malformed_clouds()) + 1} profile(s) malformed")
     again = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))   # the node still serves
     assert again.success, again.message

@@ -31,7 +31,9 @@ def measure(effects, seed, noise_mm=0.015, t=None, targets=TARGETS):
 
 
 def found(result, name):
-    return name in result.named_effects or any(name in step.indistinguishable_from for step in result.steps)
+    """Named alone, named in a group the data cannot split, or reported as indistinguishable from the one named."""
+    return (name in result.named_effects or any(name in group for group in result.named_groups)
+            or any(name in step.indistinguishable_from for step in result.steps))
 
 
 # one observable defect each, sized to leave 0.2-0.35 mm RMS after rigid alignment (>= 10x the noise

@@ -60,4 +60,13 @@ def test_explain_deviations_names_the_hidden_effect_and_refuses_a_bad_file(add_n
     missing = call_service(client_node, client, ExplainDeviations.Request(calibration_file=str(tmp_path / "nope.yaml")),
                            timeout_s=10.0)
     assert not missing.success
-    assert "nope.yaml" in missing.message and "cannot read file" in missing.message
+    assert "nope.yaml" in missing.message and "outside the calibration directory" in missing.message
+    # no existence oracle: a file that exists outside the store gets the same answer (issue 31)
+    existing = tmp_path / "there.yaml"
+    existing.write_text("active: x\n")
+    there = call_service(client_node, client, ExplainDeviations.Request(calibration_file=str(existing)),
+                         timeout_s=10.0)
+    assert not there.success
+    assert there.message.replace(str(existing), "PATH") == missing.message.replace(str(tmp_path / "nope.yaml"), "PATH")
+    inside = call_service(client_node, client, ExplainDeviations.Request(calibration_file="nope.yaml"), timeout_s=10.0)
+    assert not inside.success and "cannot read file" in inside.message

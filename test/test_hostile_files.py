@@ -47,6 +47,25 @@ def test_paths_outside_the_store_are_refused(store, tmp_path):
     refused(lambda: store.load("/etc/hostname"), "outside the calibration directory")
 
 
+def test_a_path_outside_the_store_is_refused_the_same_way_whether_or_not_it_exists(store, tmp_path):
+    # Issue 31: the answer must not tell whether a file exists outside the store (an existence oracle).
+    existing = tmp_path / "elsewhere.yaml"
+    existing.write_text(store.active_path().read_text())
+    missing = tmp_path / "nothing_here.yaml"
+    for there, absent in [(existing, missing), ("/etc/hostname", "/etc/no_such_file_here"),
+                          (f"../../{existing.name}", f"../../{missing.name}")]:
+        first = refused(lambda: store.load(there), "outside the calibration directory")
+        second = refused(lambda: store.load(absent), "outside the calibration directory")
+        assert first.problem == second.problem
+    # the same through a symlink in the store pointing at an existing or a missing file outside
+    (store.history_directory / "to_existing.yaml").symlink_to(existing)
+    (store.history_directory / "to_missing.yaml").symlink_to(missing)
+    assert (refused(lambda: store.load("to_existing.yaml"), "outside").problem
+            == refused(lambda: store.load("to_missing.yaml"), "outside").problem)
+    # a missing file inside the store is still named as missing
+    refused(lambda: store.load("calibration_missing.yaml"), "cannot read file")
+
+
 def test_a_symlink_leaving_the_store_is_refused_and_one_inside_it_is_followed(store, tmp_path):
     outside = tmp_path / "elsewhere.yaml"
     outside.write_text(store.active_path().read_text())

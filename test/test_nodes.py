@@ -32,6 +32,7 @@ from gls_calibration.correction import CalibratedRegion, Correction
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
+from gls_calibration.calibration_record import correction_from_record
 from gls_calibration.persistence import FIDUCIAL_KEYS, CalibrationStore, new_record
 from gls_calibration.rbf import OLSRBFNetwork
 from gls_calibration.targets import grid_targets
@@ -275,6 +276,37 @@ def test_correction_hot_reload_applies_the_calibration(ros_context, add_node, tm
     assert np.all(shift[:4] > 0.01)
     np.testing.assert_array_equal(shift[5:], 0.0)
     assert not np.allclose(np.asarray(after.alpha_x)[:4], np.asarray(before.alpha_x)[:4], rtol=0, atol=1e-7)
+
+
+def huge_weight_record() -> dict:
+    """A record that validates as a file but whose model is broken: every weight 1e308."""
+    record, _ = trained_record()
+    model = record["models"][0]
+    model["weights"] = [[1e308, 1e308] for _ in model["weights"]]
+    return record
+
+
+def test_a_calibration_with_absurd_weights_is_refused_when_loaded_not_on_every_correction(
+        ros_context, add_node, tmp_path):
+    # Issue 31 item 8: weights of 1e308 were accepted as the active calibration at start, and then
+    # every correction failed. The field is checked when the file is loaded.
+    store_dir = tmp_path / "store"
+    with pytest.raises(ValueError, match="the correction is unusable"):
+        correction_from_record(huge_weight_record(), GEOMETRY)
+    bad = CalibrationStore(store_dir).save(huge_weight_record(), activate=True)   # a valid file, a broken model
+    start_correction_node(ros_context, add_node, store_dir)        # must start anyway
+    node = client_node(ros_context, add_node)
+    response = correct(node, [0.0], [0.0])
+    assert not response.success
+    assert response.message.startswith("corrections refused: active calibration refused"), response.message
+    assert "the correction is unusable" in response.message and "not finite or exceeds 100 mm" in response.message
+    # Once a good calibration is activated and loaded, it serves.
+    record, expected = trained_record()
+    CalibrationStore(store_dir).save(record, activate=True)
+    assert load(node, "").success
+    answer = correct(node, [10.0], [-20.0])
+    assert answer.success, answer.message
+    assert bad.exists()
 
 
 def test_correction_load_of_another_file_is_refused_and_the_active_one_stays(ros_context, add_node, tmp_path):

@@ -98,3 +98,37 @@ def test_the_pose_track_refuses_bad_poses_and_keeps_its_bound():
     assert track.add(0.0, [0, 0, 0], [0, 0, 0, 1]) and track.add(1.0, [0, 1, 0], [0, 0, 0, 1])
     assert not track.add(2.0, [0, 2, 0], [0, 0, 0, 1])
     assert len(track) == 2
+
+
+def test_junk_profiles_are_kept_apart_by_layout_and_time_window_and_wide_ones_dropped():
+    # Issue 31 item 8: well-formed junk joined the sweep (2 006 rows instead of 2 001), its stamps
+    # switched placement to time, and five over-wide profiles failed the whole sweep.
+    from gls_calibration.sweep import profile_problem, stamp_window_s
+    count = 40
+    collector = SweepCollector(1000, 20)
+    x = np.linspace(-50, 50, 11)
+    stamps = 100.0 + np.arange(count) * STEP / SPEED
+    for index, stamp in enumerate(stamps):
+        collector.add(stamp, profile(x, np.full(x.size, 325.0 + index)), layout="float32-le")
+        if index == 7:
+            collector.add(stamps[3], profile(x, np.full(x.size, 1.0)), layout="float64-le")   # another layout
+            collector.add(stamps[4], profile(x, np.full(x.size, 2.0)), layout="float32-be")
+            collector.add(0.0, profile(x, np.full(x.size, 3.0)), layout="float32-le")          # stamp zero
+            collector.add(4e9, profile(x, np.full(x.size, 4.0)), layout="float32-le")          # far future
+            for _ in range(5):
+                assert not collector.add(stamps[5], profile(np.linspace(-50, 50, 21), np.full(21, 5.0)),
+                                         layout="float32-le")                                  # too wide
+    assert collector.too_wide == 5 and collector.dropped == 0
+    window = stamp_window_s(count, STEP, SPEED)
+    assert window == pytest.approx(1.5 * (count - 1) * STEP / SPEED + 1.0)
+    members = collector.members(window)
+    assert len(collector) == count + 4 and int(members.sum()) == count
+    poses = PoseTrack(1000)
+    for stamp in stamps:
+        poses.add(stamp, (0.0, SPEED * (stamp - stamps[0]), 0.0), (0.0, 0.0, 0.0, 1.0))
+    cloud, by_pose = collector.assemble(SweepMotion((0.0, 1.0, 0.0), SPEED), None, poses, members)
+    assert by_pose and cloud.shape == (count, x.size)
+    np.testing.assert_array_equal(cloud["z"][:, 0], 325.0 + np.arange(count))     # only the sweep's, in order
+    assert collector.first_stamp_s(members) == stamps[0]
+    # a profile of zeros is no measurement at all
+    assert "sensor's origin" in profile_problem(1.0, profile(np.zeros(x.size), np.zeros(x.size)))

@@ -261,6 +261,8 @@ def _format_values(values, units) -> str:
 
 def _report_markdown(result: DiscrepancyResult, measured: Path, model: Path | None, data: Measurements) -> str:
     from gls_calibration.discrepancy import verdict_lines
+    from gls_calibration.discrepancy.separability import SEPARABLE_AT
+    from gls_calibration.discrepancy.verdict import naming_phrase
 
     criterion = result.criterion.upper()
     floor = result.floor
@@ -294,7 +296,7 @@ def _report_markdown(result: DiscrepancyResult, measured: Path, model: Path | No
         f"({'smooth structure' if result.structure_before.is_structure else 'no smooth structure'}) |",
         f"| structure test after (F-test p) | {result.structure_after.p_value:.3g} "
         f"({'smooth structure' if result.structure_after.is_structure else 'no smooth structure'}) |",
-        f"| named effects | {', '.join(result.named_effects) or 'none'} |",
+        f"| named effects | {naming_phrase(result) if result.named_effects or result.named_groups else 'none'} |",
         f"| outliers excluded | {len(result.outliers)} |",
         "",
         f"Stopped because {result.stop_reason}.",
@@ -316,17 +318,27 @@ def _report_markdown(result: DiscrepancyResult, measured: Path, model: Path | No
             lines.append(f"| {number} | {step.name} | {_format_parameters(step)} | "
                          f"{', '.join(step.indistinguishable_from) or '-'} | {step.improvement:.1f} | "
                          f"{step.rms_before_mm:.4f} → {step.rms_after_mm:.4f} | {', '.join(step.removed) or '-'} |")
-        lines += ["", "Final joint fit (± 1 sigma; correlation with the rigid rotation / translation x / y):", ""]
-        for name in result.named_effects:
+        lines += ["", "Final joint fit (± 1 sigma; correlation with the rigid rotation / translation x / y). "
+                  f"z is the size of what survives the rigid alignment and the other fitted effects over its "
+                  f"standard error; an effect is named alone at z >= {SEPARABLE_AT:g} when no other candidate "
+                  "brings it below that. Each effect's definition (the convention its values refer to) follows "
+                  "its values.", ""]
+        separability = {record.name: record for record in result.separability}
+        for name in result.fitted_effects:
             values = result.model_effects.get(name) if name in result.model_effects.values else result.user_values[name]
-            spec_units = next(step.units for step in result.steps if step.name == name) if any(
-                step.name == name for step in result.steps) else {}
-            for i, (parameter, unit) in enumerate(spec_units.items()):
+            spec = _effect_spec(result, name)
+            record = separability.get(name)
+            status = ("named" if name in result.named_effects else
+                      f"named as a group with {', '.join(record.group[1:])}" if record is not None
+                      and record.separable_from_rigid else "not named: not separable from the rigid motion")
+            lines.append(f"- **{name}** ({status}" + (f"; z = {record.z:.1f}" if record is not None else "") + ")")
+            for i, (parameter, unit) in enumerate(zip(spec.parameter_names, spec.units)):
                 label = f"{name}.{parameter}"
                 corr = result.rigid_correlation.get(label, {})
-                lines.append(f"- {label} = {values[i]:.4g} ± {result.model_uncertainty[name][i]:.2g} {unit} "
+                lines.append(f"  - {label} = {values[i]:.4g} ± {result.model_uncertainty[name][i]:.2g} {unit} "
                              f"(correlation {corr.get('rotation', math.nan):+.2f} / {corr.get('translation_x', math.nan):+.2f}"
                              f" / {corr.get('translation_y', math.nan):+.2f})")
+            lines.append(f"  - definition: {spec.doc}")
         for number, step in enumerate(result.steps, start=1):
             lines += ["", f"### Candidates at step {number}", "",
                       f"| candidate | {criterion} gain | RMS after (mm) | field difference to best (mm) |",
@@ -345,6 +357,16 @@ def _report_markdown(result: DiscrepancyResult, measured: Path, model: Path | No
                      + (f"; {'; '.join(location.findings)}" if location.findings else ""))
     lines += ["", "## Notes", ""] + [f"- {note}" for note in result.notes] + [""]
     return "\n".join(lines)
+
+
+def _effect_spec(result: DiscrepancyResult, name: str):
+    """The table entry (library or user effect) that defines ``name``'s parameters."""
+    from gls_calibration.effect_table import EFFECT_TABLE
+
+    for effect in result.user_effects:
+        if effect.name == name:
+            return effect.spec
+    return EFFECT_TABLE[name]
 
 
 def _write_outputs(result: DiscrepancyResult, out: Path, measured: Path, model: Path | None,
@@ -449,7 +471,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as error:
         print(f"{PROGRAM}: error: cannot write {args.out}: {error}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    named = ", ".join(result.named_effects) or "none"
+    from gls_calibration.discrepancy.verdict import naming_phrase
+
+    named = naming_phrase(result) if result.named_effects or result.named_groups else "none"
     print(f"named effects: {named}; residual RMS {result.rms_before_mm:.4f} -> {result.rms_after_mm:.4f} mm "
           f"({result.floor.source} noise floor {result.noise_floor_mm:.4f} mm); verdict {result.verdict.verdict}"
           + (f", {result.verdict.unexplained_rms_mm:.4f} mm unexplained"

@@ -32,7 +32,12 @@ a rigid motion away from gls, mm), the workflow
    indistinguishable from it; a backward pass drops effects named earlier that the others explain;
 6. repeats while smooth structure is left or the residual is above the independent floor, and no
    more than ``max_steps`` times;
-7. gives the verdict (:mod:`.verdict`): ``explained`` or ``unexplained_structure`` with the RMS above
+7. names only what the data separate (:mod:`.separability`): a fitted effect whose field, once the
+   rigid motion and the other fitted effects are profiled out, is below ``SEPARABLE_AT`` standard
+   errors is not named; one that falls below it when some other candidate is also profiled out is
+   named as a group with those candidates (``named_groups``); ``fitted_effects`` is what the model
+   holds either way;
+8. gives the verdict (:mod:`.verdict`): ``explained`` or ``unexplained_structure`` with the RMS above
    the floor and the dominant pattern in words. Nothing above the floor is called noise.
 
 Files: :mod:`.results` (types), :mod:`.residual_statistics` (roughness, structure test, location),
@@ -59,13 +64,15 @@ from gls_calibration.discrepancy.results import (
     ResidualLocation, StructureTest, Verdict)
 from gls_calibration.discrepancy.run_verdict import run_verdict_lines
 from gls_calibration.discrepancy.selection import CRITERIA, RIGID_NOTE, explain
-from gls_calibration.discrepancy.verdict import verdict_lines
+from gls_calibration.discrepancy.separability import SEPARABLE_AT, Separability, separability
+from gls_calibration.discrepancy.verdict import naming_phrase, verdict_lines
 from gls_calibration.registration import RigidAlignment2D, align_rigid_2d
 
 __all__ = [
-    "CRITERIA", "MIN_POINTS", "NOISE_SOURCES", "RIGID_NOTE", "CandidateScore", "DiscrepancyResult", "EffectStep",
-    "EffectsFit", "FloorEvidence", "Implausible", "NoiseFloor", "ObservabilityReport", "Outlier", "ResidualLocation",
-    "RigidAlignment2D", "StructureTest", "Verdict", "align_rigid_2d", "average_repeats", "estimate_noise_floor",
-    "explain", "fit_effects", "locate_residual", "observability_report", "physical_prediction", "run_verdict_lines",
-    "structure_test", "verdict_lines",
+    "CRITERIA", "MIN_POINTS", "NOISE_SOURCES", "RIGID_NOTE", "SEPARABLE_AT", "CandidateScore", "DiscrepancyResult",
+    "EffectStep", "EffectsFit", "FloorEvidence", "Implausible", "NoiseFloor", "ObservabilityReport", "Outlier",
+    "ResidualLocation", "RigidAlignment2D", "Separability", "StructureTest", "Verdict", "align_rigid_2d",
+    "average_repeats", "estimate_noise_floor", "explain", "fit_effects", "locate_residual", "naming_phrase",
+    "observability_report", "physical_prediction", "run_verdict_lines", "separability", "structure_test",
+    "verdict_lines",
 ]

@@ -164,6 +164,12 @@ class DiscrepancyResult:
     user_effects: tuple[UserEffect, ...]       # candidates from outside the library
     user_values: Mapping[str, tuple[float, ...]]   # named user effects, final joint fit
     inliers: np.ndarray                        # (N_input,) bool: the points the fits used
+    # Effects the final model holds (``model_effects``); ``named_effects`` are those of them the data
+    # tell apart from the rigid motion and from every other candidate (:mod:`.separability`), each
+    # of ``named_groups`` is a fitted effect and the candidates it cannot be told from.
+    fitted_effects: tuple[str, ...] = ()
+    named_groups: tuple[tuple[str, ...], ...] = ()
+    separability: tuple = ()                   # one separability.Separability per fitted effect
 
     @property
     def noise_floor_mm(self) -> float:
@@ -179,6 +185,9 @@ class DiscrepancyResult:
         """JSON-ready summary (no per-point arrays)."""
         return {
             "named_effects": list(self.named_effects),
+            "named_groups": [list(group) for group in self.named_groups],
+            "fitted_effects": list(self.fitted_effects),
+            "separability": [record.to_dict() for record in self.separability],
             "effects": [step.to_dict() for step in self.steps],
             "rms_before_mm": self.rms_before_mm,
             "rms_after_mm": self.rms_after_mm,

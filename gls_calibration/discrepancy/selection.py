@@ -18,6 +18,7 @@ from gls_calibration.discrepancy.fitting import (
     rigid_correlation)
 from gls_calibration.discrepancy.noise_floor import floor_evidence, independent_noise
 from gls_calibration.discrepancy.outliers import find_outliers
+from gls_calibration.discrepancy.separability import SEPARABLE_AT, Separability, separability
 from gls_calibration.discrepancy.verdict import against_floor, judge
 from gls_calibration.discrepancy.residual_statistics import (
     estimate_noise_floor, locate_residual, rms, structure_test)
@@ -353,9 +354,13 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
     verdict = judge(points, current.residual_xy, floor, structure_after, location_after, len(current.vector),
                     alpha=structure_alpha)
     uncertainty = {name: tuple(current.uncertainty(name).values()) for name in current.names}
+    # Name only what the data separate from the rigid motion and the other candidates (issue 31)
+    separable = separability(predict, current, known, pool,
+                             np.asarray(selection.sigma_axis_mm, dtype=float) * selection.inflation)
+    named, groups = naming(separable, notes)
     return DiscrepancyResult(
         geometry=geometry, known_effects=known, model_effects=current.effects,
-        model_uncertainty=MappingProxyType(uncertainty), named_effects=current.names, steps=tuple(steps),
+        model_uncertainty=MappingProxyType(uncertainty), named_effects=named, steps=tuple(steps),
         rms_before_mm=first.rms_mm, rms_after_mm=current.rms_mm, noise=noise,
         structure_before=structure_before, structure_after=structure_after,
         location_before=location_before, location_after=location_after,
@@ -364,4 +369,25 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
         t=t, criterion=criterion, stop_reason=stop_reason, notes=tuple(notes),
         floor=floor, outliers=outliers, implausible=tuple(implausible.values()), verdict=verdict,
         rigid_correlation=MappingProxyType(rigid_correlation(predict, current, sigma)),
-        user_effects=tuple(user_effects), user_values=current.user_values, inliers=inliers)
+        user_effects=tuple(user_effects), user_values=current.user_values, inliers=inliers,
+        fitted_effects=current.names, named_groups=groups, separability=separable)
+
+
+def naming(records: Sequence[Separability], notes: list[str]) -> tuple[tuple[str, ...], tuple[tuple[str, ...], ...]]:
+    """Named effects and named groups from the separability of the fitted ones; notes say why not alone."""
+    named, groups, seen = [], [], set()
+    for record in records:
+        if not record.separable_from_rigid:
+            notes.append(f"{record.name} is fitted but not named: what survives the rigid alignment is "
+                         f"{record.z_rigid:.1f} standard errors (< {SEPARABLE_AT:g}), i.e. the data cannot tell it "
+                         "from a rotation or shift of the measured frame.")
+        elif record.named_alone:
+            named.append(record.name)
+        elif frozenset(record.group) not in seen:
+            seen.add(frozenset(record.group))
+            groups.append(record.group)
+            notes.append(f"{record.name} is named only as a group with {', '.join(record.group[1:])}: with any of them "
+                         f"also fitted, its size is below {SEPARABLE_AT:g} standard errors ("
+                         + ", ".join(f"{n} {z:.1f}" for n, z in record.z_with.items())
+                         + "); the data say one of them, not which.")
+    return tuple(named), tuple(groups)

@@ -152,10 +152,18 @@ def unexplained_phrase(verdict: Verdict, floor: FloorEvidence) -> str:
     return f"{verdict.unexplained_rms_mm:.4f} mm RMS remains above the {floor.source} noise floor"
 
 
+def naming_phrase(result: DiscrepancyResult) -> str:
+    """The named effects and groups in words: ``a, b and one of c / d`` (``no effect`` when none)."""
+    parts = list(result.named_effects) + [f"one of {' / '.join(group)}" for group in result.named_groups]
+    if not parts:
+        return "no effect"
+    return parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " and " + parts[-1]
+
+
 def verdict_lines(result: DiscrepancyResult) -> list[str]:
     """The verdict in a few Markdown lines, for the discrepancy report and the calibration run's report."""
     verdict, floor = result.verdict, result.floor
-    named = ", ".join(result.named_effects) or "no effect"
+    named = naming_phrase(result)
     if verdict.verdict == "explained":
         lines = [f"**Verdict: explained.** With {named} named, the residual is {result.rms_after_mm:.4f} mm RMS "
                  f"against a {floor.source} noise floor of {floor.noise_floor_mm:.4f} mm (ratio {verdict.ratio_to_floor:.2f})."]
@@ -177,6 +185,10 @@ def verdict_lines(result: DiscrepancyResult) -> list[str]:
         lines.append(f"Cross-check of the floor: {floor.cross_check}.")
     if result.outliers:
         lines.append(f"{len(result.outliers)} gross outlier(s) were excluded from every fit and are listed.")
+    if result.named_groups:
+        lines.append("A group is named when its effects move the marks alike at this noise: with any one of them "
+                     "fitted the others add less than the separability threshold (see the notes); the data say "
+                     "one of them, not which.")
     if result.implausible:
         lines.append("Not named because the fit was physically implausible: "
                      + ", ".join(i.name for i in result.implausible) + ".")

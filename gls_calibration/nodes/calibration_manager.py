@@ -435,7 +435,7 @@ class CalibrationManager(GlsNode):
         response.rms_after_mm = float(result.rms_after_mm)
         response.noise_floor_mm = float(result.noise_floor_mm)
         response.report_json = json.dumps(json_safe(result.to_dict()))
-        named = ", ".join(result.named_effects) or "no effect"
+        named = discrepancy.naming_phrase(result)   # groups the data cannot split included
         response.message = (f"{path.name}: {named}; residual {result.rms_before_mm:.4f} -> "
                             f"{result.rms_after_mm:.4f} mm RMS (noise floor {result.noise_floor_mm:.4f} mm)")
         return response

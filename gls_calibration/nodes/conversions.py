@@ -290,8 +290,9 @@ def cloud_from_msg(msg: PointCloud2, mm_per_unit: float = MM_PER_M) -> np.ndarra
     view = pointcloud2_to_array(msg)
     _require_fields(view, _XYZ + ("intensity",))
     points = np.empty(view.shape, dtype=xyzi_dtype())
-    for name in _XYZ:
-        np.multiply(view[name], np.float32(mm_per_unit), out=points[name], dtype=np.float32)
+    with np.errstate(over="ignore"):   # a value beyond float32 becomes inf, which the caller refuses
+        for name in _XYZ:
+            np.multiply(view[name], np.float32(mm_per_unit), out=points[name], dtype=np.float32)
     points["intensity"] = view["intensity"]
     return points
 

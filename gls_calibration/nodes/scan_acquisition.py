@@ -13,6 +13,8 @@ import math
 import time
 from typing import Optional
 
+import numpy as np
+
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
@@ -20,7 +22,7 @@ from sensor_msgs.msg import PointCloud2
 from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
 from gls_calibration.nodes.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
-from gls_calibration.sweep import PoseTrack, SweepCollector, SweepMotion, nominal_start_pose
+from gls_calibration.sweep import PoseTrack, SweepCollector, SweepMotion, nominal_start_pose, stamp_window_s
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, StartSweep
 
@@ -31,7 +33,7 @@ MAX_LENGTH_MM = 10000.0
 MAX_SPEED_MM_S = 10000.0
 MAX_STEP_MM = 100.0
 MALFORMED_GRACE_S = 2.0    # profiles still in flight after the end of sweep: wait this before giving up
-MAX_ENDS_KEPT = 16         # ends of sweep remembered during one acquisition (others' sweeps, spoofs)
+MAX_ENDS_KEPT = 16         # ends of sweep remembered during one acquisition, per sweep id and of ids
 SCANNER_TOPICS_WAIT_S = 5.0  # before a sweep: how long to wait for the scanner's topics to match (after a restart)
 
 
@@ -62,10 +64,13 @@ class ScanAcquisitionNode(GlsNode):
                                       "place profiles by the reported sensor pose on scan/pose when it covers "
                                       "the sweep (else by time at the nominal speed)")
         self.collector: Optional[SweepCollector] = None
-        self.first_stamp: Optional[tuple[float, object]] = None   # (seconds, stamp message) of the first profile
+        self.stamps: dict[float, object] = {}   # stamp message of each kept profile, by its seconds
         self.poses: Optional[PoseTrack] = None
-        self.ends: dict[int, tuple] = {}       # (end of sweep, arrival) received while acquiring, by id
+        self.ends: dict[int, list] = {}        # [(end of sweep, arrival)] received while acquiring, by id
+        self.end: Optional[tuple] = None       # the end of this node's sweep that was believed, and its arrival
         self.sweep_id: Optional[int] = None    # the sweep this node started; other ends of sweep are ignored
+        self.expected_profiles = 0             # what the scanner announced for it
+        self.ignored_end = ""                  # why an end of sweep with this sweep's id was not believed
         self.malformed = 0
         self.start_client = self.client(StartSweep, "scanner/start_sweep")
         self.points_subscription = self.create_subscription(
@@ -82,6 +87,8 @@ class ScanAcquisitionNode(GlsNode):
 
         A malformed profile (see ``sweep.profile_problem``, or a message that does not hold what
         its header says) is dropped with a throttled warning and counted; it never stops the node.
+        Well-formed profiles that are not of the sweep (another wire layout than the sweep's, a
+        stamp outside its time window) are kept apart at the end (``SweepCollector.members``).
         """
         collector = self.collector
         if collector is None:
@@ -89,14 +96,16 @@ class ScanAcquisitionNode(GlsNode):
         try:
             stamp = message.header.stamp
             stamp_s = stamp.sec + stamp.nanosec * 1e-9
-            kept = collector.add(stamp_s, conversions.cloud_from_msg(message, self.mm_per_unit))
+            layout = (tuple((field.name, field.offset, field.datatype, field.count) for field in message.fields),
+                      bool(message.is_bigendian), int(message.point_step))
+            kept = collector.add(stamp_s, conversions.cloud_from_msg(message, self.mm_per_unit), layout)
         except (ValueError, TypeError, AttributeError) as error:
             self.malformed += 1
             self.get_logger().warning(f"malformed profile dropped ({self.malformed} in this sweep): {error}",
                                       throttle_duration_sec=1.0)
             return
-        if kept and (self.first_stamp is None or stamp_s < self.first_stamp[0]):
-            self.first_stamp = (stamp_s, stamp)
+        if kept:
+            self.stamps[stamp_s] = stamp
 
     def on_pose(self, message: PoseStamped) -> None:
         """Keep a reported sensor pose of the running sweep (metres -> mm)."""
@@ -116,26 +125,69 @@ class ScanAcquisitionNode(GlsNode):
         """
         if self.collector is None:
             return
-        if len(self.ends) >= MAX_ENDS_KEPT:
+        if message.sweep_id == self.sweep_id and self._ignored(message):
+            return
+        if message.sweep_id not in self.ends and len(self.ends) >= MAX_ENDS_KEPT:
             self.ends.pop(next(iter(self.ends)))
-        self.ends[message.sweep_id] = (message, time.monotonic())
+        kept = self.ends.setdefault(message.sweep_id, [])
+        if len(kept) >= MAX_ENDS_KEPT:
+            kept.pop(0)
+        kept.append((message, time.monotonic()))
 
     @property
     def done(self) -> Optional[SweepDone]:
-        """The end of the sweep being acquired, once it came."""
-        end = None if self.sweep_id is None else self.ends.get(self.sweep_id)
-        return None if end is None else end[0]
+        """The end of the sweep being acquired, once it came and was believed."""
+        return None if self.end is None else self.end[0]
+
+    def _ignored(self, done: SweepDone) -> bool:
+        """True (with a warning) when ``done``, of this node's sweep, cannot be its end."""
+        problem = self._end_problem(done)
+        if problem:
+            self.ignored_end = f"an end of sweep {done.sweep_id} was ignored: {problem}"
+            self.get_logger().warning(self.ignored_end)
+        return bool(problem)
+
+    def _members(self, done: SweepDone):
+        """Mask of the kept profiles that form the sweep ``done`` ends (layout and time window)."""
+        return self.collector.members(stamp_window_s(done.profiles, done.step_mm, done.speed_mm_s))
+
+    def _end_problem(self, done: SweepDone) -> str:
+        """Why an end of sweep with this sweep's id cannot be its end (empty when it can): its count
+        must be the scanner's announcement when complete, and no less than what already came."""
+        if done.complete and done.profiles != self.expected_profiles:
+            return (f"it counts {done.profiles} profiles, complete, but the scanner announced "
+                    f"{self.expected_profiles}")
+        if done.profiles > self.expected_profiles:
+            return f"it counts {done.profiles} profiles, more than the {self.expected_profiles} announced"
+        received = int(np.count_nonzero(self._members(done)))
+        if not done.complete and received > done.profiles:
+            return f"it says the sweep was cut short after {done.profiles} profiles, but {received} came"
+        return ""
 
     def _sweep_over(self) -> bool:
         """Every profile of the sweep kept (or over the bounds); or, once the end of the sweep is
-        ``MALFORMED_GRACE_S`` old, accounted for with the malformed ones (the sweep then fails)."""
-        end = None if self.sweep_id is None else self.ends.get(self.sweep_id)
-        if end is None:
+        ``MALFORMED_GRACE_S`` old, accounted for with the dropped ones (the sweep then fails).
+
+        An end of sweep that contradicts the scanner's announcement or what was received is not
+        believed (a spoof): it is forgotten with a warning and the acquisition waits for the real one,
+        so that it never returns while the scanner is still sweeping. An end saying the sweep was cut
+        short is believed only once ``MALFORMED_GRACE_S`` old with no more profiles than it counts."""
+        if self.sweep_id is None:
             return False
-        done, arrived = end
-        accounted = len(self.collector) + self.collector.dropped
+        ends = self.ends.get(self.sweep_id, [])
+        ends[:] = [(done, arrived) for done, arrived in ends if not self._ignored(done)]
+        if not ends:
+            return False
+        done, arrived = ends[0]
+        if not done.complete and time.monotonic() - arrived < MALFORMED_GRACE_S:
+            return False
+        self.end = (done, arrived)
+        collector = self.collector
+        members = int(np.count_nonzero(self._members(done)))
+        accounted = members + collector.dropped
+        junk = self.malformed + collector.too_wide + len(collector) - members
         return accounted >= done.profiles or (
-            accounted + self.malformed >= done.profiles and time.monotonic() - arrived >= MALFORMED_GRACE_S)
+            accounted + junk >= done.profiles and time.monotonic() - arrived >= MALFORMED_GRACE_S)
 
     async def on_acquire(self, request, response):
         """Start a sweep, wait for all its profiles, answer with the organized cloud."""
@@ -156,7 +208,7 @@ class ScanAcquisitionNode(GlsNode):
         self.collector, self.sweep_id, self.malformed = SweepCollector(self.max_profiles, self.max_points), None, 0
         self.poses = PoseTrack(self.max_profiles) if self.use_poses else None
         self.ends.clear()
-        self.first_stamp = None
+        self.stamps, self.ignored_end, self.expected_profiles, self.end = {}, "", 0, None
         try:
             await self._wait_for_scanner_topics()
             started = await self.call(self.start_client, StartSweep.Request(
@@ -165,7 +217,7 @@ class ScanAcquisitionNode(GlsNode):
                 timeout_s, resend_after_s=RESEND_WITH_ID_AFTER_S)
             if not started.success:
                 raise ServiceCallError(f"the scanner refused the sweep: {started.message}")
-            self.sweep_id = started.sweep_id
+            self.sweep_id, self.expected_profiles = started.sweep_id, started.expected_profiles
             # Complete when the end of this sweep came and each of its profiles was kept or dropped;
             # the scanner is watched meanwhile, so a scanner that dies fails the sweep at once.
             await self.wait_for(self._sweep_over, timeout_s,
@@ -177,29 +229,43 @@ class ScanAcquisitionNode(GlsNode):
             if done.profiles != started.expected_profiles:
                 raise ServiceCallError(f"the end of sweep {done.sweep_id} counts {done.profiles} profiles; the "
                                        f"scanner announced {started.expected_profiles}")
-            if collector.dropped or len(collector) < done.profiles:
+            members = self._members(done)
+            kept = int(np.count_nonzero(members))
+            junk = self._junk_phrase(len(collector) - kept)
+            if collector.dropped or kept < done.profiles:
                 raise ServiceCallError(
-                    f"{len(collector)} of {done.profiles} profiles kept: {self.malformed} malformed, "
-                    f"{collector.dropped} over the bounds ({self.max_profiles} profiles of {self.max_points} points)")
+                    f"{kept} of {done.profiles} profiles kept: {collector.dropped} over the bound of "
+                    f"{self.max_profiles} profiles" + (f"; dropped {junk}" if junk else ""))
+            if kept > done.profiles:
+                raise ServiceCallError(f"{kept} profiles fit this sweep, its end counts {done.profiles}: profiles "
+                                       "from another source are mixed in; sweep refused")
             length_mm = (done.profiles - 1) * done.step_mm
             cloud, by_pose = collector.assemble(SweepMotion(tuple(done.direction), done.speed_mm_s),
                                                 nominal_start_pose(length_mm, direction, request.orientation_deg),
-                                                self.poses)
+                                                self.poses, members)
+            first_stamp = self.stamps.get(collector.first_stamp_s(members))
         except (ServiceCallError, ValueError) as error:
             response.success = False
             response.message = str(error)
             return response
         finally:
             self.collector, self.poses, self.sweep_id = None, None, None
-        response.cloud = conversions.cloud_to_msg(cloud, self.frame_id,
-                                                  None if self.first_stamp is None else self.first_stamp[1])
+        response.cloud = conversions.cloud_to_msg(cloud, self.frame_id, first_stamp)
         response.placed_by_pose = by_pose
         response.success = True
         response.message = (f"{cloud.shape[0]} profiles of {cloud.shape[1]} points, placed "
                             + ("by the reported pose" if by_pose else "by time at the nominal speed"))
-        if self.malformed:
-            response.message += f"; {self.malformed} malformed profile(s) dropped"
+        if junk:
+            response.message += f"; dropped {junk}"
         return response
+
+    def _junk_phrase(self, foreign: int) -> str:
+        """The profiles dropped from the sweep, by reason ('' when none)."""
+        parts = [(self.malformed, "malformed"),
+                 (self.collector.too_wide if self.collector is not None else 0,
+                  f"wider than {self.max_points} points (parameter max_points_per_profile)"),
+                 (foreign, "not of this sweep (another wire layout or a stamp outside its time window)")]
+        return ", ".join(f"{count} profile(s) {why}" for count, why in parts if count)
 
     async def _wait_for_scanner_topics(self) -> None:
         """Wait (at most ``SCANNER_TOPICS_WAIT_S``) until the profile and end-of-sweep subscriptions
@@ -218,8 +284,9 @@ class ScanAcquisitionNode(GlsNode):
         def message() -> str:
             received = len(self.collector) if self.collector is not None else 0
             malformed = f" ({self.malformed} malformed dropped)" if self.malformed else ""
+            ignored = f"; {self.ignored_end}" if self.ignored_end else ""
             return (f"sweep not complete after {timeout_s:g} s: {received} of {expected} profiles "
-                    f"received{malformed} and no end of sweep")
+                    f"received{malformed} and no end of sweep{ignored}")
         return message
 
 
