@@ -146,8 +146,12 @@ class MeasurementChain:
 _PAPER_ROBOT = dict(robot_scale_error=2.0e-4, robot_along_error_mm=0.05, robot_along_correlation_mm=20.0,
                     robot_path_error_mm=0.03, robot_path_correlation_mm=30.0, robot_along_wander_mm=0.01)
 
+#: The timing ripple was 0.09 mm while it was the only along-track error; the repeating along-track
+#: error now takes its share of the paper's along-track figure (0.086 mm): sqrt(0.09^2 - 0.05^2) = 0.075.
+#: With 0.09 the reference check the paper's way gave a median of 0.093 mm in y over seeds 1-5, above the
+#: published band; ripple only moves profiles placed by time, so placement by pose does not see it.
 _PAPER_LIKE = MeasurementChain(
-    speed_scale_error=3.0e-4, speed_ripple_mm=0.09, speed_ripple_correlation_mm=10.0,
+    speed_scale_error=3.0e-4, speed_ripple_mm=0.075, speed_ripple_correlation_mm=10.0,
     path_wander_mm=0.08, path_wander_correlation_mm=20.0,
     lateral_linearity_mm=0.065, fan_geometry=1.0, speckle_contrast=0.1, speckle_correlation_mm=0.1,
     blooming_mm=0.1,
