@@ -101,7 +101,7 @@ class ProcedureSettings:
 
     grid_per_side: int = 19
     grid_size_mm: float = 190.0
-    ring_radii_mm: tuple[float, float] = (2.5, 2.7)
+    ring_radii_mm: tuple[float, float] = grid.RING_RADII_MM
     plain_sweep_step_mm: float = 1.0
     plain_sweeps: int = 4               # averaged: the plate height error of one sweep sets the field's scale
     marked_sweep_step_mm: float = 0.1

@@ -51,3 +51,4 @@ def test_an_unreadable_check_refuses_the_run_before_anything_moves(start_cell, t
     assert str(broken) in answer.message and "reference_check.sigma_mm" in answer.message
     assert math.isnan(answer.stated_rms_mm) and answer.stated_basis == SELF_CONSISTENCY
     assert not (cell.calibration_dir / "active.yaml").exists() and not list(cell.report_dir.glob("*.md"))
+

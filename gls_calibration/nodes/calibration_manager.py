@@ -105,7 +105,8 @@ class ServiceCell:
 
     async def measure_fiducials(self, cloud, pose, expected_count):
         request = MeasureFiducials.Request(cloud=cloud, pose=conversions.plate_pose_to_msg(pose),
-                                           expected_count=int(expected_count))
+                                           expected_count=int(expected_count),
+                                           ring_radii_mm=[float(r) for r in self.node.settings.ring_radii_mm])
         response = await self._checked(self.fiducials, request)
         return conversions.fiducials_from_response(response, pose)
 

@@ -41,7 +41,7 @@ from gls_calibration.validation import as_integer_at_least, as_positive_number
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.simulation.world import SimConfig
 
-RING_RADII_MM = (2.5, 2.7)
+RING_RADII_MM = targets.RING_RADII_MM
 PATTERN = (13, 11)                  # rings along x, along y
 PITCH_MM = 10.0
 POSITIONS_MM = ((-40.0, -40.0), (0.0, 0.0), (40.0, 40.0))
