@@ -54,6 +54,7 @@ from scipy.spatial import cKDTree
 from gls_calibration import merged_fiducials
 from gls_calibration.plate_pose import PlatePose
 from gls_calibration.sector_jackknife import sector_jackknife
+from gls_calibration.targets import RING_RADII_MM
 from gls_calibration.robust import NORMAL_MAD_SCALE, robust_sigma
 from gls_calibration.validation import as_finite_array
 
@@ -61,6 +62,9 @@ RAY_COUNT = 256
 """Rays per fiducial: about 1.5 rays per pixel of outer-ring circumference at 0.1 mm pixels."""
 
 RADIAL_STEP_PX = 0.2
+RADIUS_TOLERANCE_FRACTION = 0.12 / 2.7
+"""Accepted error of a fitted ring's semi-axes, as a fraction of the fiducial's largest radius: an
+uncalibrated head scales its marks by a few percent (gain and distortion), whatever their size."""
 """Sample spacing along a ray, in pixels."""
 
 COARSE_MARGIN_PX = 4.0
@@ -1027,9 +1031,9 @@ def _plane_to_cloud_sigma(covariance: np.ndarray, pose: PlatePose) -> np.ndarray
     return np.sqrt(np.stack([cloud[:, 0, 0], cloud[:, 1, 1]], axis=-1))
 
 
-def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=(2.5, 2.7),
+def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=RING_RADII_MM,
                       pixel_size_mm: float = 0.1, expected_count: int | None = None,
-                      marks_darker: bool | None = True, radius_tolerance_mm: float = 0.12,
+                      marks_darker: bool | None = True, radius_tolerance_mm: float | None = None,
                       allow_empty: bool = False) -> FiducialMeasurement:
     """Measure the double-ring fiducials of a plate scan; see the module docstring for the method.
 
@@ -1037,8 +1041,10 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=(2.5, 2.
     are allowed. ``pose`` is the plate pose from ``estimate_plate_pose``. ``pixel_size_mm`` is the
     raster pitch for unorganized clouds. ``marks_darker`` None finds the polarity from the image.
     A candidate is accepted when both semi-axes of every fitted ring are within ``radius_tolerance_mm``
-    of its nominal radius (0.12 mm: an uncalibrated scanner marks rings a few percent too large, 2.78 mm
-    for 2.7 mm on the simulated defective cell) and its quality checks pass (module docstring,
+    of its nominal radius (None: :data:`RADIUS_TOLERANCE_FRACTION` of the largest radius, 0.12 mm for
+    the published 2.7 mm ring: an uncalibrated scanner marks rings a few percent too large, 2.78 mm
+    for 2.7 mm on the simulated defective cell, and a larger ring by as many percent) and its
+    quality checks pass (module docstring,
     step 5). Raises ValueError when no
     fiducial is accepted, unless ``allow_empty``.
     """
@@ -1088,6 +1094,8 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=(2.5, 2.
     # Both semi-axes of every ring (mean radius +- the second harmonic) within the tolerance: an
     # uncalibrated scanner's anisotropic scale keeps them there, the envelope of two offset rings
     # (a merged detection) does not.
+    if radius_tolerance_mm is None:
+        radius_tolerance_mm = RADIUS_TOLERANCE_FRACTION * float(radii_nominal[-1])
     radius_ok = np.all(np.abs(fit["radii"] - radii_nominal) + fit["ellipticity"][:, None] <= radius_tolerance_mm,
                        axis=1)
     reference = fit["fit_ok"] & (fit["coverage"] >= MIN_COVERAGE) & radius_ok

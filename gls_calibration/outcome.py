@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, Optional
 
 import numpy as np
 
+from gls_calibration.stated_accuracy import SELF_CONSISTENCY, ChainCheck, stated_accuracy
 from gls_calibration.validation import as_points, as_positive_number
 
 if TYPE_CHECKING:  # the procedure builds outcomes from these; imported for the annotations only
@@ -126,6 +127,10 @@ class RunSummary:
     ``pre``: the first plate, marked through the calibration active before; ``post``: the
     validation plate, marked through the new one. Measured figures come from the scanner's
     measurement; ``true_*`` from the simulation's ground truth (NaN on a real cell).
+    ``post_*`` are self-consistency (the chain that trained the calibration measures it again and
+    cannot see its own repeating errors); ``stated_rms_mm`` is the accuracy the cell states, on the
+    basis ``stated_basis`` (``stated_accuracy``: a reference check of the chain, or NaN with
+    ``self-consistency`` when there is none).
     """
 
     message: str
@@ -154,11 +159,16 @@ class RunSummary:
     scanner_error_rms_mm: float = math.nan      # first plate: removed error fixed to the scanner frame
     motion_error_rms_mm: float = math.nan       # first plate: removed per-sweep motion error
     scanner_share: float = math.nan             # removed (scanner + motion) RMS / measured deviation RMS
+    stated_rms_mm: float = math.nan             # the accuracy stated (2-D RMS), see stated_accuracy
+    stated_basis: str = "self-consistency"
+    stated_explanation: str = ""
+    reference_sigma_mm: tuple[float, ...] = ()  # the reference check's per-axis sigma (k = 1), when used
 
     def to_dict(self) -> dict:
         """The summary as plain values, in field order (``summary.json``)."""
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         values["iteration_rms_mm"] = list(self.iteration_rms_mm)
+        values["reference_sigma_mm"] = list(self.reference_sigma_mm)
         return values
 
 
@@ -166,8 +176,10 @@ def _full(metrics: Optional[DeviationMetrics], name: str) -> float:
     return float(getattr(metrics.full, name)) if metrics is not None else math.nan
 
 
-def summarise(outcome: CalibrationOutcome) -> RunSummary:
-    """The run summary of ``outcome``."""
+def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = None,
+              placement: str = "pose") -> RunSummary:
+    """The run summary of ``outcome``; ``chain_check`` (the reference check of the chain, measured
+    with the plan the run used and profiles placed by ``placement``) gives the stated accuracy."""
     first, validation = outcome.runs[0], outcome.validation
     last_model = outcome.models[-1] if outcome.models else None
     measured_after = validation.metrics if validation else None
@@ -194,7 +206,18 @@ def summarise(outcome: CalibrationOutcome) -> RunSummary:
         fiducial_sigma_max_mm=_nan_stat(np.nanmax, first.sigma_mm),
         scanner_error_rms_mm=first.scanner_error_rms_mm, motion_error_rms_mm=first.motion_error_rms_mm,
         scanner_share=math.hypot(first.scanner_error_rms_mm, first.motion_error_rms_mm)
-        / _full(first.metrics, "rms_abs_mm"))
+        / _full(first.metrics, "rms_abs_mm"),
+        **_stated(measured_after, chain_check, first.sweep_plan, placement))
+
+
+def _stated(measured: Optional[DeviationMetrics], check: Optional[ChainCheck], plan: str, placement: str) -> dict:
+    """The stated-accuracy fields of the summary: only a validated run states a figure."""
+    if measured is None or not math.isfinite(measured.full.rms_abs_mm):
+        return {"stated_basis": SELF_CONSISTENCY,
+                "stated_explanation": "not validated: no figure of the calibration's accuracy"}
+    stated = stated_accuracy(float(measured.full.rms_abs_mm), check, plan=plan, placement=placement)
+    return {"stated_rms_mm": stated.rms_mm, "stated_basis": stated.basis, "stated_explanation": stated.explanation,
+            "reference_sigma_mm": tuple(check.sigma_mm) if check is not None and math.isfinite(stated.rms_mm) else ()}
 
 
 def _nan_stat(statistic, values: Optional[np.ndarray]) -> float:

@@ -23,6 +23,7 @@ from gls_calibration.outcome import CalibrationOutcome, Candidate, DeviationMetr
 from gls_calibration.plate_marks import existing_marks
 from gls_calibration.plate_pose import PlatePose, mean_plate_pose
 from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
+from gls_calibration.separation import SeparationSettings
 from gls_calibration.sweep_plan import CellTimeModel, CombinedSweeps, SweepPass, combine_sweeps, plan_label
 from gls_calibration.training import TrainedModel
 from gls_calibration.validation import as_positive_number
@@ -100,7 +101,7 @@ class ProcedureSettings:
 
     grid_per_side: int = 19
     grid_size_mm: float = 190.0
-    ring_radii_mm: tuple[float, float] = (2.5, 2.7)
+    ring_radii_mm: tuple[float, float] = grid.RING_RADII_MM
     plain_sweep_step_mm: float = 1.0
     plain_sweeps: int = 4               # averaged: the plate height error of one sweep sets the field's scale
     marked_sweep_step_mm: float = 0.1
@@ -123,6 +124,7 @@ class ProcedureSettings:
     sweep_plan: tuple[SweepPass, ...] = (SweepPass(),)
     profiles_placed_by_pose: bool = True    # the cell places profiles by the robot's reported pose
     cell_time: CellTimeModel = CellTimeModel()
+    separation: Optional[SeparationSettings] = None   # None: the default for the placement (sweep_plan.combine_sweeps)
 
     def __post_init__(self) -> None:
         radii = np.asarray(self.ring_radii_mm, dtype=float)
@@ -271,7 +273,7 @@ def combined_centres_gls(measurements: list[FiducialMeasurement], settings: Proc
     ``pose_scanner``; and the combination. ``measurements`` are in the plan's order."""
     try:
         combined = combine_sweeps(measurements, settings.sweep_plan, targets, settings.scanner_to_gls,
-                                  settings.profiles_placed_by_pose)
+                                  settings.profiles_placed_by_pose, settings.separation)
     except ValueError as error:
         raise CalibrationError(f"the sweeps of the marked plate cannot be combined: {error}") from None
     centres = np.column_stack([combined.centres_xy, plane_height(pose_scanner, *combined.centres_xy.T)])

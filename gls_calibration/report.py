@@ -45,7 +45,7 @@ CorrectionGrid = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 @dataclass(frozen=True)
 class ReportData:
-    """Everything the report shows; deviations in mm, measured minus nominal.
+    """Everything the report shows; deviations in mm, target minus measured (delta = Q - P).
 
     ``deviations_after``/``targets_after`` are the validation grid (both or neither);
     ``true_before``/``true_after`` are deviations against the simulation's ground truth, row for row
@@ -208,7 +208,8 @@ def _markdown(data: ReportData, figures: list[tuple[str, str]]) -> str:
     now = datetime.now(timezone.utc).isoformat(timespec="seconds")
     lines = [f"# {data.title}", "",
              f"Generated {now} by gls_calibration {gls_calibration.__version__}. Lengths in mm; "
-             "deviations are measured minus nominal positions.", "",
+             "deviations are target minus measured position (delta = Q - P, after the best rigid "
+             "alignment).", "",
              "## Run summary", "", "| Item | Value |", "|---|---:|"]
     lines += [f"| {key} | {format_value(value)} |" for key, value in data.summary.items()]
     lines += ["", "## Deviations (Table 1 layout)", "",

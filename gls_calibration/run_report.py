@@ -10,9 +10,20 @@ from gls_calibration.outcome import CalibrationOutcome, RunSummary
 from gls_calibration.report import ReportData, write_report
 
 
+def accuracy_lines(summary: RunSummary) -> tuple[str, ...]:
+    """What the cell states as its accuracy, and which of its figures are self-consistency."""
+    basis = ("The validation figures (`post_rms_mm`, `post_max_mm`, the \"after\" rows) are SELF-CONSISTENCY: "
+             "the chain that measured the training plate measures the validation plate again, so errors of "
+             "the chain that repeat (robot lines, scanner shapes) were learned and cancel in them.")
+    if np.isfinite(summary.stated_rms_mm):
+        return (f"**Stated accuracy: {summary.stated_rms_mm:.4f} mm RMS** (2-D, over the validation grid; basis: "
+                f"{summary.stated_basis}): {summary.stated_explanation}.", basis)
+    return (f"**No accuracy is stated** (basis: {summary.stated_basis}): {summary.stated_explanation}.", basis)
+
+
 def measurement_lines(summary: RunSummary) -> tuple[str, ...]:
     """What the report says about the measurement: sweep plan, cell time, uncertainty, separation."""
-    lines = [f"sweep plan of the marked plate: {summary.sweep_plan}; simulated cell time of the whole "
+    lines = [*accuracy_lines(summary), f"sweep plan of the marked plate: {summary.sweep_plan}; simulated cell time of the whole "
              f"calibration (sweeps at the configured speed, robot moves, marking): {summary.cell_time_s / 60.0:.1f} min",
              f"measurement uncertainty per fiducial (standard, per axis, first plate): median "
              f"{summary.fiducial_sigma_median_mm:.4f} mm, max {summary.fiducial_sigma_max_mm:.4f} mm"]

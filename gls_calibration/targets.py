@@ -8,6 +8,12 @@ import numpy as np
 
 from gls_calibration.validation import as_finite_array, as_integer_at_least, as_points, as_positive_number
 
+RING_RADII_MM = (2.5, 2.7)
+"""Radii of the published double-ring fiducial (mm): the default of every function and node that
+marks or measures rings. A cell sets its own once, as ``grid.ring_radii_mm`` in config/gls.yaml, and
+the calibration manager carries it to the marking and, in every MeasureFiducials request, to the
+measurement."""
+
 
 def grid_targets(per_side: int = 19, size_mm: float = 190.0, centre_xy=(0.0, 0.0)) -> np.ndarray:
     """Square grid of ``per_side`` x ``per_side`` target centres spanning ``size_mm`` (gls frame, mm).
@@ -51,7 +57,7 @@ def ring_polyline(centre_xy, radius_mm: float, max_chord_error_mm: float = 0.005
     return polyline
 
 
-def rings_polylines(centres, radii: Sequence[float] = (2.5, 2.7),
+def rings_polylines(centres, radii: Sequence[float] = RING_RADII_MM,
                     max_chord_error_mm: float = 0.005) -> list[np.ndarray]:
     """Ring polylines for every target, in marking order: target by target, radii in the given order."""
     centres = as_points(centres, "centres", 2)

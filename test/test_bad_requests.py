@@ -356,7 +356,7 @@ def test_manager_refuses_bad_requests_and_hostile_files_and_then_serves(start_ce
 # --- parameters ----------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("node_type, name, value, match", [
-    (FiducialMeasurementNode, "ring_radii_mm", [-2.5, 2.7], "parameter ring_radii_mm"),
+    (FiducialMeasurementNode, "grid.ring_radii_mm", [-2.5, 2.7], "parameter grid.ring_radii_mm"),
     (RbfTrainerNode, "spreads_mm", [35.0, NAN], "parameter spreads_mm"),
     (RbfTrainerNode, "mse_goals_mm2", [0.0], "parameter mse_goals_mm2"),
     (RbfTrainerNode, "tps_smoothings", [-1.0], "parameter tps_smoothings"),

@@ -79,7 +79,7 @@ def test_speed_scale_error_shrinks_the_sweep_unless_placed_by_pose(reference):
 def test_speed_ripple_moves_centres_along_the_sweep_by_the_drawn_process(reference):
     measured_chain = chain(speed_ripple_mm=0.05, speed_ripple_correlation_mm=30.0)
     scanner = LaserLineScanner(QUIET, chain=measured_chain)
-    travel, _, _ = scanner._placement(3, 601, 0.1)
+    _, travel, _, _ = scanner._placement(3, 601, 0.1)
     ripple = travel - np.arange(601) * 0.1
     expected = -np.interp(reference[:, 1], np.arange(601) * 0.1, ripple)
     measured = centres_b(measured_chain)
@@ -92,7 +92,7 @@ def test_speed_ripple_moves_centres_along_the_sweep_by_the_drawn_process(referen
 def test_path_wander_moves_centres_across_and_the_encoder_does_not_see_it(reference):
     measured_chain = chain(path_wander_mm=0.05, path_wander_correlation_mm=30.0)
     scanner = LaserLineScanner(QUIET, chain=measured_chain)
-    _, across, _ = scanner._placement(3, 601, 0.1)
+    _, _, across, _ = scanner._placement(3, 601, 0.1)
     expected = -np.interp(reference[:, 1], np.arange(601) * 0.1, across)
     for placement in ("time", "pose"):
         measured = centres_b(measured_chain, placement=placement)
@@ -342,7 +342,7 @@ def test_reported_poses_follow_the_true_travel_and_profiles_carry_them():
                            path_wander_mm=0.05, path_wander_correlation_mm=10.0)
     scanner = LaserLineScanner(QUIET, chain=measured_chain)
     data = scanner.sweep_data(Plate(FLAT), 20.0, seed=7, direction=-1, orientation_deg=90.0)
-    travel, _, _ = scanner._placement(7, 201, 0.1)
+    _, travel, _, _ = scanner._placement(7, 201, 0.1)
     start = scanner.start_pose(20.0, -1, 90.0)
     assert np.allclose(start[:3, 3], [0.0, 0.0, 0.0] + np.array([0.0, 10.0, 0.0]) + np.array([-10.0, 0.0, 0.0]))
     # sensor y is base -x at 90 deg; moving along sensor -y means base +x
@@ -429,14 +429,22 @@ def test_sim_cell_reference_plate_measures_with_the_calibrations_plan(tmp_path, 
 
 
 @pytest.mark.slow
-def test_reference_plate_with_the_calibrations_plan_beats_one_sweep_on_paper_like():
+def test_reference_plate_with_the_calibrations_plan_beats_one_sweep_and_sees_the_repeating_robot():
     from gls_calibration.simulation.reference_plate import RAW_PLAN, calibration_plan, reference_plate_check
     config = load_sim_config(preset="paper_like")
-    raw = reference_plate_check(config, RAW_PLAN, seed=2, positions=((0.0, 0.0),))
-    planned = reference_plate_check(config, calibration_plan(), seed=2, positions=((0.0, 0.0),))
+    assert config.measurement.robot_repeats
+    no_repeats = replace(config, measurement=replace(config.measurement, robot_scale_error=0.0,
+                                                     robot_along_error_mm=0.0, robot_path_error_mm=0.0))
+    raw = reference_plate_check(no_repeats, RAW_PLAN, seed=2, positions=((0.0, 0.0),))
+    planned = reference_plate_check(no_repeats, calibration_plan(), seed=2, positions=((0.0, 0.0),))
     assert planned.found == planned.expected == 143
-    # separating four reversed and turned sweeps placed by pose leaves a fraction of one sweep by time
+    # with errors drawn anew per sweep, separating four reversed and turned sweeps placed by pose
+    # leaves a fraction of one sweep by time ...
     assert max(planned.sigma_mm) < 0.4 * min(raw.sigma_mm), (planned.sigma_mm, raw.sigma_mm)
+    # ... but an error that repeats on every run of a line is not averaged away, and the check,
+    # measured against known centres, sees it (what the cell's own plate cannot)
+    repeating = reference_plate_check(config, calibration_plan(), seed=2, positions=((0.0, 0.0),))
+    assert min(repeating.sigma_mm) > 1.5 * max(planned.sigma_mm), (repeating.sigma_mm, planned.sigma_mm)
 
 
 @pytest.mark.parametrize("arguments, message", [

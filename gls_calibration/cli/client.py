@@ -197,7 +197,9 @@ def summary_table(response) -> str:
     rows = [
         ("result", "success" if response.success else "FAILED", response.message),
         ("deviation before (measured)", f"RMS {_mm(response.pre_rms_mm)} mm", f"max {_mm(response.pre_max_mm)} mm"),
-        ("deviation after (validation)", f"RMS {_mm(response.post_rms_mm)} mm", f"max {_mm(response.post_max_mm)} mm"),
+        ("deviation after (validation)", f"RMS {_mm(response.post_rms_mm)} mm",
+         f"max {_mm(response.post_max_mm)} mm  (self-consistency: measured by the chain that trained it)"),
+        ("stated accuracy", f"RMS {_mm(response.stated_rms_mm)} mm", f"basis: {response.stated_basis}"),
         ("fiducials", f"{response.fiducials_found} found", f"of {response.fiducials_expected}"),
         ("model", f"{response.neurons} units", f"CV RMS {_mm(response.cv_rms_mm)} mm"),
         ("duration", f"{response.duration_s:.1f} s", ""),

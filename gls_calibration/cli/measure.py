@@ -30,6 +30,7 @@ import numpy as np
 from gls_calibration.fiducials import STATUS_OK, FiducialMeasurement, measure_fiducials
 from gls_calibration.persistence import atomic_write_bytes, atomic_write_text
 from gls_calibration.plate_pose import PlatePose, estimate_plate_pose
+from gls_calibration.targets import RING_RADII_MM
 
 CSV_HEADER = "x,y,z,sigma_x_um,sigma_y_um,coverage,status"
 NPZ_ARRAYS = ("x", "y", "z", "intensity")
@@ -205,7 +206,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="output directory (created)")
     parser.add_argument("--pixel", type=_positive_float, default=0.1,
                         help="raster pixel for unorganized clouds (mm, default 0.1)")
-    parser.add_argument("--rings", type=_rings, default=(2.5, 2.7), help="ring radii in mm (default 2.5,2.7)")
+    parser.add_argument("--rings", type=_rings, default=RING_RADII_MM,
+                        help=f"ring radii in mm (default {','.join(f'{r:g}' for r in RING_RADII_MM)})")
     args = parser.parse_args(argv)
     try:
         if args.out.exists() and not args.out.is_dir():

@@ -27,6 +27,7 @@ from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.procedure import ITERATIONS_LIMIT
 from gls_calibration.simulation.measurement import PRESETS
 from gls_calibration.simulation.world import load_sim_config
+from gls_calibration.stated_accuracy import load_chain_check, save_chain_check
 from gls_calibration.sweep_plan import parse_plan
 from gls_calibration.nodes.base import NodeThreads, use_fast_liveliness
 from gls_calibration.persistence import atomic_write_text
@@ -153,7 +154,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="place profiles by the robot's reported pose (default) or by time at the nominal "
                              "speed (a driver without a pose stream)")
     parser.add_argument("--reference-plate", action="store_true",
-                        help="run the simulated reference-plate check (no calibration) and write DIR/summary.json")
+                        help="run the simulated reference-plate check (no calibration) and write DIR/summary.json "
+                             "and DIR/reference_check.yaml")
+    checks = parser.add_mutually_exclusive_group()
+    checks.add_argument("--reference-check", type=Path, default=None, metavar="FILE",
+                        help="the reference check of the chain the calibration states its accuracy from "
+                             "(default for a one-shot run: measured first with the simulated reference plate, "
+                             "written to DIR/reference_check.yaml; --serve uses one only when given)")
+    checks.add_argument("--no-reference-check", action="store_true",
+                        help="state no accuracy: the measured figures are self-consistency only")
     parser.add_argument("--namespace", default=None,
                         help="namespace of the cell's nodes (default: 'gls' with --serve; otherwise a private "
                              "one, so that concurrent one-shot cells on the same ROS domain never meet)")
@@ -188,8 +197,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     try:
         # every node reads the same file: refuse a bad one before anything starts or is written
         args.sim = load_sim_config(args.sim_config or config_path("sim.yaml"), args.measurement)
-        if args.reference_plate:
-            args.reference_plan = reference_plan(args)
+        args.reference_plan = reference_plan(args)
+        if args.reference_check is not None:
+            load_chain_check(args.reference_check)
     except ValueError as error:
         parser.error(str(error))
     return args
@@ -228,6 +238,8 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
     }
     if args.sweep_plan is not None:
         overrides["sweep.plan"] = args.sweep_plan
+    if args.reference_check is not None:
+        overrides["reference_check_file"] = str(args.reference_check.resolve())
     ros_args = ["--ros-args", "--log-level", "info" if args.verbose else "warn"]
     for path in (config_path("head.yaml"), config_path("gls.yaml"), sim_config):
         ros_args += ["--params-file", str(path)]
@@ -246,6 +258,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.reference_plate:
         return run_reference_plate(args)
+    if args.reference_check is None and not (args.serve or args.no_reference_check):
+        args.reference_check = measure_reference_check(args)
     # The store lives beside the report, so the summary names the calibration file where it stays.
     # Every one-shot run is a new simulated cell and starts with an empty store; --serve keeps the
     # store so that successive external calibrations compose.
@@ -322,10 +336,25 @@ def note_measurement(report_dir: Path, preset: str) -> None:
         atomic_write_text(report_path, "\n".join(lines[:1] + ["", note] + lines[1:]) + "\n")
 
 
+def measure_reference_check(args: argparse.Namespace) -> Path:
+    """Measure the simulated reference plate with the calibration's plan, on the same robot, before
+    the calibration (as a real cell checks its chain with a certified plate): DIR/reference_check.yaml."""
+    from gls_calibration.simulation.reference_plate import FIELD_PLATE, chain_check, reference_plate_check
+
+    print(f"reference check of the chain ({args.reference_plan.label}, placed by {args.reference_plan.placement}, "
+          f"certified plate {FIELD_PLATE.label})", file=sys.stderr, flush=True)
+    # Same robot (its repeating field comes from the cell's seed); the check's sweeps and plate draw
+    # their own per-sweep errors and texture (reference_plate.measure_plate's seeds).
+    result = reference_plate_check(args.sim, args.reference_plan, seed=args.seed, design=FIELD_PLATE)
+    path = args.out / "reference_check.yaml"
+    save_chain_check(path, chain_check(result, args.reference_plan, args.sim, args.seed, FIELD_PLATE))
+    return path
+
+
 def run_reference_plate(args: argparse.Namespace) -> int:
     """The simulated reference-plate check (no ROS): write ``summary.json`` and print the figures."""
     from gls_calibration.simulation.reference_plate import (PATTERN, PITCH_MM, POSITIONS_MM, RAW_PLAN,
-                                                            reference_plate_check)
+                                                            chain_check, reference_plate_check)
 
     plan = args.reference_plan
     raw = reference_plate_check(args.sim, RAW_PLAN, seed=args.seed)
@@ -348,6 +377,7 @@ def run_reference_plate(args: argparse.Namespace) -> int:
         "seed": args.seed,
     }
     atomic_write_text(args.out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    save_chain_check(args.out / "reference_check.yaml", chain_check(planned, plan, args.sim, args.seed))
     print(f"reference plate, preset {summary['measurement_preset']} (MEASURED against the known centres, k = 1): "
           f"raw sigma x {raw.sigma_mm[0]:.4f} mm, y {raw.sigma_mm[1]:.4f} mm (one sweep, placed by time); "
           f"calibration plan ({plan.label}, placed by {plan.placement}) x {planned.sigma_mm[0]:.4f} mm, "

@@ -35,6 +35,7 @@ from gls_calibration.outcome import RunSummary, summarise
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.report import json_safe
 from gls_calibration.run_report import write_outcome_report
+from gls_calibration.stated_accuracy import SELF_CONSISTENCY, load_chain_check
 from gls_calibration.sweep_plan import CellTimeModel, parse_plan, plan_label
 from gls_calibration_msgs.action import Calibrate as CalibrateAction
 from gls_calibration_msgs.msg import CalibrationProgress
@@ -104,7 +105,8 @@ class ServiceCell:
 
     async def measure_fiducials(self, cloud, pose, expected_count):
         request = MeasureFiducials.Request(cloud=cloud, pose=conversions.plate_pose_to_msg(pose),
-                                           expected_count=int(expected_count))
+                                           expected_count=int(expected_count),
+                                           ring_radii_mm=[float(r) for r in self.node.settings.ring_radii_mm])
         response = await self._checked(self.fiducials, request)
         return conversions.fiducials_from_response(response, pose)
 
@@ -260,6 +262,10 @@ class CalibrationManager(GlsNode):
         self.report_root = Path(self.declare("report_dir", "reports", "folder for calibration reports"))
         self.report_per_run = self.declare("report_per_run", True,
                                            "a subfolder of report_dir per calibration (false: report_dir itself)")
+        self.reference_check_file = self.declare(
+            "reference_check_file", "", "reference check of the measurement chain (stated_accuracy's YAML: a "
+            "plate with known centres measured with this plan); read at every calibrate; empty: none, the "
+            "cell then states no accuracy and labels its measured figures self-consistency")
         self.arrow_scale = self.declare("rviz.arrow_scale", 50.0,
                                         "RViz deviation arrows are this many times longer than the deviation",
                                         minimum=1.0, maximum=10000.0)
@@ -341,8 +347,9 @@ class CalibrationManager(GlsNode):
         """One calibration into ``response`` (service response or action result); its final status:
         "succeeded", "aborted" or "canceled". Whatever ends it early, the active calibration stays."""
         began = time.monotonic()
-        for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "cv_rms_mm"):
+        for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "cv_rms_mm", "stated_rms_mm"):
             setattr(response, name, math.nan)   # what a failed run answers
+        response.stated_basis = SELF_CONSISTENCY
 
         def progress(stage: str, fraction: float, text: str) -> None:
             if cancel_requested():
@@ -378,6 +385,9 @@ class CalibrationManager(GlsNode):
         return status
 
     async def _calibrate(self, request, response, progress, cancel_requested: Callable[[], bool]) -> None:
+        # A configured check that cannot be read refuses the run before anything moves: the operator
+        # asked for an independent figure and would otherwise get none without noticing.
+        chain_check = load_chain_check(self.reference_check_file) if self.reference_check_file else None
         active = self.store.active_path()
         existing_models = record_models(self.store.load(active)) if active else []
         report_dir = self.report_root
@@ -396,7 +406,8 @@ class CalibrationManager(GlsNode):
         self.plate_pose_publisher.publish(rviz.plate_pose_msg(outcome.runs[-1].plate_pose_gls, stamp))
         self.markers_publisher.publish(rviz.calibration_markers(outcome.runs[0], outcome.validation, stamp,
                                                                 self.arrow_scale, self.colour_full_scale_mm))
-        summary = summarise(outcome)
+        summary = summarise(outcome, chain_check,
+                            "pose" if self.settings.profiles_placed_by_pose else "time")
         message = summary.message
         # Every file first, activation last: a failure before it leaves the old calibration in force.
         response.report_dir = str(write_outcome_report(report_dir, outcome, summary))
@@ -446,7 +457,7 @@ def _fill_response(response, summary: RunSummary) -> None:
     response.success = True
     response.message = summary.message
     for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "fiducials_expected",
-                 "fiducials_found", "neurons", "cv_rms_mm", "calibration_file"):
+                 "fiducials_found", "neurons", "cv_rms_mm", "calibration_file", "stated_rms_mm", "stated_basis"):
         setattr(response, name, getattr(summary, name))
 
 

@@ -21,6 +21,7 @@ from gls_calibration.plate_pose import PlatePose, estimate_plate_pose
 from gls_calibration.procedure import CalibrationError, ProcedureSettings
 from gls_calibration.registration import RigidTransform
 from gls_calibration.simulation.world import SimulatedCell
+from gls_calibration.targets import RING_RADII_MM
 from gls_calibration.training import TrainedModel, TrainingOptions, train_correction
 
 Cloud = tuple[np.ndarray, np.ndarray]   # organized xyz (H, W, 3) and intensity (H, W), scanner base frame, mm
@@ -36,7 +37,7 @@ class DirectCell:
     base frame, profiles placed by the robot's reported pose (``placed_by_pose``) or by time.
     """
 
-    def __init__(self, sim: SimulatedCell, store: CalibrationStore, *, ring_radii_mm=(2.5, 2.7),
+    def __init__(self, sim: SimulatedCell, store: CalibrationStore, *, ring_radii_mm=RING_RADII_MM,
                  physics_first: bool = False, training: TrainingOptions = TrainingOptions(),
                  placed_by_pose: bool = True) -> None:
         self.sim = sim

@@ -35,15 +35,38 @@ from gls_calibration.head_config import parameters_block
 from gls_calibration.plate_pose import PlatePose, estimate_plate_pose, mean_plate_pose
 from gls_calibration.procedure import ProcedureSettings, combined_centres_gls
 from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
+from gls_calibration.stated_accuracy import ChainCheck
 from gls_calibration.sweep_plan import SweepPass, parse_plan, plan_label
 from gls_calibration.validation import as_integer_at_least, as_positive_number
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.simulation.world import SimConfig
 
-RING_RADII_MM = (2.5, 2.7)
+RING_RADII_MM = targets.RING_RADII_MM
 PATTERN = (13, 11)                  # rings along x, along y
 PITCH_MM = 10.0
 POSITIONS_MM = ((-40.0, -40.0), (0.0, 0.0), (40.0, 40.0))
+
+
+@dataclass(frozen=True)
+class ReferencePlateDesign:
+    """A plate with known centres: rings per side (x, y), pitch (mm), plate-centre positions (mm)."""
+
+    pattern: tuple[int, int] = PATTERN
+    pitch_mm: float = PITCH_MM
+    positions_mm: tuple[tuple[float, float], ...] = POSITIONS_MM
+
+    @property
+    def label(self) -> str:
+        return (f"{self.pattern[0]} x {self.pattern[1]} double rings at {self.pitch_mm:g} mm, "
+                f"{len(self.positions_mm)} position{'s' if len(self.positions_mm) > 1 else ''}")
+
+
+#: The published check: a 120 x 100 mm plate at three positions on the diagonal.
+PAPER_PLATE = ReferencePlateDesign()
+#: A certified plate over the whole calibrated field (19 x 19 at 10 mm: 180 x 180 mm) in one place: the
+#: chain's repeating error is a field over the robot's lines, and only a plate that covers the field
+#: measures all of it (the corners of the field are where a per-line scale error is largest).
+FIELD_PLATE = ReferencePlateDesign(pattern=(19, 19), pitch_mm=10.0, positions_mm=((0.0, 0.0),))
 
 
 @dataclass(frozen=True)
@@ -110,20 +133,21 @@ class ReferencePlateResult:
     expected: int
 
 
-def reference_pattern() -> np.ndarray:
+def reference_pattern(design: ReferencePlateDesign = PAPER_PLATE) -> np.ndarray:
     """Known centres (N, 2) of the reference pattern about its own centre, mm."""
-    nx, ny = PATTERN
-    u = (np.arange(nx) - 0.5 * (nx - 1)) * PITCH_MM
-    v = (np.arange(ny) - 0.5 * (ny - 1)) * PITCH_MM
+    nx, ny = design.pattern
+    u = (np.arange(nx) - 0.5 * (nx - 1)) * design.pitch_mm
+    v = (np.arange(ny) - 0.5 * (ny - 1)) * design.pitch_mm
     return np.array([(a, b) for b in v for a in u])
 
 
-def _reference_plate(config: SimConfig, offset_xy, seed) -> tuple[Plate, np.ndarray]:
+def _reference_plate(config: SimConfig, offset_xy, seed,
+                     design: ReferencePlateDesign = PAPER_PLATE) -> tuple[Plate, np.ndarray]:
     chain = replace(config.measurement, mark_width_variation=0.0, mark_darkness_variation=0.0,
                     mark_wander_mm=0.0, mark_blob_mm=0.0, spot_blur_mm=0.0, thermal_scale_ppm=0.0,
                     plate_warp_mm=0.0)
     plate = Plate(config.plate_settings, seed=seed, chain=chain)
-    known_uv = reference_pattern() + np.asarray(offset_xy, dtype=float)
+    known_uv = reference_pattern(design) + np.asarray(offset_xy, dtype=float)
     for ring in targets.rings_polylines(known_uv, RING_RADII_MM):
         plate.add_mark_plate(ring)
     return plate, plate.from_plate(known_uv)
@@ -162,11 +186,13 @@ def measure_plate(config: SimConfig, plate: Plate, plan: MeasurementPlan, seed: 
 
 
 def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 1,
-                          positions=POSITIONS_MM) -> ReferencePlateResult:
-    """Scan the reference plate at ``positions`` (plate-centre offsets, mm) with ``plan``."""
+                          positions=None, design: ReferencePlateDesign = PAPER_PLATE) -> ReferencePlateResult:
+    """Scan the reference plate ``design`` at ``positions`` (plate-centre offsets, mm; None: the
+    design's) with ``plan``."""
+    positions = design.positions_mm if positions is None else positions
     residuals, measured_all, known_all, found, expected = [], [], [], 0, 0
     for index, offset in enumerate(positions):
-        plate, known = _reference_plate(config, offset, [seed, index])
+        plate, known = _reference_plate(config, offset, [seed, index], design)
         measured, truth = measure_plate(config, plate, plan, seed * 101 + index, known)
         found += len(measured)
         expected += len(known)
@@ -180,6 +206,16 @@ def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 
     bounds = np.cumsum([0] + [len(m) for m in measured_all])
     bias = tuple(tuple(float(v) for v in joint[a:b].mean(axis=0)) for a, b in zip(bounds[:-1], bounds[1:]))
     return ReferencePlateResult(sigma, bias, found, expected)
+
+
+def chain_check(result: ReferencePlateResult, plan: MeasurementPlan, config: SimConfig, seed: int,
+                design: ReferencePlateDesign = PAPER_PLATE) -> ChainCheck:
+    """The reference check of ``plan`` (``result`` of :func:`reference_plate_check` on ``design``) as
+    the calibration manager reads it (``stated_accuracy``): what the cell may state its accuracy from."""
+    return ChainCheck(sigma_mm=result.sigma_mm, plan=plan.label, placement=plan.placement,
+                      reference=(f"simulated reference plate, {design.label}; preset "
+                                 f"{config.measurement_preset}, cell seed {config.seed}, check seed {seed}"),
+                      centres=result.found)
 
 
 def _aligned_residuals(measured: np.ndarray, known: np.ndarray) -> np.ndarray:

@@ -17,10 +17,14 @@ Profiles. Every profile holds W points ``x, y, z, intensity`` (float32) placed *
 start frame (y = direction * index * step, what a scanner without an encoder assumes: constant
 nominal speed); the sensor itself measures y = 0. Invalid points (off the plate, out of range,
 dropouts) are NaN in every field. Each profile also carries ``reported_pose`` (4x4, sensor -> B):
-the pose the robot REPORTS at the profile's stamp (its encoder pose): it follows the true travel
-(speed-scale error and speed ripple) but not the structural path wander nor the per-sweep
-repeatability offset, which the robot cannot see. A consumer places a profile by pose as
-``reported_pose @ (x, 0, z, 1)`` of its sensor-frame points.
+the pose the robot REPORTS at the profile's stamp (its encoder pose): it follows the robot's timing
+(speed-scale error and speed ripple) but not the difference between reported and true pose, which
+the robot cannot see: the per-sweep repeatability offset, the per-sweep path wander, and the
+errors that repeat per programmed line (``robot_*`` of the measurement chain: a travel scale per
+line, smooth along-travel, cross-track and height errors that are functions of where the sensor is
+in the base frame, drawn once per robot from ``robot_seed``, one field per travel direction and
+sensor orientation). A consumer places a profile by pose as ``reported_pose @ (x, 0, z, 1)`` of its
+sensor-frame points.
 
 Noise model: z noise (Gaussian), a smooth z linearity error across the line, and the measurement
 chain (:mod:`gls_calibration.simulation.measurement`): placement errors of the robot, the lateral
@@ -39,7 +43,8 @@ from scipy.spatial.transform import Rotation
 
 from scipy.ndimage import gaussian_filter, gaussian_filter1d
 
-from gls_calibration.simulation.measurement import MeasurementChain, lateral_linearity_shape, smooth_process
+from gls_calibration.simulation.measurement import (MeasurementChain, lateral_linearity_shape, smooth_field,
+                                                   smooth_process)
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.validation import as_finite_array, as_non_negative_number, as_positive_number
 
@@ -48,6 +53,8 @@ _CHUNK_ROWS = 128
 _PATH_STREAM = 2 ** 31 - 1      # random stream of the robot path error, apart from the chunk streams
 _CHAIN_STREAM = 2 ** 31 - 2     # robot placement processes of one sweep
 _SPECKLE_STREAM = 2 ** 31 - 3   # correlated speckle, one sub-stream per profile
+_ROBOT_STREAM = 2 ** 31 - 4     # the robot's repeating errors, one sub-stream per line kind and component
+_WANDER_STREAM = 2 ** 31 - 5    # the per-sweep along-travel wander (apart, so old sweeps stay the same)
 ORIENTATIONS_DEG = (0.0, 90.0)
 
 
@@ -140,9 +147,13 @@ class LaserLineScanner:
     """Generates the profiles a laser-line scanner records while swept over a plate."""
 
     def __init__(self, settings: ScannerSettings | None = None, scanner_to_gls=None, mounting_error=None,
-                 chain: MeasurementChain | None = None) -> None:
+                 chain: MeasurementChain | None = None, robot_seed: int = 0) -> None:
         self.settings = settings if settings is not None else ScannerSettings()
         self.chain = chain if chain is not None else MeasurementChain()
+        if isinstance(robot_seed, bool) or not isinstance(robot_seed, int) or robot_seed < 0:
+            raise ValueError(f"robot_seed must be a non-negative integer, got {robot_seed!r}")
+        self.robot_seed = robot_seed
+        self._robot_fields: dict[tuple, object] = {}
         if scanner_to_gls is None:
             # looking straight down from the standoff, travelling towards -y of the head
             scanner_to_gls = pose_matrix([0.0, 100.0, self.settings.standoff_mm], [math.pi, 0.0, 0.0])
@@ -186,15 +197,49 @@ class LaserLineScanner:
         bound = self.settings.path_repeatability_mm
         return np.random.default_rng([seed, _PATH_STREAM]).uniform(-bound, bound, 3)
 
-    def _placement(self, seed: int, rows: int, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """True travel (rows,), across wander (rows,) and height wander (rows,) of one sweep (mm)."""
+    def _robot_field(self, component: int, direction: int, orientation_deg: float):
+        """The robot's repeating error ``component`` (0 along, 1 across, 2 height; 3 the line's scale,
+        a number) for lines of this travel direction and sensor orientation, drawn once and kept."""
+        key = (component, direction, orientation_deg)
+        if key not in self._robot_fields:
+            c = self.chain
+            rng = np.random.default_rng([self.robot_seed, _ROBOT_STREAM, component, direction + 1,
+                                         ORIENTATIONS_DEG.index(orientation_deg)])
+            if component == 3:
+                self._robot_fields[key] = float(c.robot_scale_error * rng.standard_normal())
+            elif component == 0:
+                self._robot_fields[key] = smooth_field(rng, c.robot_along_error_mm, c.robot_along_correlation_mm)
+            else:
+                self._robot_fields[key] = smooth_field(rng, c.robot_path_error_mm, c.robot_path_correlation_mm)
+        return self._robot_fields[key]
+
+    def _placement(self, seed: int, rows: int, step: float, start: np.ndarray | None = None, direction: int = 1,
+                   orientation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Reported travel, true travel, across and height deviation (rows,) of one sweep (mm).
+
+        The reported travel is the robot's timing (what its encoders see); the true travel, across and
+        height add what the robot cannot see: per-sweep wander and the errors that repeat per line,
+        evaluated where the sensor is in the base frame."""
         c = self.chain
         nominal = np.arange(rows) * step
+        if start is None:
+            start = self.start_pose((rows - 1) * step, direction, orientation_deg)
         rng = np.random.default_rng([seed, _CHAIN_STREAM])
         ripple = smooth_process(rng, nominal, c.speed_ripple_mm, c.speed_ripple_correlation_mm)
         across = smooth_process(rng, nominal, c.path_wander_mm, c.path_wander_correlation_mm)
         height = smooth_process(rng, nominal, c.path_wander_mm, c.path_wander_correlation_mm)
-        return nominal * (1.0 + c.speed_scale_error) + ripple, across, height
+        reported = nominal * (1.0 + c.speed_scale_error) + ripple
+        true = reported.copy()
+        if c.robot_along_wander_mm:
+            true += smooth_process(np.random.default_rng([seed, _WANDER_STREAM]), nominal, c.robot_along_wander_mm,
+                                   c.path_wander_correlation_mm)
+        if c.robot_repeats:
+            where = (start[:3, 3] + np.outer(direction * reported, start[:3, 1]))[:, :2]
+            true += (self._robot_field(3, direction, orientation_deg) * reported
+                     + self._robot_field(0, direction, orientation_deg)(where))
+            across = across + self._robot_field(1, direction, orientation_deg)(where)
+            height = height + self._robot_field(2, direction, orientation_deg)(where)
+        return reported, true, across, height
 
     def _correlated_speckle(self, seed: int, first: int, count: int, width: int, step: float) -> np.ndarray:
         """Multiplicative speckle (count, width) of rows first .. first + count - 1, continuous across chunks."""
@@ -215,7 +260,7 @@ class LaserLineScanner:
         s, c = self.settings, self.chain
         x = self.line_x()
         rows = slice(first, first + count)
-        travel, across, height = (part[rows] for part in placement)
+        _, travel, across, height = (part[rows] for part in placement)
         turn = start[:3, :3]
         # true sensor origin of each profile in B; ray origins and directions of each point
         local = np.column_stack([across, direction * travel, height])
@@ -286,8 +331,8 @@ class LaserLineScanner:
         if orientation_deg not in ORIENTATIONS_DEG:
             raise ValueError(f"orientation_deg must be 0 or 90, got {orientation_deg!r}")
         path_error = self._path_error(seed)
-        placement = self._placement(seed, rows, step)
         start = self.start_pose(float(length_mm), direction, orientation_deg)
+        placement = self._placement(seed, rows, step, start, direction, orientation_deg)
         for number, first in enumerate(range(0, rows, _CHUNK_ROWS)):
             count = min(_CHUNK_ROWS, rows - first)
             rng = np.random.default_rng([seed, number])

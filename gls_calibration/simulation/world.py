@@ -79,7 +79,8 @@ class SimConfig:
 
     def make_scanner(self) -> LaserLineScanner:
         """The scanner of this configuration (with the measurement chain's robot and sensor effects)."""
-        return LaserLineScanner(self.scanner, self.scanner_to_gls, self.mounting_error, self.measurement)
+        return LaserLineScanner(self.scanner, self.scanner_to_gls, self.mounting_error, self.measurement,
+                                robot_seed=self.seed)
 
     @property
     def plate_settings(self) -> PlateSettings:

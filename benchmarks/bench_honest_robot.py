@@ -1,0 +1,92 @@
+"""What the cell measures, what is true, and what it states, on a robot whose pose errors repeat.
+
+Runs the calibrate flow (one iteration, validation plate) in one process through ``DirectCell`` --
+the same core steps as the nodes, without ROS -- with the calibration manager's plan from
+``config/gls.yaml``, for each preset and seed, and prints per run and per preset (median, worst):
+
+- MEASURED: RMS / max of the validation plate's deviations, measured by the cell's own chain;
+- TRUE: RMS / max of the validation plate's true landing errors (simulation ground truth);
+- MEASURED/TRUE: how far the cell's own figure understates the truth.
+
+``--robot off`` zeroes the robot's repeating errors of the preset (the preset as it was before they
+existed, for the "no loss" comparison); ``--along-prior MM`` sets the separation's along-track prior
+(the robot's along-track accuracy; default: the code's default).
+
+Run: .venv/bin/python benchmarks/bench_honest_robot.py [--presets paper_like careful] [--seeds 1 2 3 4 5]
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gls_calibration import procedure
+from gls_calibration.calibration_record import build_record, save_candidate
+from gls_calibration.persistence import CalibrationStore
+from gls_calibration.separation import SeparationSettings
+from gls_calibration.simulation.direct_cell import DirectCell
+from gls_calibration.simulation.reference_plate import calibration_plan
+from gls_calibration.simulation.world import SimulatedCell, load_sim_config
+
+ROBOT_OFF = dict(robot_scale_error=0.0, robot_along_error_mm=0.0, robot_path_error_mm=0.0, robot_along_wander_mm=0.0)
+
+
+def calibrate_once(preset: str, seed: int, robot: bool, separation: SeparationSettings | None, store_dir: Path) -> dict:
+    config = load_sim_config(preset=preset)
+    chain = config.measurement if robot else dataclasses.replace(config.measurement, **ROBOT_OFF)
+    config = dataclasses.replace(config, seed=seed, measurement=chain)
+    cell = DirectCell(SimulatedCell(config), CalibrationStore(store_dir))
+    plan = calibration_plan()
+    settings = cell.settings(sweep_plan=plan.passes, plain_sweeps=plan.plain_sweeps,
+                             plain_sweep_step_mm=plan.plain_step_mm, marked_sweep_step_mm=plan.marked_step_mm,
+                             profiles_placed_by_pose=plan.placed_by_pose)
+    if separation is not None:
+        settings = dataclasses.replace(settings, separation=separation)
+
+    def save(runs, models):
+        return save_candidate(cell.store, build_record(config.geometry, settings, runs, models, []), config.geometry)
+
+    began = time.perf_counter()
+    outcome = asyncio.run(procedure.calibrate(cell, settings, iterations=1, validate=True, force=True,
+                                              want_truth=True, progress=lambda *_: None, save_candidate=save))
+    validation = outcome.validation
+    return {"measured_rms": validation.metrics.full.rms_abs_mm, "measured_max": validation.metrics.full.max_abs_mm,
+            "true_rms": validation.true_metrics.full.rms_abs_mm, "true_max": validation.true_metrics.full.max_abs_mm,
+            "pre_rms": outcome.runs[0].metrics.full.rms_abs_mm, "wall_s": time.perf_counter() - began}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--presets", nargs="+", default=["paper_like"])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3, 4, 5])
+    parser.add_argument("--robot", choices=("on", "off"), default="on")
+    parser.add_argument("--along-prior", type=float, default=None, help="separation along_prior_sigma_mm")
+    args = parser.parse_args()
+    separation = None if args.along_prior is None else SeparationSettings(along_prior_sigma_mm=args.along_prior)
+    print(f"robot repeating errors {args.robot}; along prior "
+          f"{SeparationSettings().along_prior_sigma_mm if args.along_prior is None else args.along_prior} mm")
+    print(f"{'preset':11s} {'seed':>4s} {'pre':>7s} {'MEAS rms':>9s} {'MEAS max':>9s} {'TRUE rms':>9s} "
+          f"{'TRUE max':>9s} {'TRUE/MEAS':>9s} {'wall s':>7s}")
+    for preset in args.presets:
+        rows = []
+        for seed in args.seeds:
+            with tempfile.TemporaryDirectory() as folder:
+                row = calibrate_once(preset, seed, args.robot == "on", separation, Path(folder))
+            rows.append(row)
+            print(f"{preset:11s} {seed:4d} {row['pre_rms']:7.4f} {row['measured_rms']:9.4f} {row['measured_max']:9.4f} "
+                  f"{row['true_rms']:9.4f} {row['true_max']:9.4f} {row['true_rms'] / row['measured_rms']:9.2f} "
+                  f"{row['wall_s']:7.1f}", flush=True)
+        for label, pick in (("median", statistics.median), ("worst", max)):
+            print(f"{preset:11s} {label:>6s} {'':5s} {pick(r['measured_rms'] for r in rows):9.4f} "
+                  f"{pick(r['measured_max'] for r in rows):9.4f} {pick(r['true_rms'] for r in rows):9.4f} "
+                  f"{pick(r['true_max'] for r in rows):9.4f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,117 @@
+"""What the cell may claim: the stated accuracy, its basis, and the reference check file it rests on."""
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from gls_calibration.outcome import CalibrationOutcome, deviation_metrics, summarise
+from gls_calibration.run_report import accuracy_lines
+from gls_calibration.stated_accuracy import (REFERENCE_BASIS, SELF_CONSISTENCY, ChainCheck, load_chain_check,
+                                             save_chain_check, stated_accuracy)
+from gls_calibration.targets import grid_targets
+
+CHECK = ChainCheck(sigma_mm=(0.03, 0.04), plan="0+,0-,90+,90-", placement="pose", reference="plate A", centres=143)
+
+
+def test_the_stated_figure_adds_the_chains_error_to_the_measured_one():
+    stated = stated_accuracy(0.012, CHECK, plan="0+,0-,90+,90-", placement="pose")
+    assert stated.basis == REFERENCE_BASIS
+    assert stated.rms_mm == pytest.approx(math.sqrt(0.012 ** 2 + 0.03 ** 2 + 0.04 ** 2))
+    # it is never below either part: the measured figure nor the chain's own error
+    assert stated.rms_mm >= 0.05 and stated.rms_mm >= 0.012
+    assert "0.0120 mm RMS (self-consistency)" in stated.explanation and "plate A" in stated.explanation
+
+
+@pytest.mark.parametrize("check, plan, placement, reason", [
+    (None, "0+", "pose", "no reference check of the measurement chain"),
+    (CHECK, "0+,90+", "pose", "measured with plan 0+,0-,90+,90- placed by pose, the calibration with 0+,90+"),
+    (CHECK, "0+,0-,90+,90-", "time", "placed by time: it does not describe this chain"),
+])
+def test_without_a_matching_check_nothing_is_stated(check, plan, placement, reason):
+    stated = stated_accuracy(0.012, check, plan=plan, placement=placement)
+    assert math.isnan(stated.rms_mm) and stated.basis == SELF_CONSISTENCY
+    assert reason in stated.explanation
+
+
+@pytest.mark.parametrize("value", [-0.01, math.nan, math.inf, True])
+def test_a_bad_measured_figure_is_refused(value):
+    with pytest.raises(ValueError, match="measured_rms_mm must be a non-negative finite number"):
+        stated_accuracy(value, CHECK, plan="0+", placement="pose")
+
+
+def test_a_check_file_round_trips_and_a_plan_is_normalised(tmp_path):
+    path = tmp_path / "check.yaml"
+    save_chain_check(path, ChainCheck((0.031, 0.048), " 0+ , 90- ", "time", "certified plate X-17", 429))
+    loaded = load_chain_check(path)
+    assert loaded == ChainCheck((0.031, 0.048), "0+,90-", "time", "certified plate X-17", 429)
+    assert list(tmp_path.iterdir()) == [path]         # written atomically: no temporary left behind
+
+
+@pytest.mark.parametrize("block, message", [
+    ({"sigma_mm": [0.03], "plan": "0+", "placement": "pose", "reference": "p", "centres": 9},
+     "reference_check.sigma_mm must be two positive finite numbers"),
+    ({"sigma_mm": [0.03, -0.01], "plan": "0+", "placement": "pose", "reference": "p", "centres": 9},
+     "reference_check.sigma_mm must be two positive finite numbers"),
+    ({"sigma_mm": [0.03, ".nan"], "plan": "0+", "placement": "pose", "reference": "p", "centres": 9},
+     "reference_check.sigma_mm must be two positive finite numbers"),
+    ({"sigma_mm": [0.03, 0.04], "plan": "0x", "placement": "pose", "reference": "p", "centres": 9},
+     "reference_check.plan: sweep plan item '0x'"),
+    ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "encoder", "reference": "p", "centres": 9},
+     "reference_check.placement must be one of pose, time"),
+    ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "pose", "reference": " ", "centres": 9},
+     "reference_check.reference must name the plate"),
+    ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "pose", "reference": "p", "centres": 2},
+     "reference_check.centres must be an integer of at least 3"),
+    ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "pose", "reference": "p"},
+     "missing key\\(s\\) reference_check.centres"),
+    ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "pose", "reference": "p", "centres": 9, "k": 2},
+     "unknown key\\(s\\) reference_check.k"),
+])
+def test_a_bad_check_file_is_refused_naming_the_file_and_key(tmp_path, block, message):
+    path = tmp_path / "check.yaml"
+    path.write_text(yaml.safe_dump({"reference_check": block}).replace("'.nan'", ".nan"))
+    with pytest.raises(ValueError, match=message) as error:
+        load_chain_check(path)
+    assert str(path) in str(error.value)
+
+
+def test_an_unreadable_or_empty_check_file_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="cannot read reference check file"):
+        load_chain_check(tmp_path / "missing.yaml")
+    (tmp_path / "empty.yaml").write_text("")
+    with pytest.raises(ValueError, match="holds one mapping 'reference_check'"):
+        load_chain_check(tmp_path / "empty.yaml")
+
+
+class _Run:
+    """The parts of a PlateRun the summary reads."""
+
+    def __init__(self, rms):
+        targets = grid_targets(3, 10.0)
+        self.targets = np.zeros((9, 3))
+        self.fiducials_found = 9
+        self.metrics = deviation_metrics(targets, np.tile([rms, 0.0], (9, 1)))
+        self.true_metrics = None
+        self.sweep_plan, self.cell_time_s = "0+,0-,90+,90-", 150.0
+        self.sigma_mm = np.array([0.002])
+        self.scanner_error_rms_mm = self.motion_error_rms_mm = 0.0
+
+
+def test_the_summary_and_the_report_state_the_figure_and_its_basis():
+    outcome = CalibrationOutcome("calibrated", (_Run(0.5),), _Run(0.012), (), None, 1.0)
+    summary = summarise(outcome, CHECK, "pose")
+    assert summary.post_rms_mm == pytest.approx(0.012)
+    assert summary.stated_rms_mm == pytest.approx(math.sqrt(0.012 ** 2 + 0.05 ** 2))
+    assert summary.stated_basis == REFERENCE_BASIS and summary.to_dict()["reference_sigma_mm"] == [0.03, 0.04]
+    lines = accuracy_lines(summary)
+    assert lines[0].startswith(f"**Stated accuracy: {summary.stated_rms_mm:.4f} mm RMS**")
+    assert "SELF-CONSISTENCY" in lines[1]
+    # no check: nothing stated, and the report says so
+    alone = summarise(outcome)
+    assert math.isnan(alone.stated_rms_mm) and alone.stated_basis == SELF_CONSISTENCY
+    assert alone.to_dict()["reference_sigma_mm"] == []
+    assert accuracy_lines(alone)[0].startswith("**No accuracy is stated**")
+    # not validated: nothing to state either
+    unvalidated = summarise(CalibrationOutcome("calibrated", (_Run(0.5),), None, (), None, 1.0), CHECK)
+    assert math.isnan(unvalidated.stated_rms_mm) and "not validated" in unvalidated.stated_explanation

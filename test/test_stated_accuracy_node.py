@@ -1,0 +1,54 @@
+"""The calibrate answer and the report state the accuracy on the basis of the reference check file.
+
+A small cell (3x3 grid, one pass, one plain sweep) so that a calibration takes seconds.
+"""
+import json
+import math
+
+import pytest
+
+from gls_calibration.stated_accuracy import REFERENCE_BASIS, SELF_CONSISTENCY, ChainCheck, save_chain_check
+from gls_calibration_msgs.srv import Calibrate
+
+CALIBRATE_TIMEOUT_S = 300.0
+FAST = {"sweep.plain_repeats": 1, "sweep.plan": "0+"}
+
+
+def check_file(tmp_path, plan="0+"):
+    path = tmp_path / "reference_check.yaml"
+    save_chain_check(path, ChainCheck((0.03, 0.04), plan, "pose", "test plate", 143))
+    return path
+
+
+def test_a_validated_calibration_states_its_accuracy_from_the_check(start_cell, tmp_path):
+    cell = start_cell(grid=3, parameters={**FAST, "reference_check_file": str(check_file(tmp_path))})
+    answer = cell.call(Calibrate, "calibrate", Calibrate.Request(force=True, validate=True), CALIBRATE_TIMEOUT_S)
+    assert answer.success, answer.message
+    assert answer.stated_basis == REFERENCE_BASIS
+    assert answer.stated_rms_mm == pytest.approx(math.sqrt(answer.post_rms_mm ** 2 + 0.05 ** 2))
+    summary = json.loads((cell.report_dir / "summary.json").read_text())
+    assert summary["stated_rms_mm"] == pytest.approx(answer.stated_rms_mm)
+    assert summary["reference_sigma_mm"] == [0.03, 0.04] and summary["stated_basis"] == REFERENCE_BASIS
+    report = (cell.report_dir / "report.md").read_text()
+    assert f"Stated accuracy: {answer.stated_rms_mm:.4f} mm RMS" in report and "SELF-CONSISTENCY" in report
+
+
+def test_a_check_of_another_plan_states_nothing(start_cell, tmp_path):
+    cell = start_cell(grid=3, parameters={**FAST, "reference_check_file": str(check_file(tmp_path, "0+,90+"))})
+    answer = cell.call(Calibrate, "calibrate", Calibrate.Request(force=True, validate=True), CALIBRATE_TIMEOUT_S)
+    assert answer.success, answer.message
+    assert math.isnan(answer.stated_rms_mm) and answer.stated_basis == SELF_CONSISTENCY
+    report = (cell.report_dir / "report.md").read_text()
+    assert "No accuracy is stated" in report and "does not describe this chain" in report
+
+
+def test_an_unreadable_check_refuses_the_run_before_anything_moves(start_cell, tmp_path):
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("reference_check: {sigma_mm: [0.03], plan: '0+', placement: pose, reference: p, centres: 9}\n")
+    cell = start_cell(grid=3, parameters={**FAST, "reference_check_file": str(broken)})
+    answer = cell.call(Calibrate, "calibrate", Calibrate.Request(force=True, validate=True), CALIBRATE_TIMEOUT_S)
+    assert not answer.success
+    assert str(broken) in answer.message and "reference_check.sigma_mm" in answer.message
+    assert math.isnan(answer.stated_rms_mm) and answer.stated_basis == SELF_CONSISTENCY
+    assert not (cell.calibration_dir / "active.yaml").exists() and not list(cell.report_dir.glob("*.md"))
+
