@@ -93,6 +93,10 @@ class Cell(Protocol):
 
 
 ITERATIONS_LIMIT = 10    # most iterations max_iterations (and default_iterations) may allow: the manager's range
+# Room a sweep needs at each end beyond the outermost ring: the marked line's width and blooming, and
+# the grid's offset from the sweep's centre (about 1 mm in the simulated cell). A ring cut by the end
+# of a sweep is found or lost by chance (seen: 8 of 9 found with 3.2 mm rings in a 200 mm sweep).
+SWEEP_END_MARGIN_MM = 2.0
 
 
 @dataclass(frozen=True)
@@ -138,6 +142,11 @@ class ProcedureSettings:
         for name in ("max_outlying_points", "max_cluster_points"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must not be negative, got {getattr(self, name)}")
+        covered_mm = self.grid_size_mm + 2.0 * (float(radii[-1]) + SWEEP_END_MARGIN_MM)
+        if self.cell_time.sweep_length_mm < covered_mm:
+            raise ValueError(f"sweep length {self.cell_time.sweep_length_mm:g} mm cannot cover the grid: its "
+                             f"{self.grid_size_mm:g} mm, the outer ring ({float(radii[-1]):g} mm) and "
+                             f"{SWEEP_END_MARGIN_MM:g} mm at each end need {covered_mm:g} mm")
         if not 1 <= self.default_iterations <= self.max_iterations:
             raise ValueError(f"default_iterations must be between 1 and max_iterations ({self.max_iterations}), "
                              f"got {self.default_iterations}")

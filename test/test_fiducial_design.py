@@ -4,8 +4,11 @@ import pytest
 from gls_calibration_msgs.srv import Calibrate
 
 CALIBRATE_TIMEOUT_S = 300.0
-FAST = {"sweep.plain_repeats": 1, "sweep.plan": "0+"}
 RADII = [3.0, 3.2]
+FAST = {"sweep.plain_repeats": 1, "sweep.plan": "0+"}
+# Larger rings need a longer sweep over the 190 mm grid: 190 + 2 x (3.2 + 2) = 200.4 mm > the default 200
+# (the manager's own override: config/gls.yaml names the manager, which beats a -p for every node).
+LONGER_SWEEP = {"sweep.length_mm": 206.0}
 
 
 @pytest.mark.parametrize("who", ["every node (config/gls.yaml)", "the manager only"])
@@ -14,11 +17,23 @@ def test_ring_radii_set_once_reach_the_measurement(start_cell, who):
     manager's radii travel in every MeasureFiducials request, so a fiducial node left at its default
     2.5 / 2.7 mm still finds every ring (issue 29: one owner)."""
     if who == "the manager only":
-        cell = start_cell(grid=3, parameters=FAST, node_parameters={"calibration_manager": {"grid.ring_radii_mm": RADII}})
+        cell = start_cell(grid=3, parameters=FAST, node_parameters={"calibration_manager": {"grid.ring_radii_mm": RADII, **LONGER_SWEEP}})
         assert cell.nodes["fiducial_measurement"].ring_radii_mm == (2.5, 2.7)
     else:
-        cell = start_cell(grid=3, parameters={**FAST, "grid.ring_radii_mm": RADII})
+        cell = start_cell(grid=3, parameters={**FAST, "grid.ring_radii_mm": RADII},
+                          node_parameters={"calibration_manager": LONGER_SWEEP})
         assert cell.nodes["fiducial_measurement"].ring_radii_mm == tuple(RADII)
     answer = cell.call(Calibrate, "calibrate", Calibrate.Request(force=True), CALIBRATE_TIMEOUT_S)
     assert answer.success, answer.message
     assert answer.fiducials_found == answer.fiducials_expected == 9
+
+
+def test_a_sweep_too_short_for_the_grid_and_its_rings_is_refused_with_the_sizes():
+    """A ring cut by the end of a sweep is found or lost by chance: the settings refuse such a sweep."""
+    from gls_calibration.procedure import ProcedureSettings
+    from gls_calibration.sweep_plan import CellTimeModel
+    with pytest.raises(ValueError) as error:
+        ProcedureSettings(ring_radii_mm=tuple(RADII))
+    assert str(error.value) == ("sweep length 200 mm cannot cover the grid: its 190 mm, the outer ring (3.2 mm) "
+                                "and 2 mm at each end need 200.4 mm")
+    assert ProcedureSettings(ring_radii_mm=tuple(RADII), cell_time=CellTimeModel(sweep_length_mm=200.4))

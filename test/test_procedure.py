@@ -18,6 +18,7 @@ from gls_calibration.calibration_record import build_record, save_candidate
 from gls_calibration.persistence import CalibrationStore
 from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
+from gls_calibration.sweep_plan import CellTimeModel
 from gls_calibration.targets import grid_targets
 
 FAST = dict(grid_per_side=5, grid_size_mm=90.0, plain_sweeps=1, plain_sweep_step_mm=2.0)
@@ -106,7 +107,9 @@ def test_targets_beyond_the_mirror_limits_fail_before_marking(tmp_path):
     cell = new_cell(tmp_path)
     with pytest.raises(procedure.CalibrationError,
                        match=r"\d+ ring point\(s\) lie beyond the mirror limits or the focus range"):
-        run_calibrate(cell, cell.settings(**{**FAST, "grid_size_mm": 900.0}))
+        # (a sweep long enough for the grid: a shorter one is refused first, by the settings)
+        run_calibrate(cell, cell.settings(**{**FAST, "grid_size_mm": 900.0,
+                                             "cell_time": CellTimeModel(sweep_length_mm=920.0)}))
     assert cell.marks == [] and cell.sim.head.log == []     # nothing was marked
     assert cell.store.history() == []
 
