@@ -196,7 +196,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         parser.error(f"--measurement: unknown measurement preset {args.measurement!r}; known: {', '.join(PRESETS)}")
     try:
         # every node reads the same file: refuse a bad one before anything starts or is written
-        args.sim = load_sim_config(args.sim_config or config_path("sim.yaml"), args.measurement)
+        # The run's --seed is the cell's seed (every node gets it as `seed`): the simulated robot's
+        # repeating error field comes from it, so the reference check must be drawn with it too.
+        args.sim = replace(load_sim_config(args.sim_config or config_path("sim.yaml"), args.measurement),
+                           seed=args.seed)
         args.reference_plan = reference_plan(args)
         if args.reference_check is not None:
             load_chain_check(args.reference_check)
