@@ -17,7 +17,7 @@ SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
 # pip prints a warning for every package its extra local indexes do not hold; keep the log readable.
 QUIET_PIP := sed '/is ignored: it is neither a file nor a directory/d'
 
-# Small matrices under two busy cores: threaded BLAS only adds jitter (see README.md, "Benchmarks").
+# Small matrices under two busy cores: threaded BLAS only adds jitter (see docs/benchmarks.md).
 export OPENBLAS_NUM_THREADS ?= 1
 
 .PHONY: setup sim test bench colcon clean

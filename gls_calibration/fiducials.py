@@ -113,7 +113,7 @@ MODERATION_MIN_REFERENCE = 10
 MERGED_FALSE_ALARM = 1e-5
 """Chance that one single fiducial is turned down as ``merged`` if the merged test's noise model
 holds (``merged_fiducials.merged``): one good fiducial lost in about 280 plates of 361, while a
-merged pair accepted puts a centre 50-100 um off. The null was measured (README, *Merged
+merged pair accepted puts a centre 50-100 um off. The null was measured (docs/fiducial-measurement.md, *Merged
 detections*): no p below 7e-5 among 6 320 single fiducials of the benchmark's renders, none of
 1 408 on the simulated cell turned down."""
 
