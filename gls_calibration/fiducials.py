@@ -464,7 +464,8 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
         along, across, per_point = _point_spacing(xyz, keep, pose, turn, footprint_mm2)
         pixel_size_mm = max(along, across)
         if not (np.isfinite(pixel_size_mm) and 0 < pixel_size_mm < MAX_PIXEL_RADIUS_FRACTION * smallest_radius_mm):
-            raise ValueError(f"the cloud's point spacing ({pixel_size_mm:.3g} mm) is too coarse for rings of "
+            raise ValueError(f"the cloud's point spacing ({pixel_size_mm:.3g} mm) is not between 0 and "
+                             f"{MAX_PIXEL_RADIUS_FRACTION * smallest_radius_mm:.3g} mm for rings of "
                              f"{smallest_radius_mm:g} mm; check the cloud's units (mm) or give pixel_size_mm")
         to_pixel, shift, on_lattice = _scan_lattice(sample_uv @ turn.T, pixel_size_mm)
         if not on_lattice:

@@ -84,16 +84,15 @@ def _flat_top_depth(distance_mm: np.ndarray, line_width_mm: float) -> np.ndarray
 
 
 def _speckle_field(grain_mm: float, rng: np.random.Generator) -> tuple[np.ndarray, float]:
-    """Fully developed speckle intensity (unit mean) on a periodic grid and its sample step (mm): the
-    squared modulus of a sum of unit phasors of random phase, one per spatial frequency inside the
-    aperture's disc (cut-off 1 / grain_mm)."""
-    step_mm = grain_mm / 3
+    """Complex speckle field (unit mean intensity) on a periodic grid and its sample step (mm): a sum of
+    unit phasors of random phase, one per spatial frequency inside the aperture's disc (cut-off
+    1 / grain_mm); its squared modulus is fully developed (exponential) speckle."""
+    step_mm = grain_mm / 4
     frequency = fft.fftfreq(SPECKLE_TILE_PX, d=step_mm)
     inside = np.hypot(*np.meshgrid(frequency, frequency)) <= 1.0 / grain_mm
     phasors = np.where(inside, np.exp(2j * np.pi * rng.random(inside.shape)), 0.0)
     field = fft.ifft2(phasors, workers=1)
-    intensity = np.abs(field) ** 2
-    return intensity / intensity.mean(), step_mm
+    return field / np.sqrt(np.mean(np.abs(field) ** 2)), step_mm
 
 
 def render_independent_plate(per_side: int = 5, *, point_pitch_mm: float = 0.1, line_pitch_mm: float | None = None,
@@ -149,7 +148,11 @@ def render_independent_plate(per_side: int = 5, *, point_pitch_mm: float = 0.1, 
     if speckle_contrast > 0:
         field, step_mm = _speckle_field(speckle_grain_mm, rng)
         coordinates = np.stack([uv[:, 1] / step_mm, uv[:, 0] / step_mm]) % SPECKLE_TILE_PX
-        speckle = map_coordinates(field, coordinates, order=1, mode="grid-wrap")
+        # The field (not its intensity) is interpolated between samples, then squared at each point.
+        amplitude = (map_coordinates(field.real, coordinates, order=1, mode="grid-wrap")
+                     + 1j * map_coordinates(field.imag, coordinates, order=1, mode="grid-wrap"))
+        speckle = np.abs(amplitude) ** 2
+        speckle /= speckle.mean()
         intensity = intensity * ((1.0 - speckle_contrast) + speckle_contrast * speckle)
     if noise_fraction > 0:
         intensity = intensity + rng.normal(0.0, noise_fraction * STEEL_COUNTS, intensity.shape)
