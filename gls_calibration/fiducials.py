@@ -3,7 +3,9 @@
 What we know is used throughout: every fiducial is two concentric rings of known radii.
 
 1. Image: an organized cloud (H, W, 3) maps straight to pixels (row = profile, column = point); an
-   unorganized one is rasterised on the plate plane at ``pixel_size_mm``, on a raster whose pixel
+   unorganized one is rasterised on the plate plane at ``pixel_size_mm`` (by default from the cloud's
+   own point spacing, ``_point_spacing``: its step on a regular scan, else ``NO_LATTICE_PIXEL_MM``
+   or finer), on a raster whose pixel
    centres follow the points of a regular scan (an affine lattice fitted to the points' phase;
    ``_scan_lattice``): there each point is one pixel's sample (nearest-pixel binning); a cloud
    without a lattice is splatted bilinearly (a weighted mean intensity per pixel) on a raster in the
@@ -19,7 +21,8 @@ What we know is used throughout: every fiducial is two concentric rings of known
    millimetres (through a local pixel -> plane affine map fitted to the cloud, so tilted plates and
    unequal pixel pitches need no resampling). Each ray's profile is correlated with the radial
    profile of the double ring; the parabolic peak is an edge point. A ring model fitted to these
-   radii (mean radius, centre offset and an elliptical second harmonic; least squares, one robust
+   radii (mean radius, centre offset and an elliptical second harmonic; least squares weighted by
+   each ray's darkness contrast relative to the fiducial's other rays, ``_edge_weights``, one robust
    trimming round) moves the centre; the rays follow it (a coarse pass, then fine passes). The symmetric profile template makes each edge point unbiased by background
    level, linear shading and the rings' blur. These passes run on the high-passed log image; the
    last fit, which gives the centre, runs on the log image prewhitened by the noise spectrum of the
@@ -166,6 +169,13 @@ RING_CLEARANCE_MM = 0.5
 LINE_HALF_WIDTH_MM = 0.05
 """Half the width of a marked ring line (the paper's 0.1 mm lines): how far a line's own darkness
 reaches beyond its radius."""
+
+NO_LATTICE_PIXEL_MM = 2 * LINE_HALF_WIDTH_MM / HIGH_PASS_SIGMA_PX
+"""Raster pixel (mm, 0.067) of a cloud without a lattice whose points are coarser: the finest at which
+the high pass's blur (``HIGH_PASS_SIGMA_PX``) still spans a line's width. Measured on the independent
+renderer's 19x19 plates (issue 31, jittered scan lines): 0.05 mm lost 19 of 361 fiducials under 0.3
+speckle (the blur subtracts the line's own darkness), 0.1 mm at 0.15 mm point pitch 13 (holes between
+points, 6-8 um RMS); 0.07 mm found all with 2.4-5.5 um RMS per axis."""
 
 MIN_NORMAL_Z_FOR_CLOUD_RASTER = 0.7
 """A cloud without a lattice is rasterised in its own x-y (``_rasterised_image``) when the plate's
@@ -470,11 +480,12 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
         to_pixel, shift, on_lattice = _scan_lattice(sample_uv @ turn.T, pixel_size_mm)
         if not on_lattice:
             # No lattice: the points sample the lines at random phases and splatting blurs them by
-            # about a pixel, so the raster resolves a line's half width even where most of its pixels
-            # hold no point (filled from their neighbours). Finer clouds keep their own spacing, from
-            # the area per point (a step to the nearest neighbour is short where points lie at random).
+            # about a pixel, so the raster is finer than a coarse scan (most of its pixels then hold
+            # no point and are filled from their neighbours), down to NO_LATTICE_PIXEL_MM. Finer
+            # clouds keep their own spacing, from the area per point (a step to the nearest
+            # neighbour is short where points lie at random).
             spacing_mm = per_point * float(np.sqrt(max(along, across) / min(along, across)))
-            pixel_size_mm = min(spacing_mm, LINE_HALF_WIDTH_MM)
+            pixel_size_mm = min(spacing_mm, NO_LATTICE_PIXEL_MM)
             to_pixel = np.eye(2) / pixel_size_mm
     else:
         to_pixel, shift, on_lattice = _scan_lattice(sample_uv @ turn.T, pixel_size_mm)

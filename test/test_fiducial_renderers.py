@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from gls_calibration.fiducials import LINE_HALF_WIDTH_MM, measure_fiducials
+from gls_calibration.fiducials import NO_LATTICE_PIXEL_MM, measure_fiducials
 from gls_calibration.plate_pose import estimate_plate_pose
 from plate_renderers import CONDITIONS, RENDERERS, render
 import rendering_independent
@@ -49,10 +49,10 @@ def test_every_fiducial_found_within_target(renderer, condition):
     ("independent", "pitch_0.07", None), ("independent", "pitch_0.15", None)])
 def test_raster_pixel_follows_the_point_spacing(renderer, condition, pixel_mm):
     # A regular scan is rastered one pixel per point; jittered scan lines (no lattice to follow) at
-    # a pixel that resolves a line's half width, or their own spacing where that is finer.
+    # a pixel whose high pass still spans a line's width, or their own spacing where that is finer.
     measurement, _ = measured(renderer, condition)
     spacing_mm = rendering_independent.CONDITIONS[condition].get("point_pitch_mm", 0.1)
-    expected = pixel_mm if pixel_mm is not None else min(spacing_mm, LINE_HALF_WIDTH_MM)
+    expected = pixel_mm if pixel_mm is not None else min(spacing_mm, NO_LATTICE_PIXEL_MM)
     assert max(measurement.pixel_pitch_mm) == pytest.approx(expected, rel=0.02)
 
 
