@@ -175,7 +175,8 @@ NO_LATTICE_PIXEL_MM = 2 * LINE_HALF_WIDTH_MM / HIGH_PASS_SIGMA_PX
 the high pass's blur (``HIGH_PASS_SIGMA_PX``) still spans a line's width. Measured on the independent
 renderer's 19x19 plates (issue 31, jittered scan lines): 0.05 mm lost 19 of 361 fiducials under 0.3
 speckle (the blur subtracts the line's own darkness), 0.1 mm at 0.15 mm point pitch 13 (holes between
-points, 6-8 um RMS); 0.07 mm found all with 2.4-5.5 um RMS per axis."""
+points, 6-8 um RMS); 0.067 mm found all 361 in each of the issue's conditions, 0.5-4.9 um RMS per axis
+(docs/fiducial-measurement.md, *Plates from two renderers*)."""
 
 MIN_NORMAL_Z_FOR_CLOUD_RASTER = 0.7
 """A cloud without a lattice is rasterised in its own x-y (``_rasterised_image``) when the plate's
