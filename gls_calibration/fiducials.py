@@ -3,7 +3,9 @@
 What we know is used throughout: every fiducial is two concentric rings of known radii.
 
 1. Image: an organized cloud (H, W, 3) maps straight to pixels (row = profile, column = point); an
-   unorganized one is rasterised on the plate plane at ``pixel_size_mm``, on a raster whose pixel
+   unorganized one is rasterised on the plate plane at ``pixel_size_mm`` (by default from the cloud's
+   own point spacing, ``_point_spacing``: its step on a regular scan, else ``NO_LATTICE_PIXEL_MM``
+   or finer), on a raster whose pixel
    centres follow the points of a regular scan (an affine lattice fitted to the points' phase;
    ``_scan_lattice``): there each point is one pixel's sample (nearest-pixel binning); a cloud
    without a lattice is splatted bilinearly (a weighted mean intensity per pixel) on a raster in the
@@ -19,7 +21,8 @@ What we know is used throughout: every fiducial is two concentric rings of known
    millimetres (through a local pixel -> plane affine map fitted to the cloud, so tilted plates and
    unequal pixel pitches need no resampling). Each ray's profile is correlated with the radial
    profile of the double ring; the parabolic peak is an edge point. A ring model fitted to these
-   radii (mean radius, centre offset and an elliptical second harmonic; least squares, one robust
+   radii (mean radius, centre offset and an elliptical second harmonic; least squares weighted by
+   each ray's darkness contrast relative to the fiducial's other rays, ``_edge_weights``, one robust
    trimming round) moves the centre; the rays follow it (a coarse pass, then fine passes). The symmetric profile template makes each edge point unbiased by background
    level, linear shading and the rings' blur. These passes run on the high-passed log image; the
    last fit, which gives the centre, runs on the log image prewhitened by the noise spectrum of the
@@ -91,6 +94,14 @@ SPURIOUS_COVERAGE = 0.3
 MIN_VALID_RAY_FRACTION = 0.5
 """A fit needs this share of all rays usable."""
 
+EDGE_WEIGHT_POWER = 2.0
+"""A ray's weight in the ring fit grows as the square of its rings' contrast (``_edge_weights``): the
+edge point's variance falls as the contrast's square, at equal noise."""
+
+EDGE_WEIGHT_MAX = 2.0
+"""Relative contrast beyond which a ray weighs no more: a speckle grain or a scratch that adds to a
+ray's contrast does not take over the fit."""
+
 MODEL_SIGMA_MM = 0.001
 """Uncertainty of the method itself, added in quadrature: its error on noise-free renders is a
 fraction of this (interpolation and the template's line shape)."""
@@ -159,6 +170,14 @@ LINE_HALF_WIDTH_MM = 0.05
 """Half the width of a marked ring line (the paper's 0.1 mm lines): how far a line's own darkness
 reaches beyond its radius."""
 
+NO_LATTICE_PIXEL_MM = 2 * LINE_HALF_WIDTH_MM / HIGH_PASS_SIGMA_PX
+"""Raster pixel (mm, 0.067) of a cloud without a lattice whose points are coarser: the finest at which
+the high pass's blur (``HIGH_PASS_SIGMA_PX``) still spans a line's width. Measured on the independent
+renderer's 19x19 plates (issue 31, jittered scan lines): 0.05 mm lost 19 of 361 fiducials under 0.3
+speckle (the blur subtracts the line's own darkness), 0.1 mm at 0.15 mm point pitch 13 (holes between
+points, 6-8 um RMS); 0.067 mm found all 361 in each of the issue's conditions, 0.5-4.9 um RMS per axis
+(docs/fiducial-measurement.md, *Plates from two renderers*)."""
+
 MIN_NORMAL_Z_FOR_CLOUD_RASTER = 0.7
 """A cloud without a lattice is rasterised in its own x-y (``_rasterised_image``) when the plate's
 normal is within about 45 deg of the cloud's z; steeper, on the plate's plane."""
@@ -171,6 +190,19 @@ search's range of +-0.003, so no gradient is taken for another."""
 LATTICE_SAMPLE_POINTS = 50_000
 """Points of an unorganized cloud (a regular stride through it) that the lattice search and the
 raster's orientation are taken from: about 200 per tile are plenty for a phase."""
+
+SPACING_PATCH_POINTS = 120
+"""Side (in points) of the patch of an unorganized cloud whose neighbour distances give its point
+spacing (``_point_spacing``): about 14 000 points, whose median distances hold to 0.1 %."""
+
+SPACING_CONE_RATIO = 2.0
+"""A neighbour counts as one along a raster axis when its offset along that axis is at least this
+many times its offset across it (within about 27 deg of the axis)."""
+
+MAX_PIXEL_RADIUS_FRACTION = 0.2
+"""A pixel taken from the cloud's own point spacing must be below this share of the smallest ring
+radius (0.5 mm for 2.5 mm rings, a raster too coarse to see the rings): beyond, the spacing is
+taken for a units mistake and refused."""
 
 FILL_BOX_SIZES = (3, 5, 9, 17, 33)
 """Box sizes (pixels) tried in turn to fill a missing pixel from its valid neighbours; beyond the last,
@@ -375,6 +407,38 @@ def _scan_lattice(uv: np.ndarray, pixel_size_mm: float) -> tuple[np.ndarray, np.
     return to_pixel / pixel_size_mm, shift, True
 
 
+def _point_spacing(xyz: np.ndarray, keep: np.ndarray, pose: PlatePose, turn: np.ndarray,
+                   footprint_mm2: float) -> tuple[float, float, float]:
+    """Point spacing (mm) of an unorganized cloud on the plate: ``(along, across, per_point)``.
+
+    ``along`` and ``across`` are the median distances from a point to its nearest neighbour in the
+    positive direction of each raster axis (the plane turned by ``turn``), over a patch of about
+    ``SPACING_PATCH_POINTS`` squared points at the middle of the cloud: a scan's step along its
+    lines and between them, exactly, whatever the points' order in the cloud. ``per_point`` is the
+    square root of the plate area per point (``footprint_mm2`` over the finite points), the spacing
+    of points that lie on no lines.
+    """
+    finite = xyz[keep] if not keep.all() else xyz
+    per_point = float(np.sqrt(footprint_mm2 / max(len(finite), 1)))
+    step = max(1, len(finite) // LATTICE_SAMPLE_POINTS)
+    middle = np.median(finite[::step], axis=0)
+    # A square of the cloud's x-y about its middle: the plate's scale there, up to its tilt.
+    half = SPACING_PATCH_POINTS / 2 * per_point / max(abs(float(pose.normal[2])), 0.1)
+    near = (np.abs(finite[:, 0] - middle[0]) < half) & (np.abs(finite[:, 1] - middle[1]) < half)
+    patch = pose.to_plane(finite[near]) @ turn.T
+    if len(patch) < 16:
+        return per_point, per_point, per_point
+    _, neighbour = cKDTree(patch).query(patch, k=9)
+    offsets = patch[neighbour[:, 1:]] - patch[:, None, :]
+    spacing = []
+    for axis in range(2):
+        along, across = offsets[..., axis], np.abs(offsets[..., 1 - axis])
+        nearest = np.where((along > 0) & (along >= SPACING_CONE_RATIO * across), along, np.inf).min(axis=1)
+        nearest = nearest[np.isfinite(nearest)]
+        spacing.append(float(np.median(nearest)) if len(nearest) else per_point)
+    return spacing[0], spacing[1], per_point
+
+
 def _edge_turn(points: np.ndarray) -> np.ndarray:
     """Rotation (2, 2) that turns 2-D ``points`` (N, 2) so that the edges of their minimum-area
     rectangle lie along the axes (by at most 45 deg)."""
@@ -385,8 +449,15 @@ def _edge_turn(points: np.ndarray) -> np.ndarray:
 
 
 def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
-                      pixel_size_mm: float) -> _PlateImage:
-    """Image of an unorganized cloud: mean intensity of the points falling in each plane pixel."""
+                      pixel_size_mm: float | None, smallest_radius_mm: float = RING_RADII_MM[0]) -> _PlateImage:
+    """Image of an unorganized cloud: mean intensity of the points falling in each plane pixel.
+
+    ``pixel_size_mm`` None takes the pixel from the cloud's own point spacing (``_point_spacing``):
+    the larger of its steps along and across the scan lines, so that every pixel holds a point,
+    where the raster follows a regular scan; otherwise the larger side of the plate area per point
+    split in the same ratio (points off any lattice, ``_scan_lattice``). ValueError when that pixel
+    is at least ``MAX_PIXEL_RADIUS_FRACTION`` of ``smallest_radius_mm`` (a cloud in other units).
+    """
     keep = _finite_points(xyz, intensity)
     if not keep.any():
         raise ValueError("cloud has no finite point with a finite intensity")
@@ -398,7 +469,27 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
     # (into a robot's frame, say) keeps a tight image, and a regular scan's lines come out along the
     # raster, where _scan_lattice can follow them.
     turn = _edge_turn(sample_uv)
-    to_pixel, shift, on_lattice = _scan_lattice(sample_uv @ turn.T, pixel_size_mm)
+    if pixel_size_mm is None:
+        with np.errstate(over="ignore", invalid="ignore"):      # absurd coordinates: refused below
+            footprint_mm2 = float(np.prod(cv2.minAreaRect(sample_uv.astype(np.float32))[1]))
+        along, across, per_point = _point_spacing(xyz, keep, pose, turn, footprint_mm2)
+        pixel_size_mm = max(along, across)
+        if not (np.isfinite(pixel_size_mm) and 0 < pixel_size_mm < MAX_PIXEL_RADIUS_FRACTION * smallest_radius_mm):
+            raise ValueError(f"the cloud's point spacing ({pixel_size_mm:.3g} mm) is not between 0 and "
+                             f"{MAX_PIXEL_RADIUS_FRACTION * smallest_radius_mm:.3g} mm for rings of "
+                             f"{smallest_radius_mm:g} mm; check the cloud's units (mm) or give pixel_size_mm")
+        to_pixel, shift, on_lattice = _scan_lattice(sample_uv @ turn.T, pixel_size_mm)
+        if not on_lattice:
+            # No lattice: the points sample the lines at random phases and splatting blurs them by
+            # about a pixel, so the raster is finer than a coarse scan (most of its pixels then hold
+            # no point and are filled from their neighbours), down to NO_LATTICE_PIXEL_MM. Finer
+            # clouds keep their own spacing, from the area per point (a step to the nearest
+            # neighbour is short where points lie at random).
+            spacing_mm = per_point * float(np.sqrt(max(along, across) / min(along, across)))
+            pixel_size_mm = min(spacing_mm, NO_LATTICE_PIXEL_MM)
+            to_pixel = np.eye(2) / pixel_size_mm
+    else:
+        to_pixel, shift, on_lattice = _scan_lattice(sample_uv @ turn.T, pixel_size_mm)
     to_pixel = to_pixel @ turn
     # Pixel coordinates straight from the cloud, column = xyz @ in_plane[:, 0] + offset[0] (gemv): the
     # plane coordinates of the whole cloud are never needed.
@@ -738,16 +829,17 @@ def _row_nanquantile(values: np.ndarray, quantile: float) -> np.ndarray:
     return np.where(last >= 0, lower + (upper - lower) * (position - low), np.nan)
 
 
-def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, weight: np.ndarray):
-    """Least-squares fit of the radial model to edge radii (M, A) with one 3-sigma trimming round.
+def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, usable: np.ndarray, strength: np.ndarray | None = None):
+    """Weighted least-squares fit of the radial model to edge radii (M, A) over the ``usable`` rays,
+    each weighted by its ``strength`` (M, A; default 1), with one 3-sigma trimming round.
 
     Returns the centre shift (M, 2), mean radius (M,), the fitted radius along every ray (M, A),
     residuals (M, A), rays used (M, A) and fit_ok (M,).
     """
-    used = weight.copy()
+    used = usable.copy()
     parameters = design.shape[-1]
     for trimming in range(2):
-        w = used.astype(float)
+        w = used * (1.0 if strength is None else strength)
         normal_matrix = np.einsum("ai,ma,aj->mij", design, w, design)
         right = np.einsum("ai,ma->mi", design, w * edge_radius)
         well_posed = np.linalg.cond(normal_matrix) < 1e10
@@ -761,6 +853,19 @@ def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, weight: np.ndarray):
             used = used & (np.abs(residual) <= limit[:, None])
     fit_ok = well_posed & (used.sum(axis=1) >= 16)
     return solution[:, 1:3], solution[:, 0], edge_radius - residual, residual, used, fit_ok
+
+
+def _edge_weights(peak_score: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """Weight (M, A) of every ray's edge point in the ring fit: its darkness contrast (the profile's
+    correlation with the rings at the edge) over the candidate's median one, to the power
+    ``EDGE_WEIGHT_POWER``, at most ``EDGE_WEIGHT_MAX``.
+
+    A ray's edge error grows as its rings' contrast falls (marks fainter along the path, a line
+    sampled between points), so rays are weighed by how clearly they see the rings, relative to the
+    same fiducial's other rays rather than against a fixed threshold."""
+    median = _row_nanquantile(np.where(usable, peak_score, np.nan), 0.5)
+    relative = peak_score / np.where(median > 0, median, np.inf)[:, None]
+    return np.clip(relative, 0.0, EDGE_WEIGHT_MAX) ** EDGE_WEIGHT_POWER
 
 
 def _sector_sums(values: np.ndarray, sector_of_ray: np.ndarray) -> np.ndarray:
@@ -783,10 +888,10 @@ def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarra
     """
     count, rays = residual.shape
     parameters = design.shape[-1]
-    u = used.astype(float)
+    u = np.asarray(used, dtype=float)       # the fit's weight per ray, 0 where unused
     full_design = np.broadcast_to(design, (count, rays, parameters))
     sector_normal = _sector_sums(np.einsum("mai,ma,maj->maij", full_design, u, full_design), sector_of_ray)
-    sector_score = _sector_sums(full_design * np.where(used, residual, 0.0)[..., None], sector_of_ray)
+    sector_score = _sector_sums(full_design * (u * np.where(u > 0, residual, 0.0))[..., None], sector_of_ray)
     jackknife, groups = sector_jackknife(sector_normal, sector_score, _sector_sums(u, sector_of_ray) > 0,
                                           total_right=np.zeros((count, parameters)))
     jackknife = jackknife[:, 1:3, 1:3]
@@ -812,10 +917,10 @@ def _spectral_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndar
     correlation (the spectrum at harmonic 0 over its mean).
     """
     count, rays = residual.shape
-    weight = used.astype(float)
-    kept = np.where(used, residual, 0.0)
-    share = weight.mean(axis=1)
-    variance = (kept**2).sum(axis=1) / np.maximum(weight.sum(axis=1), 1.0)
+    weight = np.asarray(used, dtype=float)      # the fit's weight per ray, 0 where unused
+    kept = np.where(weight > 0, residual, 0.0)
+    share = (weight > 0).mean(axis=1)
+    variance = (weight * kept**2).sum(axis=1) / np.maximum(weight.sum(axis=1), 1e-12)
     periodogram = np.abs(np.fft.rfft(kept, axis=1)) ** 2 / rays                    # harmonics 0..A/2
     sample = (share >= SPECTRUM_SAMPLE_MIN_SHARE) & (variance > 0)
     if np.count_nonzero(sample) < MODERATION_MIN_REFERENCE:
@@ -933,7 +1038,9 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         index, peak_ok = _peak(score, low, width)
         edge = radial[0] + index * step
         ray_ok = inside & peak_ok & (visible if refinement >= 2 else True)
-        shift, radius, at, residual, used, ok = _fit_ring(edge, design, ray_ok)
+        strength = _edge_weights(np.take_along_axis(score, np.rint(index).astype(int)[..., None], -1)[..., 0],
+                                 ray_ok)
+        shift, radius, at, residual, used, ok = _fit_ring(edge, design, ray_ok, strength)
         ok &= ray_ok.mean(axis=1) >= MIN_VALID_RAY_FRACTION * (coverage if refinement >= 2 else 1.0)
         fit_ok = ok if refinement == 0 else fit_ok & ok
         if fitting_only:
@@ -952,7 +1059,7 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         visible = seen[:, sector_of_ray]
         sampled_at = centres
         centres = np.where(fit_ok[:, None], centres + shift, centres)
-    final_residual, final_used = residual, used
+    final_residual, final_used, final_weight = residual, used, used * strength
     # The fitted ring about the final centre: mean radius and elliptical second harmonic.
     mid_radius = radius
     harmonic = _second_harmonic(at, angles)
@@ -962,7 +1069,7 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
     # Second harmonic of the tracked ring (half the difference of its axes): a ring on the plate is a
     # circle, so this is small; the envelope of two offset rings (a merged detection) is not.
     ellipticity = np.hypot(*_second_harmonic(at, angles).T)
-    covariance, dof = _centre_covariance(design, final_residual, final_used, sector_of_ray)
+    covariance, dof = _centre_covariance(design, final_residual, final_weight, sector_of_ray)
 
     # Each ring's radius about the final centre: darkness centroid in a window of +- half the ring
     # gap around its expected position on every used ray (a check of the ring sizes, not the centre).
@@ -1032,14 +1139,15 @@ def _plane_to_cloud_sigma(covariance: np.ndarray, pose: PlatePose) -> np.ndarray
 
 
 def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=RING_RADII_MM,
-                      pixel_size_mm: float = 0.1, expected_count: int | None = None,
+                      pixel_size_mm: float | None = None, expected_count: int | None = None,
                       marks_darker: bool | None = True, radius_tolerance_mm: float | None = None,
                       allow_empty: bool = False) -> FiducialMeasurement:
     """Measure the double-ring fiducials of a plate scan; see the module docstring for the method.
 
     ``xyz`` is organized (H, W, 3) with ``intensity`` (H, W), or unorganized (N, 3) with (N,); NaNs
     are allowed. ``pose`` is the plate pose from ``estimate_plate_pose``. ``pixel_size_mm`` is the
-    raster pitch for unorganized clouds. ``marks_darker`` None finds the polarity from the image.
+    raster pitch for unorganized clouds; None takes it from the cloud's own point spacing
+    (``_rasterised_image``). ``marks_darker`` None finds the polarity from the image.
     A candidate is accepted when both semi-axes of every fitted ring are within ``radius_tolerance_mm``
     of its nominal radius (None: :data:`RADIUS_TOLERANCE_FRACTION` of the largest radius, 0.12 mm for
     the published 2.7 mm ring: an uncalibrated scanner marks rings a few percent too large, 2.78 mm
@@ -1051,7 +1159,7 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=RING_RAD
     radii_nominal = np.array(sorted(float(r) for r in as_finite_array(ring_radii_mm, "ring_radii_mm", ndim=1)))
     if radii_nominal.size == 0 or radii_nominal[0] <= 0 or len(set(radii_nominal)) != len(radii_nominal):
         raise ValueError(f"ring_radii_mm must be distinct positive radii, got {list(ring_radii_mm)}")
-    if not np.isfinite(pixel_size_mm) or pixel_size_mm <= 0:
+    if pixel_size_mm is not None and (not np.isfinite(pixel_size_mm) or pixel_size_mm <= 0):
         raise ValueError(f"pixel_size_mm must be positive, got {pixel_size_mm!r}")
     if expected_count is not None and expected_count < 0:
         raise ValueError(f"expected_count must be non-negative, got {expected_count}")
@@ -1063,7 +1171,7 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=RING_RAD
     if xyz.ndim == 3 and xyz.shape[2] == 3 and intensity.shape == xyz.shape[:2]:
         plate = _organized_image(xyz, intensity, pose)
     elif xyz.ndim == 2 and xyz.shape[1] == 3 and intensity.shape == xyz.shape[:1]:
-        plate = _rasterised_image(xyz, intensity, pose, pixel_size_mm)
+        plate = _rasterised_image(xyz, intensity, pose, pixel_size_mm, float(radii_nominal[0]))
     else:
         raise ValueError("xyz must be (H, W, 3) with intensity (H, W), or (N, 3) with intensity (N,); "
                          f"got {xyz.shape} and {intensity.shape}")

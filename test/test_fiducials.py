@@ -82,8 +82,12 @@ def test_noisy_centres_within_target(truth):
 
 
 def test_unorganized_cloud_is_rasterised(truth):
+    # The raster's pixel is the scan's own point spacing on the plate (0.1 mm, foreshortened by the tilt).
     measurement, _ = _measure(truth, organized=False, seed=3)
-    assert measurement.pixel_pitch_mm == (0.1, 0.1)
+    assert measurement.pixel_pitch_mm == pytest.approx((0.1, 0.1), rel=1e-3)
+    assert _rms(_errors(measurement, truth)) <= 0.01
+    given, _ = _measure(truth, organized=False, seed=3, measure_kwargs=dict(pixel_size_mm=0.1))
+    assert given.pixel_pitch_mm == (0.1, 0.1)
     assert _rms(_errors(measurement, truth)) <= 0.01
 
 
@@ -205,8 +209,8 @@ def small_scan():
     (lambda x, i: (x.reshape(-1, 3), i), r"got \(10000, 3\) and \(100, 100\)"),
     (lambda x, i: (x, np.full_like(i, np.nan)), r"intensity image has no finite pixels"),
     (lambda x, i: (x.reshape(-1, 3) * [1e40, 1e40, 1.0], i.ravel()),
-     r"rasterised plate image would have 9.9e\+41x9.9e\+41 pixels; check pixel_size_mm \(0.1\) and the cloud's units"),
-    (lambda x, i: (x.reshape(-1, 3) * [1e300, 1.0, 1.0], i.ravel()), r"rasterised plate image would have 102x9.9e\+301 pixels"),
+     r"the cloud's point spacing \(0 mm\) is not between 0 and 0.5 mm for rings of 2.5 mm; check the cloud's units"),
+    (lambda x, i: (x.reshape(-1, 3) * [1e300, 1.0, 1.0], i.ravel()), r"the cloud's point spacing \(0 mm\) is not between"),
     (lambda x, i: (np.full((i.size, 3), np.nan), i.ravel()), r"cloud has no finite point with a finite intensity"),
 ])
 def test_bad_input(small_scan, change, message):
@@ -214,6 +218,18 @@ def test_bad_input(small_scan, change, message):
     xyz, intensity = change(xyz, intensity)
     with pytest.raises(ValueError, match=message):
         measure_fiducials(xyz, intensity, pose)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda x, i: (x.reshape(-1, 3) * [1e40, 1e40, 1.0], i.ravel()),
+     r"rasterised plate image would have 9.9e\+41x9.9e\+41 pixels; check pixel_size_mm \(0.1\) and the cloud's units"),
+    (lambda x, i: (x.reshape(-1, 3) * [1e300, 1.0, 1.0], i.ravel()), r"rasterised plate image would have 102x9.9e\+301 pixels"),
+])
+def test_bad_input_with_a_given_pixel(small_scan, change, message):
+    xyz, intensity, pose = small_scan
+    xyz, intensity = change(xyz, intensity)
+    with pytest.raises(ValueError, match=message):
+        measure_fiducials(xyz, intensity, pose, pixel_size_mm=0.1)
 
 
 def _missing_but_one_row(xyz, centre):

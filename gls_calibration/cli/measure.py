@@ -10,10 +10,16 @@ pose, measures the fiducials with the same core function as the fiducial_measure
   status ``ok`` or ``rejected:<reason>``); only the header when nothing was found;
 - ``detections.png``: the plate image with accepted (green) and rejected (red, with the reason)
   detections drawn;
-- ``summary.json``: counts, median/max uncertainty, coverage, plate pose and time.
+- ``summary.json``: counts, median/max uncertainty, coverage, plate pose, the cloud's units and time.
+
+The cloud may be in millimetres or metres (most ROS and PCL exports): ``--units m|mm``, or, without
+it, the unit in which the plate's extent holds the grid (``--size`` plus its rings) without
+exceeding it more than ``MAX_EXTENT_RATIO`` times (``cloud_units``). Outputs are in mm either way.
+Without ``--pixel`` the raster pixel of an unorganized cloud comes from its own point spacing.
 
 Exit 0 on success (also when no fiducial is found), 2 on bad input (unreadable file, missing or
-mismatched arrays, no plane, 1 to 3 fiducials found: too few to use); nothing is written then.
+mismatched arrays, a cloud whose extent cannot hold the grid, no plane, 1 to 3 fiducials found: too
+few to use); nothing is written then.
 """
 from __future__ import annotations
 
@@ -36,6 +42,12 @@ CSV_HEADER = "x,y,z,sigma_x_um,sigma_y_um,coverage,status"
 NPZ_ARRAYS = ("x", "y", "z", "intensity")
 MIN_FOUND = 4
 """Fewer accepted fiducials than this (but more than none) cannot support a calibration: bad input."""
+MM_PER_UNIT = {"mm": 1.0, "m": 1000.0}
+"""Millimetres per unit of the cloud's coordinates, by ``--units``."""
+MAX_EXTENT_RATIO = 10.0
+"""Without ``--units``, a unit is taken when the plate's extent in it is at least the grid's and at
+most this many times it: the two units differ 1000-fold, so any ratio well below that tells them
+apart, and 10 leaves room for a scan much wider than its grid."""
 IMAGE_MAX_SIDE_PX = 2400
 """The picture is binned coarser than ``--pixel`` when the plate would be larger than this."""
 
@@ -110,6 +122,39 @@ def load_cloud(path: Path) -> tuple[np.ndarray, np.ndarray]:
     raise ValueError(f"{path}: unsupported file type {suffix!r} (use .npz, .pcd or .ply)")
 
 
+def plate_extent(xyz: np.ndarray) -> tuple[float, float]:
+    """Sides (short, long) of the minimum-area rectangle holding the cloud's points on their best-fit
+    plane, in the cloud's own units (no unit is assumed: the plane is the points' principal one)."""
+    points = xyz.reshape(-1, 3)
+    points = points[np.isfinite(points).all(axis=1)]
+    if len(points) < 3:
+        raise ValueError("the cloud has fewer than 3 finite points")
+    sample = points[::max(1, len(points) // 100_000)]
+    centred = sample - sample.mean(axis=0)
+    axes = np.linalg.svd(centred, full_matrices=False)[2][:2]
+    in_plane = (centred @ axes.T).astype(np.float32)
+    sides = sorted(float(side) for side in cv2.minAreaRect(in_plane)[1])
+    return sides[0], sides[1]
+
+
+def cloud_units(extent: tuple[float, float], units: str | None, grid: int, size_mm: float,
+                ring_radius_mm: float) -> str:
+    """The cloud's unit (``mm`` or ``m``): ``units`` when given, else the one in which ``extent`` (short,
+    long side in the cloud's units) holds the grid without exceeding it ``MAX_EXTENT_RATIO`` times.
+    ValueError naming both sizes when the extent cannot hold the grid."""
+    required_mm = size_mm + 2 * ring_radius_mm
+    if units is None:
+        fitting = [unit for unit, scale in MM_PER_UNIT.items()
+                   if required_mm <= extent[0] * scale and extent[1] * scale <= MAX_EXTENT_RATIO * required_mm]
+        units = fitting[0] if fitting else "mm"
+    scale = MM_PER_UNIT[units]
+    if extent[0] * scale < required_mm:
+        raise ValueError(f"cloud extent {extent[0] * scale:.4g} x {extent[1] * scale:.4g} mm (read as {units}) "
+                         f"cannot hold the {grid}x{grid} grid: it needs {required_mm:.4g} x {required_mm:.4g} mm "
+                         f"(--size {size_mm:g} mm plus rings of {ring_radius_mm:g} mm); check --size and --units")
+    return units
+
+
 def csv_text(measurement: FiducialMeasurement) -> str:
     """centres.csv: accepted candidates first, then the rejected ones."""
     lines = [CSV_HEADER]
@@ -167,7 +212,7 @@ def detections_png(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose, meas
     return encoded.tobytes()
 
 
-def summary(measurement: FiducialMeasurement, pose: PlatePose, args, seconds: float) -> dict:
+def summary(measurement: FiducialMeasurement, pose: PlatePose, args, seconds: float, units: str) -> dict:
     """summary.json content."""
     sigma_um = np.asarray(measurement.sigma_xy_mm).reshape(-1, 2) * 1000
 
@@ -193,6 +238,8 @@ def summary(measurement: FiducialMeasurement, pose: PlatePose, args, seconds: fl
                        "flatness_rms_mm": float(pose.flatness_rms_mm)},
         "image_shape": list(measurement.image_shape),
         "pixel_pitch_mm": [float(v) for v in measurement.pixel_pitch_mm],
+        "pixel_from": "--pixel" if args.pixel is not None else "point spacing",
+        "cloud_units": units,
         "time_s": round(seconds, 3),
     }
 
@@ -204,8 +251,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--grid", type=_positive_int, required=True, help="fiducials per side of the grid")
     parser.add_argument("--size", type=_positive_float, required=True, help="grid span, first to last centre (mm)")
     parser.add_argument("--out", type=Path, required=True, help="output directory (created)")
-    parser.add_argument("--pixel", type=_positive_float, default=0.1,
-                        help="raster pixel for unorganized clouds (mm, default 0.1)")
+    parser.add_argument("--pixel", type=_positive_float, default=None,
+                        help="raster pixel for unorganized clouds (mm; default: from the cloud's point spacing)")
+    parser.add_argument("--units", choices=tuple(MM_PER_UNIT), default=None,
+                        help="units of the cloud's coordinates (default: found from the plate's extent and --size)")
     parser.add_argument("--rings", type=_rings, default=RING_RADII_MM,
                         help=f"ring radii in mm (default {','.join(f'{r:g}' for r in RING_RADII_MM)})")
     args = parser.parse_args(argv)
@@ -213,6 +262,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.out.exists() and not args.out.is_dir():
             raise ValueError(f"{args.out}: exists and is not a directory")
         xyz, intensity = load_cloud(args.cloud)
+        units = cloud_units(plate_extent(xyz), args.units, args.grid, args.size, max(args.rings))
+        xyz = xyz * MM_PER_UNIT[units]
         start = time.perf_counter()
         pose = estimate_plate_pose(xyz)
         measurement = measure_fiducials(xyz, intensity, pose, ring_radii_mm=args.rings, pixel_size_mm=args.pixel,
@@ -224,8 +275,8 @@ def main(argv: list[str] | None = None) -> int:
                              f"(grid {args.grid}x{args.grid})")
         # Everything is prepared before the first file is written.
         texts = {"centres.csv": csv_text(measurement),
-                 "summary.json": json.dumps(summary(measurement, pose, args, seconds), indent=2) + "\n"}
-        picture = detections_png(xyz, intensity, pose, measurement, args.pixel, max(args.rings))
+                 "summary.json": json.dumps(summary(measurement, pose, args, seconds, units), indent=2) + "\n"}
+        picture = detections_png(xyz, intensity, pose, measurement, max(measurement.pixel_pitch_mm), max(args.rings))
     except ValueError as error:
         print(f"gls-measure: {error}", file=sys.stderr)
         return 2
