@@ -350,7 +350,8 @@ class LaserLineScanner:
             yield first, step / speed, xyz, intensity, reported
 
     def standstill_data(self, plate: Plate, profiles: int, seed: int = 0, position_mm=(0.0, 100.0, 0.0),
-                        marking_pose_error: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> SweepData:
+                        marking_pose_error: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                        period_s: float | None = None) -> SweepData:
         """``profiles`` profiles taken with the robot standing still at the marking pose (see :class:`SweepData`;
         ``step_mm`` 0, every reported pose the same).
 
@@ -359,7 +360,8 @@ class LaserLineScanner:
         robot-held head's marking pose is off by (``marking_pose_error``: height towards the head,
         tilts about gls x and y, as ``Plate.marking_pose_error``) the scanner, held by the same
         flange, sees as the plate moved: it measures the plate where the head marks it. Noise, range
-        linearity, speckle and dropouts as in a sweep; a random stream of its own (``seed``).
+        linearity, speckle and dropouts as in a sweep; a random stream of its own (``seed``). One
+        profile every ``period_s`` (None: the settings' step over their speed).
         """
         if isinstance(profiles, bool) or not isinstance(profiles, (int, np.integer)) or profiles < 1:
             raise ValueError(f"profiles must be a positive integer, got {profiles!r}")
@@ -378,9 +380,22 @@ class LaserLineScanner:
         # the step only sizes the correlated speckle, which a sensor standing still does not resample: off
         xyz, intensity = self._rows(plate, 0, profiles, 0.0, np.zeros(3), placement, 1, 0.0, start, seed, rng,
                                     plane=(rotation[:, 2].copy(), origin))
-        period_s = self.settings.step_mm / self.settings.speed_mm_s
+        period_s = (self.settings.step_mm / self.settings.speed_mm_s if period_s is None
+                    else as_positive_number(period_s, "period_s"))
         return SweepData(xyz, intensity, np.arange(profiles) * period_s, np.repeat(start[None], profiles, axis=0),
                          start, 1, 0.0, 0.0)
+
+    def standstill(self, plate: Plate, profiles: int, seed: int = 0, position_mm=(0.0, 100.0, 0.0),
+                   marking_pose_error: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                   period_s: float | None = None) -> Iterator[Profile]:
+        """The profiles of :meth:`standstill_data` one by one (sensor frame, y = 0; the reported pose
+        is where the sensor stands)."""
+        data = self.standstill_data(plate, profiles, seed, position_mm, marking_pose_error, period_s)
+        for row in range(data.xyz.shape[0]):
+            points = np.empty(data.xyz.shape[1], dtype=PROFILE_DTYPE)
+            points["x"], points["y"], points["z"] = data.xyz[row, :, 0], data.xyz[row, :, 1], data.xyz[row, :, 2]
+            points["intensity"] = data.intensity[row]
+            yield Profile(row, float(data.stamps_s[row]), points, data.reported_poses[row])
 
     def sweep(self, plate: Plate, length_mm: float = 200.0, speed_mm_s: float | None = None,
               step_mm: float | None = None, seed: int = 0, direction: int = 1,
