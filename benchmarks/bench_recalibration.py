@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 from gls_calibration import procedure
-from gls_calibration.calibration_record import build_record, save_candidate
+from gls_calibration.calibration_record import build_record, record_models, save_candidate
 from gls_calibration.outcome import summarise
 from gls_calibration.persistence import CalibrationStore
 from gls_calibration.simulation.direct_cell import DirectCell
@@ -34,14 +34,17 @@ from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 
 
 def calibrate(cell: DirectCell, settings: procedure.ProcedureSettings) -> procedure.CalibrationOutcome:
-    """One forced, validated calibration through ``cell``, as the manager runs it."""
+    """One forced, validated calibration through ``cell``, as the manager runs it: the candidate holds
+    the active calibration's models and the new one (trained through them)."""
     geometry = cell.sim.config.geometry
+    active = cell.store.active_path()
+    existing = record_models(cell.store.load(active)) if active else []
 
     def save(runs, models):
-        return save_candidate(cell.store, build_record(geometry, settings, runs, models, []), geometry)
+        return save_candidate(cell.store, build_record(geometry, settings, runs, models, existing), geometry)
     return asyncio.run(procedure.calibrate(cell, settings, iterations=1, validate=True, force=True, want_truth=True,
                                            progress=lambda *_: None, save_candidate=save,
-                                           active_calibration=cell.store.active_path() is not None))
+                                           active_calibration=active is not None))
 
 
 def figures(run: procedure.PlateRun) -> str:
