@@ -224,7 +224,8 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
         calibration_file=outcome.candidate.path if outcome.candidate else "",
         iteration_rms_mm=tuple(_full(run.metrics, "rms_abs_mm") for run in outcome.runs),
         sweep_plan=first.sweep_plan,
-        cell_time_s=float(sum(run.cell_time_s for run in outcome.runs + ((validation,) if validation else ()))),
+        cell_time_s=float(sum(run.cell_time_s for run in outcome.runs + tuple(
+            plate for plate in (validation, outcome.active_validation) if plate is not None))),
         fiducial_sigma_median_mm=_nan_stat(np.nanmedian, first.sigma_mm),
         fiducial_sigma_max_mm=_nan_stat(np.nanmax, first.sigma_mm),
         scanner_error_rms_mm=first.scanner_error_rms_mm, motion_error_rms_mm=first.motion_error_rms_mm,

@@ -40,7 +40,7 @@ def plate(grid_xy: np.ndarray, rms_mm: float) -> procedure.PlateRun:
                               measured_gls=targets, corrections=deviations, true_deviations=deviations,
                               plate_pose_gls=pose, fiducials_found=count,
                               alignment=RigidTransform(np.eye(3), np.zeros(3)), metrics=metrics,
-                              true_metrics=metrics, sigma_mm=np.full(count, 0.002))
+                              true_metrics=metrics, sigma_mm=np.full(count, 0.002), cell_time_s=100.0)
 
 
 class FiguresCell:
@@ -110,6 +110,7 @@ def test_the_active_calibration_is_marked_on_the_validation_grid_and_compared_th
     assert lines[1] == "candidate on the validation grid (`post_rms_mm` 0.0082 mm): INDEPENDENT"
     assert lines[2] == "calibration in use on the validation grid (`active_post_rms_mm` 0.0216 mm): INDEPENDENT"
     assert summary.to_dict()["accepted_against"] == "active calibration on the validation grid"
+    assert summary.cell_time_s == pytest.approx(300.0)      # the third plate counts in the cell time
 
 
 def test_a_candidate_no_better_on_the_validation_grid_is_still_rejected(figures_flow):
