@@ -35,6 +35,7 @@ class DirectCell:
     what ``correct`` uses (set by ``load_calibration``/``reload_active``; a benchmark may set it to
     compare models); ``marks`` the polylines landed on the current plate. Clouds are in the scanner
     base frame, profiles placed by the robot's reported pose (``placed_by_pose``) or by time.
+    ``sweeps`` and ``standstills`` count the acquisitions apart, each seeding its own draws.
     """
 
     def __init__(self, sim: SimulatedCell, store: CalibrationStore, *, ring_radii_mm=RING_RADII_MM,

@@ -26,6 +26,10 @@ in the base frame, drawn once per robot from ``robot_seed``, one field per trave
 sensor orientation). A consumer places a profile by pose as ``reported_pose @ (x, 0, z, 1)`` of its
 sensor-frame points.
 
+Stand-still (:meth:`LaserLineScanner.standstill_data`): profiles taken with the robot standing still at
+the marking pose, so no path error of a sweep enters; the scanner, held by the same flange as the
+head, sees the plate moved by the head's marking-pose error. Its draws have a stream of their own.
+
 Noise model: z noise (Gaussian), a smooth z linearity error across the line, and the measurement
 chain (:mod:`gls_calibration.simulation.measurement`): placement errors of the robot, the lateral
 linearity of the sensor, fan geometry (points on rays from the fan apex, so lateral position and
