@@ -331,7 +331,9 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
         poses.append(await cell.estimate_plate_pose(cloud))
     pose_scanner = mean_plate_pose(poses)
     if settings.standstill_height:
-        report("plate_pose", 0.12, f"profiling the plate standing at the marking pose ({settings.standstill_profiles})")
+        # part of scanning the plain plate: "plate_pose" follows once the pose is final
+        report("sweep_plain", 0.1, f"profiling the plain plate standing at the marking pose "
+               f"({settings.standstill_profiles} profiles)")
         pose_scanner = await plate_height_at_marking(cell, settings, pose_scanner)
     pose_gls = pose_in_frame(pose_scanner, settings.scanner_to_gls)
     report("plate_pose", 0.15, f"plate flatness {pose_scanner.flatness_rms_mm:.4f} mm RMS")

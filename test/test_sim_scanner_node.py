@@ -90,3 +90,13 @@ def test_a_standstill_is_placed_where_the_sensor_stands_and_leaves_the_sweep_ids
     assert not refused.success and "a stand-still is taken at orientation 0" in refused.message
     started = cell.call(StartSweep, "scanner/start_sweep", StartSweep.Request(length_mm=2.0, step_mm=0.1), 20.0)
     assert started.success and started.sweep_id == 1
+
+
+def test_a_standstill_without_the_pose_stream_is_refused(start_cell):
+    """Without travel the time cannot place the profiles: only the reported pose can."""
+    cell = start_cell(node_types=(SimGalvoNode, SimScannerNode, ScanAcquisitionNode),
+                      node_parameters={"scan_acquisition": {"use_pose_stream": False}})
+    refused = cell.call(AcquireSweep, "scan/acquire_standstill", AcquireSweep.Request(length_mm=2.0, step_mm=0.1), 30.0)
+    assert not refused.success
+    assert refused.message == ("a stand-still acquisition needs the reported pose (use_pose_stream is false): "
+                               "without travel the time cannot place its profiles")
