@@ -263,8 +263,8 @@ class ScanAcquisitionNode(GlsNode):
             length_mm = (done.profiles - 1) * done.step_mm
             # standing still the sensor does not travel: its motion only matters when placed by time, refused below
             motion = SweepMotion((0.0, 1.0, 0.0) if standstill else tuple(done.direction), done.speed_mm_s)
-            cloud, by_pose = collector.assemble(motion, nominal_start_pose(length_mm, direction, request.orientation_deg),
-                                                self.poses, members)
+            start = nominal_start_pose(length_mm, direction, request.orientation_deg)
+            cloud, by_pose = collector.assemble(motion, start, self.poses, members)
             if standstill and not by_pose:
                 raise ServiceCallError("the reported pose (scan/pose) does not cover the stand-still profiles: "
                                        "without travel the time cannot place them")
