@@ -23,6 +23,12 @@ if TYPE_CHECKING:  # the procedure builds outcomes from these; imported for the 
 
 FULL_FIELD = "full"
 
+INDEPENDENT = "independent"
+"""Kind of a figure measured at positions the calibration it judges was not trained on (the
+validation grid, half a pitch off), or through the nominal model; the chain that measures is the
+same. ``SELF_CONSISTENCY`` (``stated_accuracy``): a calibration measured again at its own training
+positions by the chain that trained it, which re-measures its own repeating errors."""
+
 
 @dataclass(frozen=True)
 class FieldMetrics:
@@ -108,7 +114,10 @@ class CalibrationOutcome:
 
     ``candidate`` is None when nothing was trained (the first plate was within the tolerance).
     ``rejection`` says why a validated candidate must not replace the calibration in use (empty:
-    accepted); the run then went through, but nothing is activated.
+    accepted); the run then went through, but nothing is activated. ``active_calibration``: the
+    first plate was marked through a trained calibration (not the nominal model); ``active_validation``
+    the plate marked through it at the validation positions, which the candidate was judged against
+    (None when it was judged against the first plate).
     """
 
     message: str
@@ -118,6 +127,8 @@ class CalibrationOutcome:
     candidate: Optional[Candidate]
     duration_s: float
     rejection: str = ""
+    active_validation: Optional["PlateRun"] = None
+    active_calibration: bool = False
 
 
 @dataclass(frozen=True)
@@ -127,8 +138,11 @@ class RunSummary:
     ``pre``: the first plate, marked through the calibration active before; ``post``: the
     validation plate, marked through the new one. Measured figures come from the scanner's
     measurement; ``true_*`` from the simulation's ground truth (NaN on a real cell).
-    ``post_*`` are self-consistency (the chain that trained the calibration measures it again and
-    cannot see its own repeating errors); ``stated_rms_mm`` is the accuracy the cell states, on the
+    ``active_post_*``: the calibration in use marked on the validation grid too (when one was active
+    and the run validated). ``*_kind`` say which figures are self-consistency (a calibration at its
+    own training positions: the first plate through an active calibration, or a validation grid on
+    the training positions) and which are independent of the training positions; every measured
+    figure comes from the same chain, which cannot see its own repeating errors; ``stated_rms_mm`` is the accuracy the cell states, on the
     basis ``stated_basis`` (``stated_accuracy``: a reference check of the chain, or NaN with
     ``self-consistency`` when there is none).
     """
@@ -163,6 +177,15 @@ class RunSummary:
     stated_basis: str = "self-consistency"
     stated_explanation: str = ""
     reference_sigma_mm: tuple[float, ...] = ()  # the reference check's per-axis sigma (k = 1), when used
+    # which kind each figure is (INDEPENDENT or SELF_CONSISTENCY; "" when not measured), and what
+    # the candidate was judged against: "active calibration on the validation grid", "first plate" or ""
+    pre_kind: str = ""
+    post_kind: str = ""
+    active_post_kind: str = ""
+    active_post_rms_mm: float = math.nan        # the calibration in use, marked on the validation grid
+    active_post_max_mm: float = math.nan
+    true_active_post_rms_mm: float = math.nan
+    accepted_against: str = ""
 
     def to_dict(self) -> dict:
         """The summary as plain values, in field order (``summary.json``)."""
@@ -201,13 +224,33 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
         calibration_file=outcome.candidate.path if outcome.candidate else "",
         iteration_rms_mm=tuple(_full(run.metrics, "rms_abs_mm") for run in outcome.runs),
         sweep_plan=first.sweep_plan,
-        cell_time_s=float(sum(run.cell_time_s for run in outcome.runs + ((validation,) if validation else ()))),
+        cell_time_s=float(sum(run.cell_time_s for run in outcome.runs + tuple(
+            plate for plate in (validation, outcome.active_validation) if plate is not None))),
         fiducial_sigma_median_mm=_nan_stat(np.nanmedian, first.sigma_mm),
         fiducial_sigma_max_mm=_nan_stat(np.nanmax, first.sigma_mm),
         scanner_error_rms_mm=first.scanner_error_rms_mm, motion_error_rms_mm=first.motion_error_rms_mm,
         scanner_share=math.hypot(first.scanner_error_rms_mm, first.motion_error_rms_mm)
         / _full(first.metrics, "rms_abs_mm"),
-        **_stated(measured_after, chain_check, first.sweep_plan, placement))
+        **_stated(measured_after, chain_check, first.sweep_plan, placement),
+        **_kinds(outcome))
+
+
+def _kinds(outcome: CalibrationOutcome) -> dict:
+    """Which kind each figure of ``outcome`` is, the active calibration's validation figures, and
+    what the candidate was judged against."""
+    validation, active = outcome.validation, outcome.active_validation
+    values: dict[str, Any] = {"pre_kind": SELF_CONSISTENCY if outcome.active_calibration else INDEPENDENT}
+    if validation is not None:
+        # the validation grid is the training grid unless it is offset (ProcedureSettings.validation_offset_half_pitch)
+        on_training = np.array_equal(np.asarray(validation.targets)[:, :2], np.asarray(outcome.runs[0].targets)[:, :2])
+        kind = SELF_CONSISTENCY if on_training else INDEPENDENT
+        values["post_kind"] = kind
+        values["accepted_against"] = "first plate" if active is None else "active calibration on the validation grid"
+        if active is not None:
+            values.update(active_post_kind=kind, active_post_rms_mm=_full(active.metrics, "rms_abs_mm"),
+                          active_post_max_mm=_full(active.metrics, "max_abs_mm"),
+                          true_active_post_rms_mm=_full(active.true_metrics, "rms_abs_mm"))
+    return values
 
 
 def _stated(measured: Optional[DeviationMetrics], check: Optional[ChainCheck], plan: str, placement: str) -> dict:

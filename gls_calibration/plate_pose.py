@@ -171,3 +171,31 @@ def mean_plate_pose(poses: list[PlatePose]) -> PlatePose:
                      flatness_rms_mm=float(np.mean([pose.flatness_rms_mm for pose in poses])),
                      inlier_count=int(sum(pose.inlier_count for pose in poses)),
                      inlier_fraction=float(np.mean([pose.inlier_fraction for pose in poses])))
+
+
+MIN_HEIGHT_POINTS = 100
+"""Fewest finite points of a stand-still acquisition that set the plate height."""
+
+
+def pose_at_height(pose: PlatePose, points, *, distance_threshold_mm: float = 0.2) -> PlatePose:
+    """``pose`` moved along its normal so that its plane runs through ``points`` ((N, 3) or (H, W, 3),
+    NaNs dropped): the plate height from profiles taken standing still, the tilt from ``pose``.
+
+    Profiles taken without travel cover one line of the plate: they fix the height well (thousands of
+    points) but not the tilt across the line, which the sweeps' pose keeps. The height is the mean
+    signed distance of the points within ``distance_threshold_mm`` of their median distance.
+    """
+    if not np.isfinite(distance_threshold_mm) or distance_threshold_mm <= 0.0:
+        raise ValueError(f"distance_threshold_mm must be positive, got {distance_threshold_mm!r}")
+    cloud = cloud_rows(points)
+    cloud = cloud[np.isfinite(cloud @ np.ones(3))]
+    if len(cloud) < MIN_HEIGHT_POINTS:
+        raise ValueError(f"the stand-still profiles hold {len(cloud)} finite points; at least "
+                         f"{MIN_HEIGHT_POINTS} are needed for the plate height")
+    distance = pose.distance(cloud)
+    middle = float(np.median(distance))
+    near = np.abs(distance - middle) <= distance_threshold_mm
+    height = float(np.mean(distance[near]))
+    return PlatePose(normal=pose.normal.copy(), centre=pose.centre + height * pose.normal,
+                     rotation=pose.rotation.copy(), flatness_rms_mm=pose.flatness_rms_mm,
+                     inlier_count=pose.inlier_count, inlier_fraction=pose.inlier_fraction)

@@ -21,7 +21,7 @@ from gls_calibration.correction import CorrectedSetpoints
 from gls_calibration.fiducials import FiducialMeasurement
 from gls_calibration.outcome import CalibrationOutcome, Candidate, DeviationMetrics, deviation_metrics
 from gls_calibration.plate_marks import existing_marks
-from gls_calibration.plate_pose import PlatePose, mean_plate_pose
+from gls_calibration.plate_pose import PlatePose, mean_plate_pose, pose_at_height
 from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
 from gls_calibration.separation import SeparationSettings
 from gls_calibration.sweep_plan import CellTimeModel, CombinedSweeps, SweepPass, combine_sweeps, plan_label
@@ -50,6 +50,12 @@ class Cell(Protocol):
         (``direction`` 1) or -y (-1), the sensor turned by ``orientation_deg`` (0 or 90) about its
         viewing axis; the cloud in the scanner (base) frame, whatever the direction and orientation,
         placed by the robot's reported pose where the cell has one (see ``sweep.py``)."""
+
+    async def acquire_standstill(self, profiles: int) -> Any:
+        """``profiles`` profiles taken with the robot standing still in the pose the marks are made
+        from (no travel), as a cloud in the scanner (base) frame like ``acquire_sweep``'s: the plate
+        height at marking (``settings.standstill_height``). Needs its own random draws on a simulated
+        cell, never those of the sweeps."""
 
     async def estimate_plate_pose(self, cloud: Any) -> PlatePose:
         """The plate plane fitted to ``cloud`` (scanner frame, normal towards the head)."""
@@ -108,6 +114,8 @@ class ProcedureSettings:
     ring_radii_mm: tuple[float, float] = grid.RING_RADII_MM
     plain_sweep_step_mm: float = 1.0
     plain_sweeps: int = 4               # averaged: the plate height error of one sweep sets the field's scale
+    standstill_height: bool = True      # the plate height from profiles taken standing at the marking pose
+    standstill_profiles: int = 20       # ... this many (the height of one is already ~2000 points)
     marked_sweep_step_mm: float = 0.1
     scanner_to_gls: RigidTransform = field(default_factory=lambda: RigidTransform(np.eye(3), np.zeros(3)))
     tolerance_rms_mm: float = 0.05
@@ -139,6 +147,9 @@ class ProcedureSettings:
         for name in ("mark_check_sigmas", "mark_cluster_sigmas", "measurement_uncertainty_mm", "max_cv_factor",
                      "max_cv_fraction"):
             as_positive_number(getattr(self, name), name)
+        if isinstance(self.standstill_profiles, bool) or not isinstance(self.standstill_profiles, int) \
+                or self.standstill_profiles < 1:
+            raise ValueError(f"standstill_profiles must be a positive integer, got {self.standstill_profiles!r}")
         for name in ("max_outlying_points", "max_cluster_points"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must not be negative, got {getattr(self, name)}")
@@ -261,17 +272,18 @@ def check_model_explains(model: "TrainedModel", deviation_rms_mm: float, uncerta
             "or ambiguous pairings? Nothing activated")
 
 
-def acceptance_problem(before_rms_mm: float, after_rms_mm: float, uncertainty_mm: float) -> str:
+def acceptance_problem(before_rms_mm: float, after_rms_mm: float, uncertainty_mm: float,
+                       against: str = "this run's first plate") -> str:
     """Why a validated candidate must not replace the calibration in use (empty string: accept it).
 
-    ``before_rms_mm``: the first plate of the run, marked through the calibration in use; ``after``:
-    the validation plate, marked through the candidate; both measured the same way, with a
-    per-centre uncertainty of ``uncertainty_mm`` (the larger of the two plates').
+    ``before_rms_mm``: the calibration in use, measured on ``against``; ``after``: the validation
+    plate, marked through the candidate; both measured the same way, with a per-centre uncertainty of
+    ``uncertainty_mm`` (the larger of the two plates').
     """
     if after_rms_mm + uncertainty_mm < before_rms_mm:
         return ""
     return (f"candidate rejected: validation {after_rms_mm:.4f} mm RMS is not better than the calibration in use "
-            f"({before_rms_mm:.4f} mm RMS on this run's first plate) by more than the measurement uncertainty "
+            f"({before_rms_mm:.4f} mm RMS on {against}) by more than the measurement uncertainty "
             f"{uncertainty_mm:.4f} mm")
 
 
@@ -287,6 +299,23 @@ def combined_centres_gls(measurements: list[FiducialMeasurement], settings: Proc
         raise CalibrationError(f"the sweeps of the marked plate cannot be combined: {error}") from None
     centres = np.column_stack([combined.centres_xy, plane_height(pose_scanner, *combined.centres_xy.T)])
     return settings.scanner_to_gls.apply(centres), combined
+
+
+async def plate_height_at_marking(cell: Cell, settings: ProcedureSettings, pose_scanner: PlatePose) -> PlatePose:
+    """``pose_scanner`` (from the sweeps) moved to the plate height measured standing still at the
+    marking pose.
+
+    Each sweep's path is off by the robot's repeatability; the mean of a few sweeps still leaves the
+    height wrong by ~0.015 mm, and a height error dz scales the marked field by dz/d (a radial pattern
+    that differs from plate to plate). Standing still, no path error enters, and the scanner sees the
+    plate where the head held by the same robot marks it.
+    """
+    cloud = await cell.acquire_standstill(settings.standstill_profiles)
+    points, _ = cell.points_and_intensities(cloud)
+    try:
+        return pose_at_height(pose_scanner, points)
+    except ValueError as error:
+        raise CalibrationError(f"the plate height at the marking pose cannot be measured: {error}") from None
 
 
 async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray, progress: Progress,
@@ -310,6 +339,11 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
             check_clean_plate(*cell.points_and_intensities(cloud), settings)
         poses.append(await cell.estimate_plate_pose(cloud))
     pose_scanner = mean_plate_pose(poses)
+    if settings.standstill_height:
+        # part of scanning the plain plate: "plate_pose" follows once the pose is final
+        report("sweep_plain", 0.1, f"profiling the plain plate standing at the marking pose "
+               f"({settings.standstill_profiles} profiles)")
+        pose_scanner = await plate_height_at_marking(cell, settings, pose_scanner)
     pose_gls = pose_in_frame(pose_scanner, settings.scanner_to_gls)
     report("plate_pose", 0.15, f"plate flatness {pose_scanner.flatness_rms_mm:.4f} mm RMS")
 
@@ -392,7 +426,8 @@ def validation_grid(settings: ProcedureSettings) -> np.ndarray:
 
 async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int, validate: bool, force: bool,
                     want_truth: bool, progress: Progress,
-                    save_candidate: Callable[[list[PlateRun], list[TrainedModel]], Candidate]) -> CalibrationOutcome:
+                    save_candidate: Callable[[list[PlateRun], list[TrainedModel]], Candidate],
+                    active_calibration: bool = False) -> CalibrationOutcome:
     """Run the calibrate flow. ``save_candidate`` stores a calibration without activating it.
 
     The cell is switched to the candidate for later iterations and validation; the caller activates
@@ -400,11 +435,18 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
     active one. The plain plate must be clean, the model must explain the measurement, and with
     validation the candidate must beat the calibration in use (``acceptance_problem``); ``force``
     allows a marked plate and training within the tolerance.
+
+    ``active_calibration``: the cell corrects through a trained calibration (not the nominal model)
+    when the run starts. Its figure on the first plate is then self-consistency (the chain re-measures
+    the positions that calibration was trained on, with the same repeating errors); so with
+    validation it is marked on a further plate at the validation positions too, and the candidate is
+    judged against that (``CalibrationOutcome.active_validation``).
     """
     began = time.monotonic()
     iterations = iterations or settings.default_iterations
     training_grid = grid.grid_targets(settings.grid_per_side, settings.grid_size_mm)
-    passes = iterations + (1 if validate else 0)
+    compare_active = validate and active_calibration
+    passes = iterations + (1 if validate else 0) + (1 if compare_active else 0)
     span = 1.0 / passes
     runs: list[PlateRun] = []
     models: list[TrainedModel] = []
@@ -419,26 +461,39 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
         if iteration == 0 and rms <= settings.tolerance_rms_mm and not force:
             return CalibrationOutcome(f"deviation RMS {rms:.4f} mm is within the tolerance of "
                                       f"{settings.tolerance_rms_mm} mm: nothing trained (use force to train)",
-                                      tuple(runs), None, tuple(models), None, time.monotonic() - began)
+                                      tuple(runs), None, tuple(models), None, time.monotonic() - began,
+                                      active_calibration=active_calibration)
         progress("training", (iteration + 0.9) * span, f"training on {len(run.deviations)} deviations")
         models.append(await cell.train(run.measured_gls[:, :2], run.corrections))
         check_model_explains(models[-1], rms, centre_uncertainty_mm(run, settings), settings)
         candidate = save_candidate(runs, models)
         await cell.load_calibration(candidate.path)
 
-    validation = None
+    validation = active_validation = None
     if validate:
+        validation_xy = validation_grid(settings)
         await cell.exchange_plate()
-        validation = await run_plate(cell, settings, validation_grid(settings), progress,
+        validation = await run_plate(cell, settings, validation_xy, progress,
                                      (iterations * span, span), want_truth, allow_marked=force)
-        rejected = acceptance_problem(runs[0].metrics.full.rms_abs_mm, validation.metrics.full.rms_abs_mm,
-                                      max(centre_uncertainty_mm(runs[0], settings),
-                                          centre_uncertainty_mm(validation, settings)))
+        before, against = runs[0], "this run's first plate"
+        if compare_active:
+            # like with like: the calibration in use marked at the candidate's validation positions
+            await cell.exchange_plate()
+            await cell.reload_active()
+            active_validation = await run_plate(cell, settings, validation_xy, progress,
+                                                ((iterations + 1) * span, span), want_truth, allow_marked=force)
+            await cell.load_calibration(candidate.path)
+            before, against = active_validation, "the validation grid"
+        rejected = acceptance_problem(before.metrics.full.rms_abs_mm, validation.metrics.full.rms_abs_mm,
+                                      max(centre_uncertainty_mm(before, settings),
+                                          centre_uncertainty_mm(validation, settings)), against)
         if rejected:
             rejected = f"{rejected}; {Path(candidate.path).name} stays in the history, inactive"
             progress("done", 1.0, rejected)
             return CalibrationOutcome(rejected, tuple(runs), validation, tuple(models), candidate,
-                                      time.monotonic() - began, rejection=rejected)
+                                      time.monotonic() - began, rejection=rejected,
+                                      active_validation=active_validation, active_calibration=active_calibration)
     progress("done", 1.0, "calibration finished")
     return CalibrationOutcome("calibrated", tuple(runs), validation, tuple(models), candidate,
-                              time.monotonic() - began)
+                              time.monotonic() - began, active_validation=active_validation,
+                              active_calibration=active_calibration)

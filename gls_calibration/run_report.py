@@ -7,14 +7,34 @@ import numpy as np
 
 from gls_calibration.discrepancy import run_verdict_lines
 from gls_calibration.outcome import CalibrationOutcome, RunSummary
+from gls_calibration.stated_accuracy import SELF_CONSISTENCY
 from gls_calibration.report import ReportData, write_report
+
+
+def figure_kind_lines(summary: RunSummary) -> tuple[str, ...]:
+    """Which figures are self-consistency and which independent, and what the candidate was judged against."""
+    lines = []
+    if summary.pre_kind:
+        lines.append(f"first plate (`pre_rms_mm` {summary.pre_rms_mm:.4f} mm): {summary.pre_kind.upper()}"
+                     + (" (the calibration in use re-measured at the positions it was trained on)"
+                        if summary.pre_kind == SELF_CONSISTENCY else ""))
+    if summary.post_kind:
+        lines.append(f"candidate on the validation grid (`post_rms_mm` {summary.post_rms_mm:.4f} mm): "
+                     f"{summary.post_kind.upper()}")
+    if summary.active_post_kind:
+        lines.append(f"calibration in use on the validation grid (`active_post_rms_mm` "
+                     f"{summary.active_post_rms_mm:.4f} mm): {summary.active_post_kind.upper()}")
+    if summary.accepted_against:
+        lines.append(f"the candidate was judged against: {summary.accepted_against}")
+    return tuple(lines)
 
 
 def accuracy_lines(summary: RunSummary) -> tuple[str, ...]:
     """What the cell states as its accuracy, and which of its figures are self-consistency."""
-    basis = ("The validation figures (`post_rms_mm`, `post_max_mm`, the \"after\" rows) are SELF-CONSISTENCY: "
-             "the chain that measured the training plate measures the validation plate again, so errors of "
-             "the chain that repeat (robot lines, scanner shapes) were learned and cancel in them.")
+    basis = ("Every measured figure is SELF-CONSISTENCY of the measuring chain: the chain that measured the "
+             "training plate measures every plate, so errors of the chain that repeat (robot lines, scanner "
+             "shapes) were learned and cancel in them; INDEPENDENT below means only at positions the "
+             "calibration judged was not trained on.")
     if np.isfinite(summary.stated_rms_mm):
         return (f"**Stated accuracy: {summary.stated_rms_mm:.4f} mm RMS** (2-D, over the validation grid; basis: "
                 f"{summary.stated_basis}): {summary.stated_explanation}.", basis)
@@ -23,7 +43,7 @@ def accuracy_lines(summary: RunSummary) -> tuple[str, ...]:
 
 def measurement_lines(summary: RunSummary) -> tuple[str, ...]:
     """What the report says about the measurement: sweep plan, cell time, uncertainty, separation."""
-    lines = [*accuracy_lines(summary), f"sweep plan of the marked plate: {summary.sweep_plan}; simulated cell time of the whole "
+    lines = [*accuracy_lines(summary), *figure_kind_lines(summary), f"sweep plan of the marked plate: {summary.sweep_plan}; simulated cell time of the whole "
              f"calibration (sweeps at the configured speed, robot moves, marking): {summary.cell_time_s / 60.0:.1f} min",
              f"measurement uncertainty per fiducial (standard, per axis, first plate): median "
              f"{summary.fiducial_sigma_median_mm:.4f} mm, max {summary.fiducial_sigma_max_mm:.4f} mm"]

@@ -51,7 +51,8 @@ def run_calibrate(cell: DirectCell, settings: procedure.ProcedureSettings, *, it
         try:
             return await procedure.calibrate(cell, settings, iterations=iterations, validate=validate,
                                              force=force, want_truth=True, progress=progress,
-                                             save_candidate=save)
+                                             save_candidate=save,
+                                             active_calibration=cell.store.active_path() is not None)
         except procedure.CalibrationError:
             await cell.reload_active()
             raise

@@ -8,10 +8,12 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
+from gls_calibration.nodes import conversions
+from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import LISTENER_WAIT_S, SimScannerNode
 from gls_calibration_msgs.msg import SweepDone
-from gls_calibration_msgs.srv import StartSweep
+from gls_calibration_msgs.srv import AcquireSweep, StartSweep
 
 from ros_helpers import wait_for
 
@@ -70,3 +72,31 @@ def test_a_sweep_waits_for_its_listeners_before_publishing(start_cell):
     # The end of sweep travels on its own topic and may overtake the last profiles.
     wait_for(lambda: len(stamps) >= 21, 20.0, what="every profile of the sweep")
     assert len(stamps) == 21
+
+
+def test_a_standstill_is_placed_where_the_sensor_stands_and_leaves_the_sweep_ids_alone(start_cell):
+    """Issue 31 item 5: profiles taken standing still at the marking pose, through scan_acquisition;
+    an earlier attempt numbered them as sweeps and every later sweep's draws moved."""
+    cell = start_cell(node_types=(SimGalvoNode, SimScannerNode, ScanAcquisitionNode))
+    still = cell.call(AcquireSweep, "scan/acquire_standstill", AcquireSweep.Request(length_mm=2.0, step_mm=0.1), 60.0)
+    assert still.success and still.placed_by_pose, still.message
+    points, intensity = conversions.cloud_arrays_from_msg(still.cloud)
+    assert points.shape[0] == 21
+    finite = np.all(np.isfinite(points), axis=-1)
+    # no travel: every profile on the line over the middle of the 200 mm sweep (scanner base frame, mm)
+    assert finite.sum() > 1000 and np.allclose(points[finite][:, 1], 100.0, atol=1e-3)
+    refused = cell.call(StartSweep, "scanner/start_standstill", StartSweep.Request(length_mm=2.0, orientation_deg=90.0),
+                        10.0)
+    assert not refused.success and "a stand-still is taken at orientation 0" in refused.message
+    started = cell.call(StartSweep, "scanner/start_sweep", StartSweep.Request(length_mm=2.0, step_mm=0.1), 20.0)
+    assert started.success and started.sweep_id == 1
+
+
+def test_a_standstill_without_the_pose_stream_is_refused(start_cell):
+    """Without travel the time cannot place the profiles: only the reported pose can."""
+    cell = start_cell(node_types=(SimGalvoNode, SimScannerNode, ScanAcquisitionNode),
+                      node_parameters={"scan_acquisition": {"use_pose_stream": False}})
+    refused = cell.call(AcquireSweep, "scan/acquire_standstill", AcquireSweep.Request(length_mm=2.0, step_mm=0.1), 30.0)
+    assert not refused.success
+    assert refused.message == ("a stand-still acquisition needs the reported pose (use_pose_stream is false): "
+                               "without travel the time cannot place its profiles")

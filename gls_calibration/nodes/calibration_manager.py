@@ -61,6 +61,7 @@ class ServiceCell:
         self.timeout_s = node.service_timeout_s
         self.deadlines = node.deadlines
         self.acquire = node.client(AcquireSweep, "scan/acquire")
+        self.acquire_still = node.client(AcquireSweep, "scan/acquire_standstill")
         self.pose = node.client(EstimatePlatePose, "plate_pose/estimate")
         self.fiducials = node.client(MeasureFiducials, "fiducials/measure")
         # The marking grid's ring points are a large request: on the batch name, its answer does not
@@ -98,6 +99,15 @@ class ServiceCell:
                 f"sweep.placed_by_pose is {self.node.settings.profiles_placed_by_pose}: the error separation "
                 "trusts the wrong scale; set the parameter to match the scanner driver")
         return response.cloud  # forwarded as it came: the processing nodes convert it themselves
+
+    async def acquire_standstill(self, profiles: int):
+        deadlines = self.deadlines
+        step_mm = self.node.settings.marked_sweep_step_mm   # sets the profile rate, as in a sweep at this step
+        request = AcquireSweep.Request(timeout_s=deadlines.sweep_s(), length_mm=(int(profiles) - 1) * step_mm,
+                                       speed_mm_s=deadlines.sweep_speed_mm_s, step_mm=step_mm)
+        response = await self._checked(self.acquire_still, request, deadlines.sweep_s() + deadlines.margin_s,
+                                       idempotent=False)
+        return response.cloud
 
     async def estimate_plate_pose(self, cloud):
         response = await self._checked(self.pose, EstimatePlatePose.Request(cloud=cloud))
@@ -192,6 +202,10 @@ class CalibrationManager(GlsNode):
                                       "sweeps of the plain plate whose poses are averaged: the robot's path "
                                       "error in each sets the plate height, hence the field's scale",
                                       minimum=1, maximum=20),
+            standstill_height=self.declare("sweep.standstill_height", defaults.standstill_height,
+                                           "take the plate height from profiles taken with the robot standing "
+                                           "still at the marking pose (scan/acquire_standstill), not from the "
+                                           "sweeps, whose path error scales the marked field"),
             marked_sweep_step_mm=self.declare("sweep.marked_step_mm", defaults.marked_sweep_step_mm,
                                               "profile spacing of the sweep of the marked plate (mm)",
                                               minimum=0.01, maximum=1.0),
@@ -401,7 +415,7 @@ class CalibrationManager(GlsNode):
         outcome = await procedure.calibrate(
             self.cell, self.settings, iterations=request.iterations, validate=request.validate,
             force=request.force, want_truth=bool(self.ground_truth_service),
-            progress=progress, save_candidate=save)
+            progress=progress, save_candidate=save, active_calibration=active is not None)
         stamp = self.get_clock().now().to_msg()
         self.plate_pose_publisher.publish(rviz.plate_pose_msg(outcome.runs[-1].plate_pose_gls, stamp))
         self.markers_publisher.publish(rviz.calibration_markers(outcome.runs[0], outcome.validation, stamp,

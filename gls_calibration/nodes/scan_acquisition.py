@@ -6,6 +6,10 @@ stamp) when that stream covers the sweep, else by its stamp and the sweep's nomi
 Profiles come in the driver's moving sensor frame, in metres (REP 103; ``profile_unit`` "mm" takes a
 driver that publishes millimetres). The assembled cloud is in metres too, in the frame ``frame_id``
 (default ``scanner``), stamped with the sweep's first profile.
+
+``scan/acquire_standstill`` (same request) asks the scanner for profiles taken with the robot standing
+still (``scanner/start_standstill``): placed by the reported pose only, since without travel the time
+says nothing about where the sensor stands.
 """
 from __future__ import annotations
 
@@ -73,6 +77,7 @@ class ScanAcquisitionNode(GlsNode):
         self.ignored_end = ""                  # why an end of sweep with this sweep's id was not believed
         self.malformed = 0
         self.start_client = self.client(StartSweep, "scanner/start_sweep")
+        self.standstill_client = self.client(StartSweep, "scanner/start_standstill")
         self.points_subscription = self.create_subscription(
             PointCloud2, "scan/points", self.on_profile, profile_qos(self.max_profiles),
             callback_group=self.reentrant_group)
@@ -81,6 +86,8 @@ class ScanAcquisitionNode(GlsNode):
         self.done_subscription = self.create_subscription(SweepDone, "scan/sweep_done", self.on_sweep_done,
                                                           profile_qos(10), callback_group=self.reentrant_group)
         self.create_service(AcquireSweep, "scan/acquire", self.on_acquire, callback_group=self.reentrant_group)
+        self.create_service(AcquireSweep, "scan/acquire_standstill", self.on_acquire_standstill,
+                            callback_group=self.reentrant_group)
 
     def on_profile(self, message: PointCloud2) -> None:
         """Keep a profile of the running sweep; profiles outside a sweep are ignored.
@@ -191,6 +198,19 @@ class ScanAcquisitionNode(GlsNode):
 
     async def on_acquire(self, request, response):
         """Start a sweep, wait for all its profiles, answer with the organized cloud."""
+        return await self._acquire(request, response, standstill=False)
+
+    async def on_acquire_standstill(self, request, response):
+        """Profiles taken standing still (as many as a sweep of the request's length and step), as
+        an organized cloud placed by the reported pose; refused without the pose stream."""
+        if not self.use_poses:
+            response.success = False
+            response.message = ("a stand-still acquisition needs the reported pose (use_pose_stream is false): "
+                                "without travel the time cannot place its profiles")
+            return response
+        return await self._acquire(request, response, standstill=True)
+
+    async def _acquire(self, request, response, standstill: bool):
         if self.collector is not None:
             response.success = False
             response.message = "a sweep is already being acquired; request refused"
@@ -200,7 +220,7 @@ class ScanAcquisitionNode(GlsNode):
             response.success, response.message = False, f"request refused: {problem}"
             return response
         timeout_s = request.timeout_s or self.default_timeout_s
-        direction = request.direction or 1
+        direction = 1 if standstill else request.direction or 1
         if direction not in (1, -1):
             response.success = False
             response.message = f"direction must be +1, -1 or 0 (+1), got {request.direction}"
@@ -211,7 +231,8 @@ class ScanAcquisitionNode(GlsNode):
         self.stamps, self.ignored_end, self.expected_profiles, self.end = {}, "", 0, None
         try:
             await self._wait_for_scanner_topics()
-            started = await self.call(self.start_client, StartSweep.Request(
+            start_client = self.standstill_client if standstill else self.start_client
+            started = await self.call(start_client, StartSweep.Request(
                 length_mm=request.length_mm, speed_mm_s=request.speed_mm_s, step_mm=request.step_mm,
                 direction=direction, orientation_deg=request.orientation_deg, request_id=new_request_id()),
                 timeout_s, resend_after_s=RESEND_WITH_ID_AFTER_S)
@@ -222,7 +243,7 @@ class ScanAcquisitionNode(GlsNode):
             # the scanner is watched meanwhile, so a scanner that dies fails the sweep at once.
             await self.wait_for(self._sweep_over, timeout_s,
                                 self._timeout_message(timeout_s, started.expected_profiles),
-                                watch=[self.start_client])
+                                watch=[start_client])
             done, collector = self.done, self.collector
             if not done.complete:
                 raise ServiceCallError(f"the sweep was cut short after {done.profiles} profiles")
@@ -240,9 +261,13 @@ class ScanAcquisitionNode(GlsNode):
                 raise ServiceCallError(f"{kept} profiles fit this sweep, its end counts {done.profiles}: profiles "
                                        "from another source are mixed in; sweep refused")
             length_mm = (done.profiles - 1) * done.step_mm
-            cloud, by_pose = collector.assemble(SweepMotion(tuple(done.direction), done.speed_mm_s),
-                                                nominal_start_pose(length_mm, direction, request.orientation_deg),
-                                                self.poses, members)
+            # standing still the sensor does not travel: its motion only matters when placed by time, refused below
+            motion = SweepMotion((0.0, 1.0, 0.0) if standstill else tuple(done.direction), done.speed_mm_s)
+            start = nominal_start_pose(length_mm, direction, request.orientation_deg)
+            cloud, by_pose = collector.assemble(motion, start, self.poses, members)
+            if standstill and not by_pose:
+                raise ServiceCallError("the reported pose (scan/pose) does not cover the stand-still profiles: "
+                                       "without travel the time cannot place them")
             first_stamp = self.stamps.get(collector.first_stamp_s(members))
         except (ServiceCallError, ValueError) as error:
             response.success = False

@@ -1,7 +1,7 @@
 """sim_scanner: the simulated laser-line scanner, a drop-in for a real scanner driver.
 
-Serves ``scanner/start_sweep``; each sweep's profiles go out on ``scan/points`` (PointCloud2 with
-x, y, z in metres and intensity, in the moving sensor frame ``frame_id``, y = 0 on the line,
+Serves ``scanner/start_sweep`` and ``scanner/start_standstill``; each sweep's profiles go out on
+``scan/points`` (PointCloud2 with x, y, z in metres and intensity, in the moving sensor frame ``frame_id``, y = 0 on the line,
 stamped with the time each profile was taken), then ``scan/sweep_done``. The plate's marks come from the simulated galvo
 (``sim/marked_paths``) at the start of each sweep, as a real scanner sees the real plate.
 
@@ -9,6 +9,11 @@ Hooks for placing profiles by pose and for sweep plans (see ``simulation/scanner
 
 - ``StartSweep.direction`` (+1 / -1, 0 means +1) and ``StartSweep.orientation_deg`` (0 or 90);
   ``SweepDone.direction`` is then ``(0, direction, 0)`` in the sensor frame.
+- ``scanner/start_standstill`` (``StartSweep``): profiles taken with the robot standing still at the
+  marking pose, the sensor over the middle of the sweep (``LaserLineScanner.standstill``): as many
+  as a sweep of ``length_mm`` every ``step_mm`` would take, at the same rate, without travel
+  (``SweepDone.direction`` (0, 0, 0)). Its ids count from ``STANDSTILL_IDS`` and its random draws
+  have a stream of their own, so the sweeps' ids and draws stay what they were.
 - ``scan/pose`` (``geometry_msgs/PoseStamped``, frame ``scanner_base``): for every profile, published
   just before it with the SAME stamp, the sensor pose the robot reports (its encoder pose: it
   follows the speed error and ripple, not the path wander). Position in METRES (REP 103), the
@@ -42,6 +47,8 @@ LISTENER_WAIT_S = 3.0   # a sweep waits this long at most for subscribers on its
 # restarted may drop the first answer while DDS still matches it: "failed to send response").
 MARKS_RESEND_AFTER_S = 2.0
 
+STANDSTILL_IDS = 2 ** 31   # first id of a stand-still acquisition: apart from the sweeps' ids
+
 
 class SimScannerNode(GlsNode):
     """Publishes a sweep's profiles in batches from a timer, so that subscribers keep up."""
@@ -58,6 +65,7 @@ class SimScannerNode(GlsNode):
         self.scanner = self.config.make_scanner()
         self.plate = self.config.make_plate()
         self.sweep_id = 0
+        self.standstills = 0
         self.job: Optional[Iterator[Profile]] = None
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE)
         self.points = self.create_publisher(PointCloud2, "scan/points", qos)
@@ -67,6 +75,8 @@ class SimScannerNode(GlsNode):
         self.marks_client = self.client(GetMarkedPaths, "sim/marked_paths")
         self.answered = AnsweredRequests()
         self.create_service(StartSweep, "scanner/start_sweep", self.on_start_sweep,
+                            callback_group=self.reentrant_group)
+        self.create_service(StartSweep, "scanner/start_standstill", self.on_start_standstill,
                             callback_group=self.reentrant_group)
         # One tick at a time: the sweep is a generator and profiles must go out in order.
         self.timer = self.create_timer(0.001, self.publish_batch, callback_group=MutuallyExclusiveCallbackGroup())
@@ -78,7 +88,14 @@ class SimScannerNode(GlsNode):
         first answer again and starts nothing."""
         return await self.answered.answer_async(request.request_id, lambda: self._start_sweep(request, response))
 
-    async def _start_sweep(self, request, response):
+    @answers_errors(ValueError)
+    async def on_start_standstill(self, request, response):
+        """Load the plate's marks, then publish profiles taken standing still; a repeated request id
+        gets the first answer again."""
+        return await self.answered.answer_async(request.request_id,
+                                                lambda: self._start_sweep(request, response, standstill=True))
+
+    async def _start_sweep(self, request, response, standstill: bool = False):
         if self.job is not None:
             response.success, response.message = False, "a sweep is running; request refused"
             return response
@@ -93,6 +110,10 @@ class SimScannerNode(GlsNode):
             response.success, response.message = False, f"request refused: {error}"
             return response
         direction = request.direction or 1
+        if standstill and request.orientation_deg != 0.0:
+            response.success = False
+            response.message = f"a stand-still is taken at orientation 0, got {request.orientation_deg:g}"
+            return response
         if direction not in (1, -1) or request.orientation_deg not in ORIENTATIONS_DEG:
             response.success = False
             response.message = (f"direction must be +1 or -1 (got {request.direction}) and orientation_deg 0 or 90 "
@@ -104,14 +125,24 @@ class SimScannerNode(GlsNode):
         except ServiceCallError as error:
             response.success, response.message = False, f"cannot see the plate's marks: {error}"
             return response
-        self.sweep_id += 1
-        self.sweep = (self.sweep_id, speed, step, self.get_clock().now(), direction)
+        if standstill:
+            self.standstills += 1
+            sweep_id, direction = STANDSTILL_IDS + self.standstills, 0    # no travel
+            self.job = self.scanner.standstill(self.plate, profiles, seed=self.config.seed * 100003 + self.standstills,
+                                               position_mm=(0.0, 0.5 * self.config.sweep_length_mm, 0.0),
+                                               marking_pose_error=self.plate.marking_pose_error,
+                                               period_s=step / speed)
+        else:
+            self.sweep_id += 1
+            sweep_id = self.sweep_id
+            self.job = self.scanner.sweep(self.plate, length, speed, step, seed=self.config.seed * 100003 + sweep_id,
+                                          direction=direction, orientation_deg=request.orientation_deg)
+        self.sweep = (sweep_id, speed, step, self.get_clock().now(), direction)
         self.published = 0
-        self.job = self.scanner.sweep(self.plate, length, speed, step, seed=self.config.seed * 100003 + self.sweep_id,
-                                      direction=direction, orientation_deg=request.orientation_deg)
-        response.sweep_id = self.sweep_id
+        response.sweep_id = sweep_id
         response.expected_profiles = profiles
-        response.success, response.message = True, f"sweep {self.sweep_id} started"
+        response.success = True
+        response.message = f"{'stand-still' if standstill else 'sweep'} {sweep_id} started"
         self.timer.reset()
         return response
 

@@ -35,6 +35,7 @@ class DirectCell:
     what ``correct`` uses (set by ``load_calibration``/``reload_active``; a benchmark may set it to
     compare models); ``marks`` the polylines landed on the current plate. Clouds are in the scanner
     base frame, profiles placed by the robot's reported pose (``placed_by_pose``) or by time.
+    ``sweeps`` and ``standstills`` count the acquisitions apart, each seeding its own draws.
     """
 
     def __init__(self, sim: SimulatedCell, store: CalibrationStore, *, ring_radii_mm=RING_RADII_MM,
@@ -48,6 +49,7 @@ class DirectCell:
         self.training = training
         self.correction = Correction(sim.config.geometry)
         self.sweeps = 0
+        self.standstills = 0   # counted apart: a stand-still must not shift the sweeps' random draws
         self.marks: list[np.ndarray] = []    # landed polylines (gls, mm) on the current plate
         self.reload_active_now()
 
@@ -63,6 +65,12 @@ class DirectCell:
         self.sweeps += 1   # each sweep its own robot path error and noise, as on the ROS cell
         data = _refusing(self.sim.sweep_data, step_mm=step_mm, seed=self.sim.config.seed * 100003 + self.sweeps,
                          direction=direction, orientation_deg=orientation_deg)
+        xyz = data.placed_by_pose() if self.placed_by_pose else data.placed_by_time()
+        return xyz.astype(np.float32), data.intensity
+
+    async def acquire_standstill(self, profiles: int) -> Cloud:
+        self.standstills += 1
+        data = _refusing(self.sim.standstill_data, profiles, seed=self.sim.config.seed * 100003 + self.standstills)
         xyz = data.placed_by_pose() if self.placed_by_pose else data.placed_by_time()
         return xyz.astype(np.float32), data.intensity
 

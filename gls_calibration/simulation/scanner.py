@@ -26,6 +26,10 @@ in the base frame, drawn once per robot from ``robot_seed``, one field per trave
 sensor orientation). A consumer places a profile by pose as ``reported_pose @ (x, 0, z, 1)`` of its
 sensor-frame points.
 
+Stand-still (:meth:`LaserLineScanner.standstill_data`): profiles taken with the robot standing still at
+the marking pose, so no path error of a sweep enters; the scanner, held by the same flange as the
+head, sees the plate moved by the head's marking-pose error. Its draws have a stream of their own.
+
 Noise model: z noise (Gaussian), a smooth z linearity error across the line, and the measurement
 chain (:mod:`gls_calibration.simulation.measurement`): placement errors of the robot, the lateral
 linearity of the sensor, fan geometry (points on rays from the fan apex, so lateral position and
@@ -45,6 +49,7 @@ from scipy.ndimage import gaussian_filter, gaussian_filter1d
 
 from gls_calibration.simulation.measurement import (MeasurementChain, lateral_linearity_shape, smooth_field,
                                                    smooth_process)
+from gls_calibration.optics import plate_frame
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.validation import as_finite_array, as_non_negative_number, as_positive_number
 
@@ -55,6 +60,7 @@ _CHAIN_STREAM = 2 ** 31 - 2     # robot placement processes of one sweep
 _SPECKLE_STREAM = 2 ** 31 - 3   # correlated speckle, one sub-stream per profile
 _ROBOT_STREAM = 2 ** 31 - 4     # the robot's repeating errors, one sub-stream per line kind and component
 _WANDER_STREAM = 2 ** 31 - 5    # the per-sweep along-travel wander (apart, so old sweeps stay the same)
+_STANDSTILL_STREAM = 2 ** 31 - 6  # stand-still profiles: apart, so the sweeps' numbers stay the same
 ORIENTATIONS_DEG = (0.0, 90.0)
 
 
@@ -255,8 +261,12 @@ class LaserLineScanner:
 
     def _rows(self, plate: Plate, first: int, count: int, step: float, path_error: np.ndarray,
               placement, direction: int, orientation_deg: float, start: np.ndarray, seed: int,
-              rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """Measured xyz (count, W, 3), placed by time in the start frame, and intensity (count, W)."""
+              rng: np.random.Generator, plane: tuple[np.ndarray, np.ndarray] | None = None,
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Measured xyz (count, W, 3), placed by time in the start frame, and intensity (count, W).
+
+        ``plane`` (normal, origin in gls) replaces the plate's plane where the rays end (the stand-still
+        acquisition: the plate as the robot-held head sees it in its marking pose)."""
         s, c = self.settings, self.chain
         x = self.line_x()
         rows = slice(first, first + count)
@@ -276,8 +286,9 @@ class LaserLineScanner:
         ray_origin, ray_direction = ray_origin @ turn.T, ray_direction @ turn.T
         rotation = self.true_scanner_to_gls[:3, :3]
         translation = self.true_scanner_to_gls[:3, 3]
-        normal = rotation.T @ plate.normal
-        origin = rotation.T @ (plate.origin - translation)
+        plane_normal, plane_origin = (plate.normal, plate.origin) if plane is None else plane
+        normal = rotation.T @ plane_normal
+        origin = rotation.T @ (plane_origin - translation)
         facing = ray_direction @ normal                                    # (W,)
         if np.any(np.abs(facing) < 1e-6):
             raise ValueError("the scanner looks along the plate; no profile can be measured")
@@ -298,7 +309,7 @@ class LaserLineScanner:
         z = depth + noise + self._linearity(x)[None, :]
         speckle = np.maximum(1.0 + s.speckle * rng.standard_normal(shape, dtype=np.float32), 0.0)
         raw = reflectivity * np.float32(s.gain) * speckle
-        if c.speckle_contrast:
+        if c.speckle_contrast and step > 0.0:
             raw = raw * self._correlated_speckle(seed, first, count, x.size, step).astype(np.float32)
         if c.blooming_mm:
             # saturated light spills along the line into the neighbouring pixels
@@ -341,6 +352,54 @@ class LaserLineScanner:
             reported = np.repeat(start[None], count, axis=0)
             reported[:, :3, 3] += (direction * placement[0][first:first + count])[:, None] * start[:3, 1]
             yield first, step / speed, xyz, intensity, reported
+
+    def standstill_data(self, plate: Plate, profiles: int, seed: int = 0, position_mm=(0.0, 100.0, 0.0),
+                        marking_pose_error: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                        period_s: float | None = None) -> SweepData:
+        """``profiles`` profiles taken with the robot standing still at the marking pose (see :class:`SweepData`;
+        ``step_mm`` 0, every reported pose the same).
+
+        The sensor stands at ``position_mm`` of B, orientation 0. No travel, so none of the robot's
+        path errors (repeatability offset, wander, the errors repeating per line) enters; what the
+        robot-held head's marking pose is off by (``marking_pose_error``: height towards the head,
+        tilts about gls x and y, as ``Plate.marking_pose_error``) the scanner, held by the same
+        flange, sees as the plate moved: it measures the plate where the head marks it. Noise, range
+        linearity, speckle and dropouts as in a sweep; a random stream of its own (``seed``). One
+        profile every ``period_s`` (None: the settings' step over their speed).
+        """
+        if isinstance(profiles, bool) or not isinstance(profiles, (int, np.integer)) or profiles < 1:
+            raise ValueError(f"profiles must be a positive integer, got {profiles!r}")
+        profiles = int(profiles)
+        position = as_finite_array(position_mm, "position_mm", ndim=1)
+        if position.shape != (3,):
+            raise ValueError(f"position_mm must be a 3-vector, got {position.tolist()}")
+        height, tilt_x, tilt_y = (float(value) for value in marking_pose_error)
+        base_tilt_x, base_tilt_y = plate.settings.tilt_x_rad, plate.settings.tilt_y_rad
+        rotation, origin = plate_frame(base_tilt_x + tilt_x, base_tilt_y + tilt_y, plate.settings.delta_d_mm - height)
+        start = np.eye(4)
+        start[:3, 3] = position
+        still = np.zeros(profiles)
+        placement = (still, still, still, still)
+        rng = np.random.default_rng([seed, _STANDSTILL_STREAM])
+        # the step only sizes the correlated speckle, which a sensor standing still does not resample: off
+        xyz, intensity = self._rows(plate, 0, profiles, 0.0, np.zeros(3), placement, 1, 0.0, start, seed, rng,
+                                    plane=(rotation[:, 2].copy(), origin))
+        period_s = (self.settings.step_mm / self.settings.speed_mm_s if period_s is None
+                    else as_positive_number(period_s, "period_s"))
+        return SweepData(xyz, intensity, np.arange(profiles) * period_s, np.repeat(start[None], profiles, axis=0),
+                         start, 1, 0.0, 0.0)
+
+    def standstill(self, plate: Plate, profiles: int, seed: int = 0, position_mm=(0.0, 100.0, 0.0),
+                   marking_pose_error: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                   period_s: float | None = None) -> Iterator[Profile]:
+        """The profiles of :meth:`standstill_data` one by one (sensor frame, y = 0; the reported pose
+        is where the sensor stands)."""
+        data = self.standstill_data(plate, profiles, seed, position_mm, marking_pose_error, period_s)
+        for row in range(data.xyz.shape[0]):
+            points = np.empty(data.xyz.shape[1], dtype=PROFILE_DTYPE)
+            points["x"], points["y"], points["z"] = data.xyz[row, :, 0], data.xyz[row, :, 1], data.xyz[row, :, 2]
+            points["intensity"] = data.intensity[row]
+            yield Profile(row, float(data.stamps_s[row]), points, data.reported_poses[row])
 
     def sweep(self, plate: Plate, length_mm: float = 200.0, speed_mm_s: float | None = None,
               step_mm: float | None = None, seed: int = 0, direction: int = 1,

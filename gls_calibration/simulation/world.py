@@ -214,3 +214,10 @@ class SimulatedCell:
         seed = self.config.seed if seed is None else seed
         return self.scanner.sweep_data(self.plate, self.config.sweep_length_mm, step_mm=step_mm, seed=seed,
                                        direction=direction, orientation_deg=orientation_deg)
+
+    def standstill_data(self, profiles: int, seed: int) -> SweepData:
+        """``profiles`` profiles with the robot standing still at the marking pose, the sensor over the
+        middle of the sweep (see ``LaserLineScanner.standstill_data``): the plate as the head sees it."""
+        return self.scanner.standstill_data(self.plate, profiles, seed=seed,
+                                            position_mm=(0.0, 0.5 * self.config.sweep_length_mm, 0.0),
+                                            marking_pose_error=self.plate.marking_pose_error)

@@ -1,0 +1,91 @@
+"""A second calibration on a cell whose calibration is active: which figure is compared with which.
+
+Issue 31 item 4. Runs the calibrate flow twice in one process through ``DirectCell`` (the same core
+steps as the nodes, without ROS), with the calibration manager's plan from ``config/gls.yaml``:
+the first calibration (validated) is activated, a fresh plate is loaded, and a second calibration
+(forced, validated) runs through it. Prints, MEASURED by the cell's chain and TRUE from the
+simulation's ground truth (RMS, mm):
+
+- the active calibration on the run's first plate (its own training positions: SELF-CONSISTENCY);
+- the candidate on the validation grid (INDEPENDENT positions);
+- the active calibration on the validation grid (INDEPENDENT positions, the new comparison);
+
+and the verdict of the old rule (candidate on the validation grid against the active calibration
+on the first plate) and of the new one (both on the validation grid).
+
+Run: .venv/bin/python benchmarks/bench_recalibration.py [--preset paper_like] [--seed 1]
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import tempfile
+import time
+from pathlib import Path
+
+from gls_calibration import procedure
+from gls_calibration.calibration_record import build_record, record_models, save_candidate
+from gls_calibration.outcome import summarise
+from gls_calibration.persistence import CalibrationStore
+from gls_calibration.simulation.direct_cell import DirectCell
+from gls_calibration.simulation.reference_plate import calibration_plan
+from gls_calibration.simulation.world import SimulatedCell, load_sim_config
+
+
+def calibrate(cell: DirectCell, settings: procedure.ProcedureSettings) -> procedure.CalibrationOutcome:
+    """One forced, validated calibration through ``cell``, as the manager runs it: the candidate holds
+    the active calibration's models and the new one (trained through them)."""
+    geometry = cell.sim.config.geometry
+    active = cell.store.active_path()
+    existing = record_models(cell.store.load(active)) if active else []
+
+    def save(runs, models):
+        return save_candidate(cell.store, build_record(geometry, settings, runs, models, existing), geometry)
+    return asyncio.run(procedure.calibrate(cell, settings, iterations=1, validate=True, force=True, want_truth=True,
+                                           progress=lambda *_: None, save_candidate=save,
+                                           active_calibration=active is not None))
+
+
+def figures(run: procedure.PlateRun) -> str:
+    return f"{run.metrics.full.rms_abs_mm:.4f} measured / {run.true_metrics.full.rms_abs_mm:.4f} true"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="paper_like")
+    parser.add_argument("--seed", type=int, default=1)
+    args = parser.parse_args()
+    config = dataclasses.replace(load_sim_config(preset=args.preset), seed=args.seed)
+    plan = calibration_plan()
+    began = time.perf_counter()
+    with tempfile.TemporaryDirectory() as folder:
+        cell = DirectCell(SimulatedCell(config), CalibrationStore(Path(folder)))
+        settings = cell.settings(sweep_plan=plan.passes, plain_sweeps=plan.plain_sweeps,
+                                 plain_sweep_step_mm=plan.plain_step_mm, marked_sweep_step_mm=plan.marked_step_mm,
+                                 profiles_placed_by_pose=plan.placed_by_pose)
+        first = calibrate(cell, settings)
+        print(f"{args.preset} seed {args.seed}, first calibration: {first.message}; candidate on the validation grid "
+              f"{figures(first.validation)} mm RMS")
+        cell.store.activate(first.candidate.path)
+        cell.reload_active_now()
+        asyncio.run(cell.exchange_plate())
+        second = calibrate(cell, settings)
+    summary = summarise(second)
+    uncertainty = max(procedure.centre_uncertainty_mm(second.runs[0], settings),
+                      procedure.centre_uncertainty_mm(second.validation, settings))
+    old_rule = procedure.acceptance_problem(second.runs[0].metrics.full.rms_abs_mm,
+                                            second.validation.metrics.full.rms_abs_mm, uncertainty)
+    print("second calibration, RMS mm:")
+    print(f"  active calibration on its first plate ({summary.pre_kind}): {figures(second.runs[0])}")
+    print(f"  candidate on the validation grid ({summary.post_kind}): {figures(second.validation)}")
+    print(f"  active calibration on the validation grid ({summary.active_post_kind}): "
+          f"{figures(second.active_validation)}")
+    print(f"  old rule (validation vs first plate): {'rejected' if old_rule else 'accepted'}")
+    print(f"  new rule (judged against: {summary.accepted_against}): "
+          f"{'rejected: ' + second.rejection if second.rejection else 'accepted'}")
+    print(f"wall time {time.perf_counter() - began:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
