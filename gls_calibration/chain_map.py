@@ -176,7 +176,8 @@ class ChainMap:
             raise ValueError("chain_map.reference must name the plate with known centres the map was measured on")
         if isinstance(self.sweeps_per_line, bool) or not isinstance(self.sweeps_per_line, int) \
                 or self.sweeps_per_line < 1:
-            raise ValueError(f"chain_map.sweeps_per_line must be an integer of at least 1, got {self.sweeps_per_line!r}")
+            raise ValueError(f"chain_map.sweeps_per_line must be an integer of at least 1, "
+                             f"got {self.sweeps_per_line!r}")
         rms = tuple(self.residual_rms_mm) if isinstance(self.residual_rms_mm, (list, tuple)) else ()
         if len(rms) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
                                     and v >= 0.0 for v in rms):
@@ -279,9 +280,14 @@ def _checked_sweeps(sweeps: Sequence[ReferenceSweep]) -> list[tuple[str, int, np
     for number, sweep in enumerate(sweeps):
         if not isinstance(sweep, ReferenceSweep):
             raise ValueError(f"reference sweep {number} must be a ReferenceSweep, got {type(sweep).__name__}")
-        label = parse_plan(sweep.line)[0].label if isinstance(sweep.line, str) else None
-        if label is None or len(parse_plan(sweep.line)) != 1:
-            raise ValueError(f"reference sweep {number}: line must be one sweep plan item, got {sweep.line!r}")
+        try:
+            items = parse_plan(sweep.line) if isinstance(sweep.line, str) else ()
+        except ValueError:
+            items = ()
+        if len(items) != 1:
+            raise ValueError(f"reference sweep {number}: line must be one sweep plan item such as 0+, "
+                             f"got {sweep.line!r}")
+        label = items[0].label
         if isinstance(sweep.plate, bool) or not isinstance(sweep.plate, int) or sweep.plate < 0:
             raise ValueError(f"reference sweep {number}: plate must be a non-negative integer, got {sweep.plate!r}")
         known = np.asarray(sweep.known_xy_mm, dtype=float)

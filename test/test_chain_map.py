@@ -149,15 +149,19 @@ def _good_file() -> dict:
     (lambda d: d["chain_map"].pop("reference"), "missing key(s) chain_map.reference"),
     (lambda d: d["chain_map"].update(reference=" "),
      "chain_map.reference must name the plate with known centres the map was measured on"),
-    (lambda d: d["chain_map"].update(sweeps_per_line=0), "chain_map.sweeps_per_line must be an integer of at least 1, got 0"),
+    (lambda d: d["chain_map"].update(sweeps_per_line=0),
+     "chain_map.sweeps_per_line must be an integer of at least 1, got 0"),
     (lambda d: d["chain_map"].update(residual_rms_mm=[0.1]),
      "chain_map.residual_rms_mm must be two non-negative finite numbers, got [0.1]"),
     (lambda d: d["chain_map"].update(lines=[]), "chain_map.lines must be a list of one or more line maps"),
-    (lambda d: d["chain_map"]["lines"].append(d["chain_map"]["lines"][0]), "chain_map.lines maps a line twice: 0+, 0+"),
+    (lambda d: d["chain_map"]["lines"].append(d["chain_map"]["lines"][0]),
+     "chain_map.lines maps a line twice: 0+, 0+"),
     (lambda d: d["chain_map"]["lines"][0].update(line="45+"),
      "chain_map line '45+': sweep plan orientation must be 0 or 90 deg, got 45.0"),
-    (lambda d: d["chain_map"]["lines"][0].update(line="0+,0-"), "chain_map line must be one sweep plan item, got '0+,0-'"),
-    (lambda d: d["chain_map"]["lines"][0].update(knot_spacing_mm=0), "chain_map line 0+: knot_spacing_mm must be positive, got 0.0"),
+    (lambda d: d["chain_map"]["lines"][0].update(line="0+,0-"),
+     "chain_map line must be one sweep plan item, got '0+,0-'"),
+    (lambda d: d["chain_map"]["lines"][0].update(knot_spacing_mm=0),
+     "chain_map line 0+: knot_spacing_mm must be positive, got 0.0"),
     (lambda d: d["chain_map"]["lines"][0].update(first_knot_mm=".nan"),
      "chain_map line 0+: first_knot_mm must be a finite number, got '.nan'"),
     (lambda d: d["chain_map"]["lines"][0].update(error_x_mm=[0.0, 1.0, "a", 0.0]),
@@ -209,6 +213,9 @@ def test_bad_fit_inputs_are_refused():
     nan[3, 0] = np.nan
     with pytest.raises(ValueError, match="^reference sweep 1: centres must be finite$"):
         fit_chain_map([good[0], dataclasses.replace(good[1], measured_xy_mm=nan)], "plate")
+    with pytest.raises(ValueError, match=r"^reference sweep 0: line must be one sweep plan item such as 0\+, "
+                                         r"got '45\+'$"):
+        fit_chain_map([dataclasses.replace(good[0], line="45+")], "plate")
     with pytest.raises(ValueError, match="^reference sweep 0: plate must be a non-negative integer, got -1$"):
         fit_chain_map([dataclasses.replace(good[0], plate=-1)], "plate")
     with pytest.raises(ValueError, match="^chain map fit knot_spacing_mm must be a positive finite number, got 0$"):

@@ -18,6 +18,11 @@ placed by the robot's reported pose). A plan's sweeps are combined by the calibr
 (``procedure.combined_centres_gls``: the error separation of ``sweep_plan.combine_sweeps``) and
 paired with the known centres as the calibration pairs its targets; the plate plane comes from
 plain sweeps averaged as the calibration does.
+
+:func:`measure_chain_map` sweeps the same kind of plate along the calibration's lines on the same
+simulated robot and fits the lines' repeating error (``chain_map.py``); a check made with that map
+applied (``chain_map`` of :func:`reference_plate_check`) is what a calibration run with the map may
+state its accuracy from.
 """
 from __future__ import annotations
 
