@@ -228,6 +228,8 @@ def correct_measurements(chain_map: Optional[ChainMap], measurements: Sequence, 
     ``passes``); unchanged when ``chain_map`` is None. ValueError when a line is not mapped."""
     if chain_map is None:
         return list(measurements)
+    if not isinstance(chain_map, ChainMap):
+        raise ValueError(f"chain_map must be a ChainMap or None, got {type(chain_map).__name__}")
     if len(measurements) != len(passes):
         raise ValueError(f"{len(measurements)} measurement(s) for a plan of {len(passes)} pass(es)")
     return [chain_map.correct_measurement(found, item, pose) for found, item in zip(measurements, passes)]

@@ -117,6 +117,8 @@ def test_measurements_are_corrected_per_line_and_unchanged_without_a_map():
         assert np.allclose(result.centres[:, :2], expected)
         assert np.allclose(result.centres[:, 2], centres[:, 2])
         assert np.allclose(result.centres_plane, pose.to_plane(result.centres))
+    with pytest.raises(ValueError, match="^chain_map must be a ChainMap or None, got str$"):
+        correct_measurements("map.yaml", [found, found], passes, pose)
     with pytest.raises(ValueError, match=r"^the chain map has no line 90- \(it maps 0\+\); measure the map with "
                                          r"the calibration's sweep plan$"):
         only = ChainMap((chain_map.line_map("0+"),), "plate", 1, (0.0, 0.0))
