@@ -12,7 +12,13 @@ the same core steps as the nodes, without ROS -- with the calibration manager's 
 existed, for the "no loss" comparison); ``--along-prior MM`` sets the separation's along-track prior
 (the robot's along-track accuracy; default: the code's default).
 
+``--chain-map`` runs every calibration twice on the same cell: without and with a chain map
+(``chain_map.py``), measured before the calibration on the certified plate over the whole field
+(``reference_plate.FIELD_PLATE``) along the calibration's lines, ``--map-repeats`` sweeps per line
+(default 2), and prints the figures side by side with the map's cell time.
+
 Run: .venv/bin/python benchmarks/bench_honest_robot.py [--presets paper_like careful] [--seeds 1 2 3 4 5]
+     [--chain-map [--map-repeats 2]]
 """
 from __future__ import annotations
 
@@ -31,16 +37,29 @@ from gls_calibration.calibration_record import build_record, save_candidate
 from gls_calibration.persistence import CalibrationStore
 from gls_calibration.separation import SeparationSettings
 from gls_calibration.simulation.direct_cell import DirectCell
-from gls_calibration.simulation.reference_plate import calibration_plan
+from gls_calibration.chain_map import ChainMap
+from gls_calibration.simulation.reference_plate import FIELD_PLATE, calibration_plan, measure_chain_map
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 
 ROBOT_OFF = dict(robot_scale_error=0.0, robot_along_error_mm=0.0, robot_path_error_mm=0.0, robot_along_wander_mm=0.0)
 
 
-def calibrate_once(preset: str, seed: int, robot: bool, separation: SeparationSettings | None, store_dir: Path) -> dict:
+def cell_config(preset: str, seed: int, robot: bool):
+    """The simulated cell of ``preset`` and ``seed``, the robot's repeating errors off unless ``robot``."""
     config = load_sim_config(preset=preset)
     chain = config.measurement if robot else dataclasses.replace(config.measurement, **ROBOT_OFF)
-    config = dataclasses.replace(config, seed=seed, measurement=chain)
+    return dataclasses.replace(config, seed=seed, measurement=chain)
+
+
+def map_cell_time_s(repeats: int) -> float:
+    """Cell time of a chain map: ``repeats`` sweeps of every line of the plan, a robot move before each."""
+    timing = procedure.ProcedureSettings().cell_time
+    return repeats * len(calibration_plan().passes) * timing.plate_s(1, 0.0)
+
+
+def calibrate_once(preset: str, seed: int, robot: bool, separation: SeparationSettings | None, store_dir: Path,
+                   chain_map: ChainMap | None = None) -> dict:
+    config = cell_config(preset, seed, robot)
     cell = DirectCell(SimulatedCell(config), CalibrationStore(store_dir))
     plan = calibration_plan()
     settings = cell.settings(sweep_plan=plan.passes, plain_sweeps=plan.plain_sweeps,
@@ -48,6 +67,7 @@ def calibrate_once(preset: str, seed: int, robot: bool, separation: SeparationSe
                              profiles_placed_by_pose=plan.placed_by_pose)
     if separation is not None:
         settings = dataclasses.replace(settings, separation=separation)
+    settings = dataclasses.replace(settings, chain_map=chain_map)
 
     def save(runs, models):
         return save_candidate(cell.store, build_record(config.geometry, settings, runs, models, []), config.geometry)
@@ -67,10 +87,17 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3, 4, 5])
     parser.add_argument("--robot", choices=("on", "off"), default="on")
     parser.add_argument("--along-prior", type=float, default=None, help="separation along_prior_sigma_mm")
+    parser.add_argument("--chain-map", action="store_true", help="also calibrate with a chain map; both side by side")
+    parser.add_argument("--map-repeats", type=int, default=2, help="sweeps per line of the chain map (default 2)")
     args = parser.parse_args()
+    if args.map_repeats < 1:
+        parser.error("--map-repeats must be at least 1")
     separation = None if args.along_prior is None else SeparationSettings(along_prior_sigma_mm=args.along_prior)
     print(f"robot repeating errors {args.robot}; along prior "
           f"{SeparationSettings().along_prior_sigma_mm if args.along_prior is None else args.along_prior} mm")
+    if args.chain_map:
+        compare_chain_map(args, separation)
+        return
     print(f"{'preset':11s} {'seed':>4s} {'pre':>7s} {'MEAS rms':>9s} {'MEAS max':>9s} {'TRUE rms':>9s} "
           f"{'TRUE max':>9s} {'TRUE/MEAS':>9s} {'wall s':>7s}")
     for preset in args.presets:
@@ -86,6 +113,32 @@ def main() -> None:
             print(f"{preset:11s} {label:>6s} {'':5s} {pick(r['measured_rms'] for r in rows):9.4f} "
                   f"{pick(r['measured_max'] for r in rows):9.4f} {pick(r['true_rms'] for r in rows):9.4f} "
                   f"{pick(r['true_max'] for r in rows):9.4f}")
+
+
+def compare_chain_map(args: argparse.Namespace, separation: SeparationSettings | None) -> None:
+    """TRUE and MEASURED without and with a chain map, per preset and seed, and their medians."""
+    print(f"chain map: {FIELD_PLATE.label}, {args.map_repeats} sweep(s) per line of {calibration_plan().label}, "
+          f"cell time {map_cell_time_s(args.map_repeats):.0f} s; mm")
+    print(f"{'preset':11s} {'seed':>4s} {'MEAS w/o':>9s} {'MEAS map':>9s} {'TRUE w/o':>9s} {'TRUE map':>9s} "
+          f"{'TMAX w/o':>9s} {'TMAX map':>9s} {'map fit x/y':>13s}")
+    keys = ("measured_rms", "measured_rms_map", "true_rms", "true_rms_map", "true_max", "true_max_map")
+    for preset in args.presets:
+        rows = []
+        for seed in args.seeds:
+            config = cell_config(preset, seed, args.robot == "on")
+            chain_map = measure_chain_map(config, calibration_plan(), seed=seed, repeats=args.map_repeats)
+            row = {}
+            for suffix, used in (("", None), ("_map", chain_map)):
+                with tempfile.TemporaryDirectory() as folder:
+                    result = calibrate_once(preset, seed, args.robot == "on", separation, Path(folder), used)
+                row.update({f"{key}{suffix}": value for key, value in result.items()})
+            rows.append(row)
+            fit = chain_map.residual_rms_mm
+            print(f"{preset:11s} {seed:4d} " + " ".join(f"{row[key]:9.4f}" for key in keys)
+                  + f" {fit[0]:6.4f}/{fit[1]:6.4f}", flush=True)
+        for label, pick in (("median", statistics.median), ("worst", max)):
+            print(f"{preset:11s} {label:>6s} " + " ".join(f"{pick(r[key] for r in rows):9.4f}" for key in keys),
+                  flush=True)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ from typing import Any, Callable, Optional, Protocol
 import numpy as np
 
 from gls_calibration import targets as grid
+from gls_calibration.chain_map import ChainMap, correct_measurements
 from gls_calibration.correction import CorrectedSetpoints
 from gls_calibration.fiducials import FiducialMeasurement
 from gls_calibration.outcome import CalibrationOutcome, Candidate, DeviationMetrics, deviation_metrics
@@ -137,6 +138,7 @@ class ProcedureSettings:
     profiles_placed_by_pose: bool = True    # the cell places profiles by the robot's reported pose
     cell_time: CellTimeModel = CellTimeModel()
     separation: Optional[SeparationSettings] = None   # None: the default for the placement (sweep_plan.combine_sweeps)
+    chain_map: Optional[ChainMap] = None   # the lines' repeating robot error, removed from every sweep (None: off)
 
     def __post_init__(self) -> None:
         radii = np.asarray(self.ring_radii_mm, dtype=float)
@@ -291,8 +293,10 @@ def combined_centres_gls(measurements: list[FiducialMeasurement], settings: Proc
                          pose_scanner: PlatePose) -> tuple[np.ndarray, CombinedSweeps]:
     """The centres (K, 3, gls frame) of the marked plate from every sweep of ``settings.sweep_plan``
     (``sweep_plan.combine_sweeps``, placement as the settings say), put on the plate plane
-    ``pose_scanner``; and the combination. ``measurements`` are in the plan's order."""
+    ``pose_scanner``; and the combination. ``measurements`` are in the plan's order; with a
+    ``settings.chain_map`` each sweep's centres lose their line's repeating error first."""
     try:
+        measurements = correct_measurements(settings.chain_map, measurements, settings.sweep_plan, pose_scanner)
         combined = combine_sweeps(measurements, settings.sweep_plan, targets, settings.scanner_to_gls,
                                   settings.profiles_placed_by_pose, settings.separation)
     except ValueError as error:

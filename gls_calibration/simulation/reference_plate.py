@@ -18,6 +18,11 @@ placed by the robot's reported pose). A plan's sweeps are combined by the calibr
 (``procedure.combined_centres_gls``: the error separation of ``sweep_plan.combine_sweeps``) and
 paired with the known centres as the calibration pairs its targets; the plate plane comes from
 plain sweeps averaged as the calibration does.
+
+:func:`measure_chain_map` sweeps the same kind of plate along the calibration's lines on the same
+simulated robot and fits the lines' repeating error (``chain_map.py``); a check made with that map
+applied (``chain_map`` of :func:`reference_plate_check`) is what a calibration run with the map may
+state its accuracy from.
 """
 from __future__ import annotations
 
@@ -29,6 +34,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from gls_calibration import targets
+from gls_calibration.chain_map import ChainMap, ChainMapFit, ReferenceSweep, fit_chain_map
 from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.fiducials import measure_fiducials
 from gls_calibration.head_config import parameters_block
@@ -154,14 +160,16 @@ def _reference_plate(config: SimConfig, offset_xy, seed,
 
 
 def measure_plate(config: SimConfig, plate: Plate, plan: MeasurementPlan, seed: int,
-                  known_gls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Measure ``plate`` with ``plan`` as the calibration measures its marked plate; the measured
-    centres (M, 3, gls frame through the CAD mounting) and the known ones (M, 3) they pair with."""
+                  known_gls: np.ndarray, chain_map: ChainMap | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Measure ``plate`` with ``plan`` as the calibration measures its marked plate (with
+    ``chain_map`` removed from every sweep when given); the measured centres (M, 3, gls frame through
+    the CAD mounting) and the known ones (M, 3) they pair with."""
     scanner = config.make_scanner()
     mounting = config.scanner_to_gls
     settings = ProcedureSettings(ring_radii_mm=RING_RADII_MM, sweep_plan=plan.passes,
                                  profiles_placed_by_pose=plan.placed_by_pose,
-                                 scanner_to_gls=RigidTransform(mounting[:3, :3].copy(), mounting[:3, 3].copy()))
+                                 scanner_to_gls=RigidTransform(mounting[:3, :3].copy(), mounting[:3, 3].copy()),
+                                 chain_map=chain_map)
 
     def cloud(number: int, step_mm: float, item: SweepPass = SweepPass()) -> tuple[np.ndarray, np.ndarray]:
         data = scanner.sweep_data(plate, config.sweep_length_mm, step_mm=step_mm, seed=seed * 1009 + number,
@@ -186,14 +194,16 @@ def measure_plate(config: SimConfig, plate: Plate, plan: MeasurementPlan, seed: 
 
 
 def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 1,
-                          positions=None, design: ReferencePlateDesign = PAPER_PLATE) -> ReferencePlateResult:
+                          positions=None, design: ReferencePlateDesign = PAPER_PLATE,
+                          chain_map: ChainMap | None = None) -> ReferencePlateResult:
     """Scan the reference plate ``design`` at ``positions`` (plate-centre offsets, mm; None: the
-    design's) with ``plan``."""
+    design's) with ``plan``; ``chain_map`` removed from every sweep when given (a calibration that
+    runs with a chain map must state its accuracy from a check made with it)."""
     positions = design.positions_mm if positions is None else positions
     residuals, measured_all, known_all, found, expected = [], [], [], 0, 0
     for index, offset in enumerate(positions):
         plate, known = _reference_plate(config, offset, [seed, index], design)
-        measured, truth = measure_plate(config, plate, plan, seed * 101 + index, known)
+        measured, truth = measure_plate(config, plate, plan, seed * 101 + index, known, chain_map)
         found += len(measured)
         expected += len(known)
         residuals.append(_aligned_residuals(measured, truth))
@@ -206,6 +216,62 @@ def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 
     bounds = np.cumsum([0] + [len(m) for m in measured_all])
     bias = tuple(tuple(float(v) for v in joint[a:b].mean(axis=0)) for a, b in zip(bounds[:-1], bounds[1:]))
     return ReferencePlateResult(sigma, bias, found, expected)
+
+
+CHAIN_MAP_SEED_BASE = 7919
+"""Offset of the chain map's sweep seeds: its sweeps draw their random errors apart from the
+reference check's and the calibration's (the robot's repeating field is the cell's, the same)."""
+
+
+def measure_chain_map(config: SimConfig, plan: MeasurementPlan, seed: int = 1, repeats: int = 2,
+                      design: ReferencePlateDesign = FIELD_PLATE, fit: ChainMapFit = ChainMapFit()) -> ChainMap:
+    """Measure the chain map of ``plan``'s lines on the simulated cell ``config``.
+
+    The certified plate ``design`` (one placement per position) is swept ``repeats`` times along
+    every line of ``plan`` -- the calibration's programmed lines, on the same simulated robot (its
+    repeating field is drawn from the cell's seed) -- each sweep's fiducials measured on the plate
+    plane of that placement's first sweep (no plain sweeps: the map needs only in-plane centres),
+    paired with the known centres and handed to :func:`chain_map.fit_chain_map`. Cell time:
+    ``repeats * len(plan.passes)`` sweeps per placement.
+
+    Raises
+    ------
+    ValueError
+        When ``repeats`` is not a positive integer, the plan is not placed by pose (a map of the
+        reported pose needs the pose), or too few centres are found.
+    """
+    as_integer_at_least(repeats, "repeats", 1)
+    if not plan.placed_by_pose:
+        raise ValueError("a chain map maps the robot's reported pose: the plan must place profiles by pose")
+    scanner = config.make_scanner()
+    mounting = RigidTransform(config.scanner_to_gls[:3, :3].copy(), config.scanner_to_gls[:3, 3].copy())
+    sweeps = []
+    for index, offset in enumerate(design.positions_mm):
+        plate, known_gls = _reference_plate(config, offset, [CHAIN_MAP_SEED_BASE + seed, index], design)
+        # the known centres where the CAD mounting puts them in B: a rigid motion of the plate's own
+        # frame (B is mirrored against the gls frame, the plate's frame is not)
+        known_plate = ((known_gls - mounting.translation) @ mounting.rotation)[:, :2]
+        pose = None
+        for repeat in range(repeats):
+            for number, item in enumerate(plan.passes):
+                data = scanner.sweep_data(plate, config.sweep_length_mm, step_mm=plan.marked_step_mm,
+                                          seed=(CHAIN_MAP_SEED_BASE + seed) * 1009 + 97 * index
+                                          + len(plan.passes) * repeat + number,
+                                          direction=item.direction, orientation_deg=item.orientation_deg)
+                xyz = data.placed_by_pose()
+                if pose is None:
+                    pose = estimate_plate_pose(xyz, head_direction=(0.0, 0.0, -1.0))
+                found = measure_fiducials(xyz, data.intensity, pose, ring_radii_mm=RING_RADII_MM,
+                                          expected_count=len(known_gls))
+                if len(found.centres) < 3:
+                    raise ValueError(f"chain map sweep {item.label}: found {len(found.centres)} of "
+                                     f"{len(known_gls)} reference centres")
+                pairing = pair_with_targets(mounting.apply(found.centres), known_gls)
+                sweeps.append(ReferenceSweep(item.label, index, known_plate[pairing.target_index],
+                                             found.centres[pairing.measured_index, :2]))
+    reference = (f"simulated reference plate, {design.label}; preset {config.measurement_preset}, "
+                 f"cell seed {config.seed}, map seed {seed}")
+    return fit_chain_map(sweeps, reference, fit)
 
 
 def chain_check(result: ReferencePlateResult, plan: MeasurementPlan, config: SimConfig, seed: int,
