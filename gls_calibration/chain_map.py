@@ -62,7 +62,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 import yaml
 
-from gls_calibration.config_files import read_config_file
+from gls_calibration.config_files import read_config_file, require_exact_keys
 from gls_calibration.persistence import atomic_write_text
 from gls_calibration.registration import align_rigid_2d
 from gls_calibration.sweep_plan import SweepPass, parse_plan
@@ -420,12 +420,7 @@ def chain_map_from_mapping(document: Any) -> ChainMap:
         raise ValueError("a chain map file holds one mapping 'chain_map'")
     block = dict(document["chain_map"])
     keys = ("reference", "sweeps_per_line", "residual_rms_mm", "lines")
-    unknown = sorted(set(block) - set(keys))
-    missing = [key for key in keys if key not in block]
-    if unknown:
-        raise ValueError(f"unknown key(s) {', '.join(f'chain_map.{key}' for key in unknown)}")
-    if missing:
-        raise ValueError(f"missing key(s) {', '.join(f'chain_map.{key}' for key in missing)}")
+    require_exact_keys(block, keys, "chain_map")
     lines = block["lines"]
     if not isinstance(lines, list) or not lines:
         raise ValueError("chain_map.lines must be a list of one or more line maps")
@@ -434,12 +429,7 @@ def chain_map_from_mapping(document: Any) -> ChainMap:
     for number, line in enumerate(lines):
         if not isinstance(line, Mapping):
             raise ValueError(f"chain_map.lines[{number}] must be a mapping")
-        unknown = sorted(set(line) - set(line_keys))
-        missing = [key for key in line_keys if key not in line]
-        if unknown:
-            raise ValueError(f"unknown key(s) {', '.join(f'chain_map.lines[{number}].{key}' for key in unknown)}")
-        if missing:
-            raise ValueError(f"missing key(s) {', '.join(f'chain_map.lines[{number}].{key}' for key in missing)}")
+        require_exact_keys(line, line_keys, f"chain_map.lines[{number}]")
         for key in ("error_x_mm", "error_y_mm"):
             if not isinstance(line[key], list) or not all(
                     isinstance(v, (int, float)) and not isinstance(v, bool) for v in line[key]):

@@ -39,3 +39,14 @@ def read_config_file(path: str | Path, what: str, parse: Callable[[Any], Parsed]
         return parse(document)
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from None
+
+
+def require_exact_keys(block, keys, prefix: str) -> None:
+    """ValueError naming ``prefix.key`` for every key of ``block`` not in ``keys``, then for every key
+    of ``keys`` that ``block`` lacks (unknown keys first: a misspelt key is also a missing one)."""
+    unknown = sorted(set(block) - set(keys))
+    missing = [key for key in keys if key not in block]
+    if unknown:
+        raise ValueError(f"unknown key(s) {', '.join(f'{prefix}.{key}' for key in unknown)}")
+    if missing:
+        raise ValueError(f"missing key(s) {', '.join(f'{prefix}.{key}' for key in missing)}")

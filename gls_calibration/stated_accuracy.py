@@ -52,7 +52,7 @@ from typing import Any, Mapping, Optional
 
 import yaml
 
-from gls_calibration.config_files import read_config_file
+from gls_calibration.config_files import read_config_file, require_exact_keys
 from gls_calibration.persistence import atomic_write_text
 from gls_calibration.sweep_plan import parse_plan, plan_label
 
@@ -106,12 +106,7 @@ def chain_check_from_mapping(document: Any) -> ChainCheck:
         raise ValueError("a reference check file holds one mapping 'reference_check'")
     block = dict(document["reference_check"])
     keys = ("sigma_mm", "plan", "placement", "reference", "centres")
-    unknown = sorted(set(block) - set(keys))
-    missing = [key for key in keys if key not in block]
-    if unknown:
-        raise ValueError(f"unknown key(s) {', '.join(f'reference_check.{key}' for key in unknown)}")
-    if missing:
-        raise ValueError(f"missing key(s) {', '.join(f'reference_check.{key}' for key in missing)}")
+    require_exact_keys(block, keys, "reference_check")
     return ChainCheck(**block)
 
 
