@@ -442,8 +442,8 @@ def start_manager(ros_context, add_node, tmp_path, sweep_timeout_s: float, store
     add_node(CalibrationManager(context=ros_context, parameter_overrides=[
         Parameter("calibration_dir", value=str(store_dir)),
         Parameter("report_dir", value=str(tmp_path / "reports")),
-        # sweep time limit = factor x length / speed + margin = sweep_timeout_s
-        Parameter("sweep.length_mm", value=1.0), Parameter("sweep.speed_mm_s", value=2.0),
+        # sweep time limit = factor x length / speed + margin = sweep_timeout_s (a sweep that covers the grid)
+        Parameter("sweep.length_mm", value=200.0), Parameter("sweep.speed_mm_s", value=400.0),
         Parameter("deadline_factor", value=1.0), Parameter("deadline_margin_s", value=sweep_timeout_s - 0.5),
         Parameter("service_timeout_s", value=5.0)]))
     add_node(ScanAcquisitionNode(context=ros_context))
@@ -507,15 +507,13 @@ def test_manager_fails_on_a_silent_scanner_and_keeps_the_active_calibration(ros_
 # --- the simulated cell in-process -----------------------------------------------------------------
 
 def narrow_scanner_config(path: Path) -> Path:
-    """config/sim.yaml with a short scanner line (+-60 mm) and a short sweep (110 mm from y = +100 mm).
+    """config/sim.yaml with a short scanner line (+-60 mm).
 
-    The scan then covers only part of a 3x3 grid over 190 mm: the centre column of its two upper
-    rows (and makes the sweeps fast).
+    The scan then covers only the centre column of a 3x3 grid over 190 mm.
     """
     document = yaml.safe_load(config_path("sim.yaml").read_text())
     parameters = document["/**"]["ros__parameters"]
     parameters["scanner"]["line_length_mm"] = 120.0
-    parameters["sweep"]["length_mm"] = 110.0
     path.write_text(yaml.safe_dump(document, sort_keys=False))
     return path
 
@@ -526,7 +524,7 @@ def test_calibration_fails_when_too_few_fiducials_are_found(start_cell, tmp_path
     response = cell.call(Calibrate, "calibrate", Calibrate.Request(), timeout_s=240.0)
     assert not response.success
     # config/gls.yaml sweeps the marked plate four times; the first sweep already finds too few
-    assert ("calibration failed: found 2 of 9 fiducials; at least 9 (90%) are needed "
+    assert ("calibration failed: found 3 of 9 fiducials; at least 9 (90%) are needed "
             "(sweep 0+ of 0+,0-,90+,90-)") == response.message
     assert store_state(cell.calibration_dir) == (None, [])
     nominal = cell.call(CorrectSetpoints, "correct_setpoints", CorrectSetpoints.Request(x=[0.0], y=[0.0]), TIMEOUT_S)

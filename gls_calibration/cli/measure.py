@@ -141,8 +141,10 @@ def cloud_units(extent: tuple[float, float], units: str | None, grid: int, size_
                 ring_radius_mm: float) -> str:
     """The cloud's unit (``mm`` or ``m``): ``units`` when given, else the one in which ``extent`` (short,
     long side in the cloud's units) holds the grid without exceeding it ``MAX_EXTENT_RATIO`` times.
-    ValueError naming both sizes when the extent cannot hold the grid."""
-    required_mm = size_mm + 2 * ring_radius_mm
+    ValueError naming both sizes when the extent cannot hold the grid. A 1x1 grid is one fiducial:
+    its centres span nothing, whatever ``size_mm`` says."""
+    centres_span_mm = size_mm if grid >= 2 else 0.0
+    required_mm = centres_span_mm + 2 * ring_radius_mm
     if units is None:
         fitting = [unit for unit, scale in MM_PER_UNIT.items()
                    if required_mm <= extent[0] * scale and extent[1] * scale <= MAX_EXTENT_RATIO * required_mm]
@@ -151,7 +153,8 @@ def cloud_units(extent: tuple[float, float], units: str | None, grid: int, size_
     if extent[0] * scale < required_mm:
         raise ValueError(f"cloud extent {extent[0] * scale:.4g} x {extent[1] * scale:.4g} mm (read as {units}) "
                          f"cannot hold the {grid}x{grid} grid: it needs {required_mm:.4g} x {required_mm:.4g} mm "
-                         f"(--size {size_mm:g} mm plus rings of {ring_radius_mm:g} mm); check --size and --units")
+                         f"({'--size ' + format(size_mm, 'g') + ' mm' if grid >= 2 else 'one fiducial'} plus rings of "
+                         f"{ring_radius_mm:g} mm); check --size and --units")
     return units
 
 
