@@ -35,6 +35,7 @@ from gls_calibration.nodes.base import (NodeThreads, StopSignals, exit_now_if_st
                                        with_companions)
 from gls_calibration.persistence import atomic_write_text
 from gls_calibration.nodes.calibration_manager import CalibrationManager
+from gls_calibration.nodes.manager_parameters import MANAGER_PARAMETERS, value_problem
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
 from gls_calibration.nodes.plate_pose import PlatePoseNode
@@ -179,6 +180,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         most_iterations = iterations_limit(override)
     except ValueError as error:
         parser.error(str(error))
+    for parameter in MANAGER_PARAMETERS:   # rcl would keep the file's value of a rule of another type, silently
+        rule = manager_parameter_override(user_ros_arguments, cell_namespace(args), parameter.name)
+        if rule is not None:
+            text = rule.partition(":=")[2]
+            try:
+                value = yaml.safe_load(text)   # how rcl reads a -p value
+            except yaml.YAMLError:
+                value = text
+            problem = value_problem(parameter, value)
+            if problem:
+                parser.error(f"--ros-args -p {rule}: the manager's {problem}")
     if not 1 <= args.iterations <= most_iterations:
         origin = f", set by -p {override}" if override else ""
         parser.error(f"--iterations must be between 1 and {most_iterations} (the manager's max_iterations{origin}), "
@@ -319,6 +331,7 @@ def main(argv: list[str] | None = None) -> int:
                 for member in with_companions(node):
                     member.destroy_node()
         context.try_shutdown()
+        stop.restore()
         exit_now_if_stuck(left, status)
 
 

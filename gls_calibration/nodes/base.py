@@ -492,8 +492,12 @@ class StopSignals:
         self.requested = threading.Event()
         self.signal_number: Optional[int] = None
         self.interrupting = interrupting
-        for number in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(number, self._handle)
+        self._previous = {number: signal.signal(number, self._handle) for number in (signal.SIGINT, signal.SIGTERM)}
+
+    def restore(self) -> None:
+        """Put back the handlers found at construction (the process goes on, e.g. a test calling main)."""
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)
 
     def _handle(self, number: int, frame) -> None:
         if self.requested.is_set():
@@ -554,6 +558,7 @@ def run_node(factory: Callable[..., Node], args: list[str] | None = None) -> int
         if threads is not None:
             left = threads.stop()
         context.try_shutdown()
+        stop.restore()
     exit_now_if_stuck(left, 0)
     return 0
 

@@ -180,6 +180,34 @@ def numbers_value(name: str, value: Any) -> tuple[float, ...]:
     return tuple(float(item) for item in items)
 
 
+def value_problem(parameter: ManagerParameter, value: Any) -> str:
+    """Why ``value`` (as YAML reads a ``-p`` rule) cannot be ``parameter``'s (empty when its type can).
+
+    rcl keeps a parameter file's value when a ``-p`` rule gives one of another type, silently: a tool
+    that passes parameter files checks its user's rules with this first."""
+    if parameter.kind == "integer":
+        fits = isinstance(value, int) and not isinstance(value, bool)
+        wanted = "an integer"
+    elif parameter.kind == "number":
+        fits = isinstance(value, float) and math.isfinite(value)
+        wanted = "a finite floating-point number (write 5.0 for 5)"
+    elif parameter.kind == "numbers":
+        fits = isinstance(value, list) and bool(value) and all(
+            isinstance(item, float) and math.isfinite(item) for item in value)
+        wanted = "a non-empty list of finite floating-point numbers"
+    elif parameter.kind == "flag":
+        fits, wanted = isinstance(value, bool), "true or false"
+    else:
+        fits, wanted = isinstance(value, str), "a text"
+    if not fits:
+        return f"{parameter.name} must be {wanted}, got {value!r}"
+    low = parameter.minimum if parameter.minimum is not None else -math.inf
+    high = parameter.maximum if parameter.maximum is not None else math.inf
+    if parameter.kind in ("integer", "number") and not low <= value <= high:
+        return f"{parameter.name} must be between {low:g} and {high:g}, got {value!r}"
+    return ""
+
+
 def manager_config(values: Mapping[str, Any]) -> ManagerConfig:
     """The manager's configuration from the value of every parameter of the table; ValueError naming
     the parameter when a value cannot be used (also for a combination, e.g. default_iterations above
