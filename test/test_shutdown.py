@@ -16,8 +16,12 @@ import subprocess
 import sys
 import time
 
+import threading
+
 import pytest
 from rclpy.node import Node
+
+from gls_calibration.nodes.base import GlsNode, NodeThreads
 
 from gls_calibration_msgs.srv import Calibrate
 
@@ -45,6 +49,34 @@ for cycle in range({cycles}):
             assert cell.context.ok()
     print("stopped", cycle + 1, flush=True)
 """
+
+
+def test_the_stop_joins_the_threads_a_node_owns_before_destroying_it(ros_context):
+    node = GlsNode("owner", context=ros_context)
+    threads = NodeThreads([node])
+    release = threading.Event()
+    worker = node.start_worker(lambda: release.wait(1.0), "slow-worker")
+    assert worker is not None and worker.is_alive() and not worker.daemon
+    destroyed = []
+    original = node.destroy_node
+    node.destroy_node = lambda: (destroyed.append(worker.is_alive()), original())[1]
+    assert threads.stop() == []
+    assert destroyed == [False]                      # the worker had ended when the node was destroyed
+    assert not any(thread.is_alive() for thread in threads.threads)
+    assert node.start_worker(lambda: None, "late") is None   # no new work once stopping
+    assert threads.stop() == []                      # idempotent: nothing is destroyed twice
+    assert destroyed == [False]
+
+
+def test_a_thread_that_does_not_end_is_named_and_its_node_stays(ros_context):
+    node = GlsNode("stuck_owner", context=ros_context)
+    threads = NodeThreads([node])
+    release = threading.Event()
+    node.start_worker(release.wait, "stuck-worker")
+    try:
+        assert threads.stop(join_timeout_s=0.3) == ["stuck-worker"]
+    finally:
+        release.set()
 
 
 @pytest.fixture
