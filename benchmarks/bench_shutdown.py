@@ -24,7 +24,8 @@ import tempfile
 import time
 from pathlib import Path
 
-FAST = ["--ros-args", "-p", "sweep.plain_repeats:=1", "-p", "sweep.plan:=0+"]
+# one sweep per plate; wide time limits (a loaded machine must not fail the calibration before the stop)
+FAST = ["--ros-args", "-p", "sweep.plain_repeats:=1", "-p", "sweep.plan:=0+", "-p", "deadline_factor:=10.0"]
 BUSY = "while True: pass"
 
 
@@ -41,6 +42,7 @@ def serve_once(directory: Path, delay_s: float, timeout_s: float) -> tuple[int |
     try:
         with client_node("bench_shutdown", "gls") as (node, executor):
             client = node.create_client(Calibrate, "calibrate")
+            client.wait_for_service(timeout_sec=120.0)     # a loaded machine starts the cell slowly
             answer = call_and_wait(executor, client, Calibrate.Request(validate=False, force=True), timeout_s)
         if answer is None or not answer.success:
             print(f"  calibration failed: {answer and answer.message}", file=sys.stderr)
