@@ -16,7 +16,6 @@ import os
 from pathlib import Path
 import shutil
 import sys
-import time
 from typing import Optional
 
 import rclpy
