@@ -132,6 +132,7 @@ def serve_calibrate_and_interrupt(node: Node, out: Path, log_path: Path) -> tupl
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(CYCLES * 90)
 def test_the_served_cell_stops_on_sigint_right_after_a_calibration(ros_context, add_node, busy_cpu, tmp_path):
     """Exit status 130 (docs/tools.md: interrupted) every time: no abort (134), no hang."""
     node = add_node(Node("shutdown_test", namespace="gls", context=ros_context))
