@@ -362,3 +362,53 @@ def test_gls_train_and_the_trainer_node_take_the_same_values(tmp_path, line):
         context = node.context
         node.destroy_node()
         context.try_shutdown()
+
+
+# --- node parameters a node refuses at start (issue 31, item 8): a message and exit 2, nothing spun ------
+
+@pytest.mark.parametrize("rule, message", [
+    # rcl keeps the parameter file's value for a rule of another type: gls-sim-cell checks the rule first
+    ("grid.size_mm:=abc", "--ros-args -p grid.size_mm:=abc: the manager's grid.size_mm must be a finite "
+                          "floating-point number (write 5.0 for 5), got 'abc'"),
+    ("grid.ring_radii_mm:=[]", "the manager's grid.ring_radii_mm must be a non-empty list of finite floating-point "
+                               "numbers, got []"),
+    ("grid.per_side:=2", "the manager's grid.per_side must be between 3 and 101, got 2"),
+    ("calibration_manager:sweep.placed_by_pose:=1", "the manager's sweep.placed_by_pose must be true or false, got 1"),
+])
+def test_gls_sim_cell_refuses_a_manager_parameter_rule_of_the_wrong_type(tmp_path, capsys, no_cell, rule, message):
+    out = tmp_path / "cell"
+    assert exit_code(lambda: sim_cell.main(["--namespace", "/", "--out", str(out), "--ros-args", "-p", rule])) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("rule, message", [
+    ("grid.ring_radii_mm:=[2.7,2.5]", "ring_radii_mm must be one or more positive finite radii in increasing order"),
+    ("head_direction:=[0.0,0.0,0.0]",
+     "parameter head_direction: 3 finite numbers, not all zero, are needed, got [0.0, 0.0, 0.0]"),
+    ("head_direction:=[1.0]", "parameter head_direction: 3 finite numbers, not all zero, are needed, got [1.0]"),
+    ("scanner_to_gls.translation_mm:=[0.0,325.0]",
+     "parameter scanner_to_gls.translation_mm: 3 finite numbers are needed, got [0.0, 325.0]"),
+])
+def test_gls_sim_cell_refuses_a_node_parameter_at_start_with_exit_2(tmp_path, capsys, monkeypatch, rule, message):
+    """A value of the right type that a node refuses when it is built: said, exit 2, no calibration."""
+    def refuse(*args, **kwargs):
+        raise AssertionError("the calibration started")
+    monkeypatch.setattr(sim_cell, "run_calibration", refuse)
+    out = tmp_path / "cell"
+    assert sim_cell.main(["--out", str(out), "--no-reference-check", "--grid", "3", "--ros-args", "-p", rule]) == 2
+    err = capsys.readouterr().err
+    assert "gls-sim-cell: " in err and message in err, err
+
+
+@pytest.mark.parametrize("module, rule, message", [
+    ("calibration_manager", "grid.size_mm:=abc", "expecting type 'DOUBLE'"),
+    ("calibration_manager", "grid.ring_radii_mm:=[]", "parameter grid.ring_radii_mm: a non-empty list"),
+    ("plate_pose", "head_direction:=[0.0,0.0,0.0]", "parameter head_direction: 3 finite numbers, not all zero"),
+    ("plate_pose", "head_direction:=[1.0]", "parameter head_direction: 3 finite numbers, not all zero"),
+])
+def test_a_node_console_script_refuses_a_bad_parameter_at_start_with_exit_2(tmp_path, capsys, module, rule, message):
+    import importlib
+    main = importlib.import_module(f"gls_calibration.nodes.{module}").main
+    assert main(["node", "--ros-args", "-p", f"calibration_dir:={tmp_path}", "-p", rule]) == 2
+    assert message in capsys.readouterr().err

@@ -16,12 +16,13 @@ import os
 from pathlib import Path
 import shutil
 import sys
-import time
 from typing import Optional
 
 import rclpy
 import yaml
+from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 
 from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.procedure import ITERATIONS_LIMIT
@@ -29,9 +30,11 @@ from gls_calibration.simulation.measurement import PRESETS
 from gls_calibration.simulation.world import load_sim_config
 from gls_calibration.stated_accuracy import load_chain_check, save_chain_check
 from gls_calibration.sweep_plan import parse_plan
-from gls_calibration.nodes.base import NodeThreads, use_fast_liveliness
+from gls_calibration.nodes.base import (NodeThreads, StopSignals, exit_now_if_stuck, use_fast_liveliness,
+                                       with_companions)
 from gls_calibration.persistence import atomic_write_text
 from gls_calibration.nodes.calibration_manager import CalibrationManager
+from gls_calibration.nodes.manager_parameters import MANAGER_PARAMETERS, value_problem
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
 from gls_calibration.nodes.plate_pose import PlatePoseNode
@@ -176,6 +179,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         most_iterations = iterations_limit(override)
     except ValueError as error:
         parser.error(str(error))
+    for parameter in MANAGER_PARAMETERS:   # rcl would keep the file's value of a rule of another type, silently
+        rule = manager_parameter_override(user_ros_arguments, cell_namespace(args), parameter.name)
+        if rule is not None:
+            text = rule.partition(":=")[2]
+            try:
+                value = yaml.safe_load(text)   # how rcl reads a -p value
+            except yaml.YAMLError:
+                value = text
+            problem = value_problem(parameter, value)
+            if problem:
+                parser.error(f"--ros-args -p {rule}: the manager's {problem}")
     if not 1 <= args.iterations <= most_iterations:
         origin = f", set by -p {override}" if override else ""
         parser.error(f"--iterations must be between 1 and {most_iterations} (the manager's max_iterations{origin}), "
@@ -270,25 +284,57 @@ def main(argv: list[str] | None = None) -> int:
     if not args.serve:
         shutil.rmtree(store, ignore_errors=True)
     use_fast_liveliness()
+    # SIGINT/SIGTERM handled once (base.StopSignals); rclpy's own handlers stay off.
+    stop = StopSignals()
     context = rclpy.Context()
     # "--" ends the cell's ROS arguments; the user's command line follows with its own --ros-args.
     user = ["--", *args.user_ros_arguments] if args.user_ros_arguments else []
-    rclpy.init(args=ros_arguments(args, store, args.out) + user, context=context)
+    rclpy.init(args=ros_arguments(args, store, args.out) + user, context=context,
+               signal_handler_options=SignalHandlerOptions.NO)
     namespace = cell_namespace(args)
-    nodes = [node_type(context=context, namespace=namespace) for node_type in NODE_TYPES]
-    threads = NodeThreads(nodes)
+    nodes: list = []
+    threads: Optional[NodeThreads] = None
+    status = 1
     try:
+        try:
+            for node_type in NODE_TYPES:
+                nodes.append(node_type(context=context, namespace=namespace))
+        except (ValueError, TypeError, ParameterException) as error:
+            # a parameter a node refuses at start (e.g. grid.size_mm:=abc): said, nothing runs
+            print(f"gls-sim-cell: {error}", file=sys.stderr)
+            status = 2
+            return status
+        threads = NodeThreads(nodes)
         if args.serve:
             names = ", ".join(node.get_fully_qualified_name() for node in nodes)
             print(f"serving the simulated cell ({names}); Ctrl-C to stop", flush=True)
-            while True:
-                time.sleep(1.0)
-        return run_calibration(args, nodes[-1])
+            while not stop.requested.wait(0.5):
+                pass
+            status = stop.exit_status
+            return status
+        if stop.requested.is_set():      # a signal while the nodes were built
+            status = stop.exit_status
+            return status
+        stop.interrupting = True         # Ctrl-C now ends the wait for calibrate's answer
+        status = run_calibration(args, nodes[-1])
+        return status
     except KeyboardInterrupt:
-        return 130
+        status = stop.exit_status
+        return status
     finally:
-        threads.stop()
-        rclpy.shutdown(context=context)
+        stop.stopping()
+        # Order (base.NodeThreads.stop): no new work, runs canceled, owned threads joined, executors
+        # shut down, nodes destroyed; then the context.
+        if threads is not None:
+            left = threads.stop()
+        else:
+            left = []
+            for node in nodes:
+                for member in with_companions(node):
+                    member.destroy_node()
+        context.try_shutdown()
+        stop.restore()
+        exit_now_if_stuck(left, status)
 
 
 def run_calibration(args: argparse.Namespace, manager: CalibrationManager) -> int:

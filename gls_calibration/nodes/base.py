@@ -6,6 +6,7 @@ import inspect
 import math
 import os
 import signal
+import sys
 import threading
 import time
 import traceback
@@ -13,6 +14,7 @@ from typing import Any, Callable, Optional, Sequence
 
 import rclpy
 from rclpy.context import Context
+from rclpy.exceptions import ParameterException
 from rclpy.signals import SignalHandlerOptions
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -27,6 +29,10 @@ DEFAULT_NAMESPACE = "gls"
 POLL_PERIOD_S = 0.05          # how often a pending call checks its deadline and its server
 SERVER_GONE_CONFIRM_S = 0.3   # a server absent from the graph this long is gone (not a discovery blip)
 SERVER_WAIT_S = 2.0           # how long a call waits for its server to appear before failing
+# Stopping: a run in progress gets this long to end at its next step, each owned thread and each
+# executor thread this long to end; what is still alive after that is logged (see NodeThreads.stop).
+RUN_STOP_TIMEOUT_S = 10.0
+THREAD_JOIN_TIMEOUT_S = 10.0
 
 
 # Fast DDS hands every answer of a service to the reader of each of its clients, which drops those not
@@ -118,6 +124,50 @@ class GlsNode(Node):
         # very response it waits for.
         self.reentrant_group = ReentrantCallbackGroup()
         self.dynamic_parameters: set[str] = set()
+        self.stopping = False
+        self._workers: list[threading.Thread] = []
+        self._workers_lock = threading.Lock()
+
+    # --- stopping (see NodeThreads.stop for the order) ------------------------------------------
+
+    def stop_accepting(self) -> None:
+        """Take no new work from now on (the node is being stopped); nodes with runs refuse them."""
+        self.stopping = True
+
+    def busy(self) -> bool:
+        """Whether work accepted before :meth:`stop_accepting` is still in progress."""
+        return False
+
+    def start_worker(self, target: Callable[[], Any], name: str) -> Optional[threading.Thread]:
+        """Run ``target`` on a thread this node owns: joined before the node is destroyed.
+
+        Not a daemon: a daemon thread still inside compiled code when the interpreter finalises is
+        ended by ``pthread_exit``, whose unwinding through C++ frames aborts the process
+        ("terminate called without an active exception"). None (nothing started) once stopping.
+        """
+        with self._workers_lock:
+            if self.stopping:
+                self.get_logger().info(f"stopping: {name} not started")
+                return None
+            self._workers = [thread for thread in self._workers if thread.is_alive()]
+            thread = threading.Thread(target=target, name=name, daemon=False)
+            self._workers.append(thread)
+        thread.start()
+        return thread
+
+    def join_workers(self, timeout_s: float) -> list[str]:
+        """Join the threads of :meth:`start_worker` (``timeout_s`` for all); the names of those still
+        running, each logged."""
+        deadline = time.monotonic() + timeout_s
+        with self._workers_lock:
+            workers = list(self._workers)
+        left = []
+        for thread in workers:
+            thread.join(timeout=max(deadline - time.monotonic(), 0.0))
+            if thread.is_alive():
+                self.get_logger().error(f"thread {thread.name} still running {timeout_s:g} s after the stop")
+                left.append(thread.name)
+        return left
 
     def declare(self, name: str, default: Any, description: str, *,
                 minimum: float | None = None, maximum: float | None = None,
@@ -359,6 +409,8 @@ class NodeThreads:
         self.nodes = [member for node in nodes for member in with_companions(node)]
         self.executors = [SingleThreadedExecutor(context=node.context) for node in self.nodes]
         self.threads = []
+        self._stop_lock = threading.Lock()
+        self._left: Optional[list[str]] = None
         for node, executor in zip(self.nodes, self.executors):
             executor.add_node(node)
             thread = threading.Thread(target=self._spin, args=(executor, node), name=node.get_name(), daemon=True)
@@ -376,7 +428,7 @@ class NodeThreads:
             except ExternalShutdownException:
                 return
             except Exception:
-                if not executor.context.ok():
+                if not executor.context.ok() or executor._is_shutdown:
                     return
                 node.get_logger().error(f"a callback failed (a bug); still serving:\n{traceback.format_exc()}")
 
@@ -385,53 +437,134 @@ class NodeThreads:
         for thread in self.threads:
             thread.join()
 
-    def stop(self) -> None:
-        """Stop the executors, wait for their threads and destroy the nodes."""
-        for executor in self.executors:
-            executor.shutdown()
-        for thread in self.threads:
-            thread.join(timeout=5.0)
-        for node in self.nodes:
-            node.destroy_node()
+    def stop(self, run_timeout_s: float = RUN_STOP_TIMEOUT_S, join_timeout_s: float = THREAD_JOIN_TIMEOUT_S
+             ) -> list[str]:
+        """Stop everything in an order that cannot abort; the names of threads still running (logged).
+
+        1. the nodes take no new work; 2. a run in progress is canceled and gets ``run_timeout_s`` to
+        end at its next step (the executors still spin: it awaits other nodes); 3. the threads the
+        nodes own are joined; 4. the executors shut down and their threads are joined; 5. the nodes
+        are destroyed (one whose executor thread is still running is left alone: destroying it under
+        a running wait crashes). The context is the caller's to shut down, after this. Idempotent:
+        a second call returns the first one's answer.
+        """
+        with self._stop_lock:
+            if self._left is not None:
+                return self._left
+            left: list[str] = []
+            gls_nodes = [node for node in self.nodes if isinstance(node, GlsNode)]
+            for node in gls_nodes:
+                node.stop_accepting()
+            spinning = any(thread.is_alive() for thread in self.threads)
+            deadline = time.monotonic() + run_timeout_s
+            while spinning and any(node.busy() for node in gls_nodes) and time.monotonic() < deadline:
+                time.sleep(POLL_PERIOD_S)
+            for node in gls_nodes:
+                if node.busy():
+                    node.get_logger().error(f"a run still in progress {run_timeout_s:g} s after the stop; abandoned")
+            deadline = time.monotonic() + join_timeout_s
+            for node in gls_nodes:
+                left += node.join_workers(max(deadline - time.monotonic(), 0.0))
+            for executor in self.executors:
+                executor.shutdown(timeout_sec=max(deadline - time.monotonic(), 0.1))
+            for node, thread in zip(self.nodes, self.threads):
+                thread.join(timeout=max(deadline - time.monotonic(), 0.1))
+                if thread.is_alive():
+                    node.get_logger().error(f"executor thread {thread.name} still running "
+                                            f"{join_timeout_s:g} s after the stop; node not destroyed")
+                    left.append(thread.name)
+                else:
+                    node.destroy_node()
+            self._left = left
+            return left
 
 
-def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None:
+class StopSignals:
+    """SIGINT and SIGTERM, handled once per process: the first one asks the process to stop, later
+    ones are noted and ignored (a second Ctrl-C must not break the ordered stop half-way).
+
+    While ``interrupting`` (a tool blocked in a call), the first signal raises KeyboardInterrupt in
+    the main thread; otherwise it only sets :attr:`requested`, which the main loop waits on. Install
+    it from the main thread (Python runs signal handlers there).
+    """
+
+    def __init__(self, *, interrupting: bool = False) -> None:
+        self.requested = threading.Event()
+        self.signal_number: Optional[int] = None
+        self.interrupting = interrupting
+        self._previous = {number: signal.signal(number, self._handle) for number in (signal.SIGINT, signal.SIGTERM)}
+
+    def restore(self) -> None:
+        """Put back the handlers found at construction (the process goes on, e.g. a test calling main)."""
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)
+
+    def _handle(self, number: int, frame) -> None:
+        if self.requested.is_set():
+            os.write(2, f"{signal.Signals(number).name} again: already stopping\n".encode())
+            return
+        self.signal_number = number
+        self.requested.set()
+        if self.interrupting:
+            self.interrupting = False
+            raise KeyboardInterrupt
+
+    def stopping(self) -> None:
+        """The stop has begun: a signal from now on must not raise into it."""
+        self.interrupting = False
+
+    @property
+    def exit_status(self) -> int:
+        """128 + the signal's number (130 for SIGINT, 143 for SIGTERM), as a shell reports it."""
+        return 128 + (self.signal_number or signal.SIGINT)
+
+
+def exit_now_if_stuck(left: Sequence[str], status: int) -> None:
+    """With threads still running after the stop (``left``), end the process with ``status`` at once.
+
+    The interpreter's finalisation would end those (daemon) threads with ``pthread_exit`` inside
+    compiled code, which aborts the process (exit 134); the stop has already logged them.
+    """
+    if left:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+
+
+def run_node(factory: Callable[..., Node], args: list[str] | None = None) -> int:
     """Console-script entry: init rclpy (ROS arguments such as remaps apply), spin one node until
-    Ctrl-C, then destroy the node before the context shuts down (the other order aborts in DDS)."""
+    SIGINT or SIGTERM, then stop it (``NodeThreads.stop``) before the context shuts down.
+
+    Exit status: 0 once stopped by a signal (a node's normal end, as launch expects it); 2 when the
+    node refuses its parameters at start (the reason printed, nothing spun).
+    """
     use_fast_liveliness()
+    stop = StopSignals()        # a signal while the node is built is acted upon once it is built
     context = Context()
     rclpy.init(args=args, context=context, signal_handler_options=SignalHandlerOptions.NO)
     threads = None
+    left: list[str] = []
     try:
-        threads = NodeThreads([_built_before_interrupt(factory, context)])
-        while context.ok():
-            time.sleep(0.2)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        if threads is not None:
-            threads.stop()
-        context.try_shutdown()
-
-
-def _built_before_interrupt(factory: Callable[..., Node], context: Context) -> Node:
-    """``factory(context=context)``, with Ctrl-C held back until the node is built, then raised.
-
-    A node's services are in the graph before its constructor ends; Ctrl-C in between would leave a
-    half-built node nobody can destroy before the context shuts down (the process then dies of the
-    KeyboardInterrupt instead of stopping cleanly).
-    """
-    held: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda number, frame: held.append(number))
-    try:
-        node = factory(context=context)
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if held and callable(previous):
         try:
-            previous(signal.SIGINT, None)       # Python's default handler: KeyboardInterrupt
-        except KeyboardInterrupt:
-            for member in with_companions(node):
-                member.destroy_node()
-            raise
-    return node
+            node = factory(context=context)
+        except (ValueError, TypeError, ParameterException) as error:
+            print(f"{_program()}: {error}", file=sys.stderr)
+            return 2
+        threads = NodeThreads([node])
+        while context.ok() and not stop.requested.wait(0.2):
+            pass
+    finally:
+        stop.stopping()
+        if threads is not None:
+            left = threads.stop()
+        context.try_shutdown()
+        stop.restore()
+    exit_now_if_stuck(left, 0)
+    return 0
+
+
+def _program() -> str:
+    """The name of the running console script."""
+    return os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else "gls node"
+
+

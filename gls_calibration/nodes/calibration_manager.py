@@ -27,16 +27,15 @@ from gls_calibration.calibration_record import (build_record, correction_from_re
                                                 record_models, save_candidate)
 from gls_calibration.correction import Correction
 from gls_calibration.nodes.base import SERVER_WAIT_S, GlsNode, ServiceCallError, answers_errors, run_node
-from gls_calibration.nodes.deadlines import declare_deadlines
 from gls_calibration.nodes.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
 from gls_calibration.nodes.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
-from gls_calibration.nodes.head_parameters import declare_head_geometry, declare_scanner_to_gls
+from gls_calibration.nodes.manager_parameters import (MANAGER_PARAMETERS, SETTABLE,
+                                                      ManagerConfig, ManagerParameter, manager_config)
 from gls_calibration.outcome import RunSummary, summarise
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.report import json_safe
 from gls_calibration.run_report import write_outcome_report
 from gls_calibration.stated_accuracy import SELF_CONSISTENCY, load_chain_check
-from gls_calibration.sweep_plan import CellTimeModel, parse_plan, plan_label
 from gls_calibration_msgs.action import Calibrate as CalibrateAction
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints, EstimatePlatePose,
@@ -58,8 +57,6 @@ class ServiceCell:
     def __init__(self, node: "CalibrationManager") -> None:
         self.node = node
         self.candidate: Optional[Correction] = None
-        self.timeout_s = node.service_timeout_s
-        self.deadlines = node.deadlines
         self.acquire = node.client(AcquireSweep, "scan/acquire")
         self.acquire_still = node.client(AcquireSweep, "scan/acquire_standstill")
         self.pose = node.client(EstimatePlatePose, "plate_pose/estimate")
@@ -72,6 +69,16 @@ class ServiceCell:
         self.trainer = node.client(TrainCorrection, "rbf/train")
         self.exchange = node.client(Trigger, node.plate_exchange_service) if node.plate_exchange_service else None
         self.truth = node.client(GetMarkedPaths, node.ground_truth_service) if node.ground_truth_service else None
+
+    @property
+    def timeout_s(self) -> float:
+        """The node's service time limit (settable between runs)."""
+        return self.node.service_timeout_s
+
+    @property
+    def deadlines(self):
+        """The node's job time limits (settable between runs)."""
+        return self.node.deadlines
 
     async def _checked(self, client, request, timeout_s: Optional[float] = None, *, idempotent: bool = True,
                        resend_after_s: Optional[float] = None):
@@ -184,112 +191,20 @@ class CalibrationManager(GlsNode):
 
     def __init__(self, **kwargs) -> None:
         super().__init__("calibration_manager", **kwargs)
-        self.geometry = declare_head_geometry(self)
-        scanner_to_gls = declare_scanner_to_gls(self)
-        self.deadlines = declare_deadlines(self)
-        defaults = procedure.ProcedureSettings()
-        self.settings = procedure.ProcedureSettings(
-            grid_per_side=self.declare("grid.per_side", defaults.grid_per_side,
-                                       "fiducials per side of the square grid", minimum=3, maximum=101),
-            grid_size_mm=self.declare("grid.size_mm", defaults.grid_size_mm, "side of the fiducial grid (mm)",
-                                      minimum=1.0, maximum=1000.0),
-            ring_radii_mm=tuple(self.declare("grid.ring_radii_mm", list(defaults.ring_radii_mm),
-                                             "radii of the two concentric rings of a fiducial (mm)")),
-            plain_sweep_step_mm=self.declare("sweep.plain_step_mm", defaults.plain_sweep_step_mm,
-                                             "profile spacing of the sweep of the plain plate (mm)",
-                                             minimum=0.01, maximum=10.0),
-            plain_sweeps=self.declare("sweep.plain_repeats", defaults.plain_sweeps,
-                                      "sweeps of the plain plate whose poses are averaged: the robot's path "
-                                      "error in each sets the plate height, hence the field's scale",
-                                      minimum=1, maximum=20),
-            standstill_height=self.declare("sweep.standstill_height", defaults.standstill_height,
-                                           "take the plate height from profiles taken with the robot standing "
-                                           "still at the marking pose (scan/acquire_standstill), not from the "
-                                           "sweeps, whose path error scales the marked field"),
-            marked_sweep_step_mm=self.declare("sweep.marked_step_mm", defaults.marked_sweep_step_mm,
-                                              "profile spacing of the sweep of the marked plate (mm)",
-                                              minimum=0.01, maximum=1.0),
-            scanner_to_gls=scanner_to_gls,
-            tolerance_rms_mm=self.declare("tolerance_rms_mm", defaults.tolerance_rms_mm,
-                                          "no training when the measured RMS deviation is within this (mm)",
-                                          minimum=0.0),
-            min_found_fraction=self.declare("min_found_fraction", defaults.min_found_fraction,
-                                            "fail when fewer fiducials than this fraction are found",
-                                            minimum=0.0, maximum=1.0),
-            max_outlying_points=self.declare(
-                "max_outlying_points", defaults.max_outlying_points, "a plain plate with more points than this "
-                "beyond mark_check_sigmas of its texture carries old marks: refused unless forced", minimum=0),
-            mark_check_sigmas=self.declare("mark_check_sigmas", defaults.mark_check_sigmas,
-                                           "robust standard deviations of the plate texture beyond which a "
-                                           "point looks like a mark", minimum=1.0, maximum=100.0),
-            max_cluster_points=self.declare(
-                "max_cluster_points", defaults.max_cluster_points, "a plain plate with more points than this "
-                "beyond mark_cluster_sigmas within one fiducial's extent carries old marks", minimum=0),
-            mark_cluster_sigmas=self.declare("mark_cluster_sigmas", defaults.mark_cluster_sigmas,
-                                             "robust standard deviations of the plate texture beyond which a "
-                                             "point counts towards a cluster of marks", minimum=1.0, maximum=100.0),
-            measurement_uncertainty_mm=self.declare(
-                "measurement_uncertainty_mm", defaults.measurement_uncertainty_mm,
-                "uncertainty of one measured fiducial centre (mm): the margin a candidate must beat the "
-                "calibration in use by", minimum=1e-6, maximum=10.0),
-            max_cv_factor=self.declare("max_cv_factor", defaults.max_cv_factor,
-                                       "fail when the model's CV RMS exceeds this many measurement uncertainties",
-                                       minimum=1.0, maximum=1e6),
-            max_cv_fraction=self.declare("max_cv_fraction", defaults.max_cv_fraction,
-                                         "...and this fraction of the RMS deviation it was trained on",
-                                         minimum=0.01, maximum=100.0),
-            default_iterations=self.declare("default_iterations", defaults.default_iterations,
-                                            "iterations when a request says 0", minimum=1,
-                                            maximum=procedure.ITERATIONS_LIMIT),
-            max_iterations=self.declare("max_iterations", defaults.max_iterations,
-                                        "most iterations a request may ask for (each marks a fresh plate)",
-                                        minimum=1, maximum=procedure.ITERATIONS_LIMIT),
-            sweep_plan=parse_plan(self.declare(
-                "sweep.plan", plan_label(defaults.sweep_plan),
-                "passes over the marked plate, orientation (0|90 deg) and direction (+|-) each, e.g. "
-                "0+,0-,90+,90-: errors fixed to the scanner frame are separated from the marks")),
-            profiles_placed_by_pose=self.declare(
-                "sweep.placed_by_pose", defaults.profiles_placed_by_pose,
-                "the scanner driver publishes the robot's reported pose (scan/pose): the travel is trusted "
-                "for the scale; false: profiles placed by time, the sensor's line scale is trusted"),
-            # sweep length and speed are the ones sent to the scanner (declared with the deadlines)
-            cell_time=CellTimeModel(
-                sweep_length_mm=self.deadlines.sweep_length_mm,
-                sweep_speed_mm_s=self.deadlines.sweep_speed_mm_s,
-                robot_move_s=self.declare("sweep.robot_move_s", defaults.cell_time.robot_move_s,
-                                          "robot move between two sweeps, for the cell-time estimate (s)",
-                                          minimum=0.0, maximum=3600.0)),
-        )
-        self.service_timeout_s = self.declare(
-            "service_timeout_s", 60.0, "time limit of one call to a processing node (plate pose, fiducials, "
-            "training, correction) (s)", minimum=0.1, maximum=3600.0)
-        self.resend_after_s = self.declare(
-            "resend_after_s", 15.0, "send an idempotent request (correction, plate pose, fiducials, training) "
-            "again when unanswered this long: a server that has just started may drop its first answers (s)",
-            minimum=1.0, maximum=3600.0)
-        self.plate_exchange_service = self.declare(
-            "plate_exchange_service", "", "Trigger service that loads a fresh plate (empty: none)")
-        self.ground_truth_service = self.declare(
-            "ground_truth_service", "", "GetMarkedPaths service of a simulation, for the true error (empty: none)")
-        self.store = CalibrationStore(Path(self.declare("calibration_dir", "calibrations",
-                                                        "folder of the calibration store")))
-        self.report_root = Path(self.declare("report_dir", "reports", "folder for calibration reports"))
-        self.report_per_run = self.declare("report_per_run", True,
-                                           "a subfolder of report_dir per calibration (false: report_dir itself)")
-        self.reference_check_file = self.declare(
-            "reference_check_file", "", "reference check of the measurement chain (stated_accuracy's YAML: a "
-            "plate with known centres measured with this plan); read at every calibrate; empty: none, the "
-            "cell then states no accuracy and labels its measured figures self-consistency")
-        self.arrow_scale = self.declare("rviz.arrow_scale", 50.0,
-                                        "RViz deviation arrows are this many times longer than the deviation",
-                                        minimum=1.0, maximum=10000.0)
-        self.colour_full_scale_mm = self.declare("rviz.colour_full_scale_mm", 1.0,
-                                                 "deviation drawn fully red in RViz (mm)", minimum=1e-4)
+        # One table (manager_parameters): read-only ones are read here once, settable ones apply from
+        # the next run (refused while one runs).
+        values = {parameter.name: self._declare_parameter(parameter) for parameter in MANAGER_PARAMETERS}
+        self._use(manager_config(values))
+        self.store = CalibrationStore(self.config.calibration_dir)
+        self.plate_exchange_service = self.config.plate_exchange_service
+        self.ground_truth_service = self.config.ground_truth_service
+        self.geometry = self.config.geometry
+        self._running = False
+        self.apply_parameter_changes(SETTABLE, self._apply_settable)
         self.plate_pose_publisher = self.create_publisher(PoseStamped, "calibration/plate_pose", rviz.LATCHED)
         self.markers_publisher = self.create_publisher(MarkerArray, "calibration/markers", rviz.LATCHED)
         self.cell = ServiceCell(self)
         self.progress = self.create_publisher(CalibrationProgress, "calibration/progress", 10)
-        self._running = False
         self.create_service(Calibrate, "calibrate", self.on_calibrate, callback_group=self.reentrant_group)
         self.action_server = ActionServer(
             self, CalibrateAction, "calibrate", execute_callback=self.execute_calibrate,
@@ -300,6 +215,40 @@ class CalibrationManager(GlsNode):
         self.last_failed, self.last_message, self.last_rms_mm = False, "no calibration run yet", math.nan
         self._active_cache: tuple[object, dict] = ("not read yet", {})
         publish_diagnostics(self, self.health)
+
+    def _declare_parameter(self, parameter: ManagerParameter):
+        """Declare one parameter of the table; its value (list parameters as lists)."""
+        value = self.declare(parameter.name, parameter.default, parameter.full_description,
+                             minimum=parameter.minimum, maximum=parameter.maximum, dynamic=parameter.settable)
+        return _plain(value)
+
+    def _use(self, config: ManagerConfig) -> None:
+        """Run from now on with ``config`` (never during a run: see ``_apply_settable``)."""
+        self.config = config
+        self.settings, self.deadlines = config.settings, config.deadlines
+        self.service_timeout_s, self.resend_after_s = config.service_timeout_s, config.resend_after_s
+        self.report_root, self.report_per_run = config.report_root, config.report_per_run
+        self.reference_check_file = config.reference_check_file
+        self.arrow_scale, self.colour_full_scale_mm = config.arrow_scale, config.colour_full_scale_mm
+
+    def _apply_settable(self, requested: dict) -> Optional[str]:
+        """``ros2 param set`` of settable parameters (``requested``: every settable one, the requested
+        values in): refused during a run or when invalid (the reason returned), otherwise in use from
+        the next run."""
+        values = {parameter.name: _plain(self.get_parameter(parameter.name).value) for parameter in MANAGER_PARAMETERS}
+        requested = {name: _plain(value) for name, value in requested.items()}
+        names = ", ".join(sorted(name for name, value in requested.items() if value != values[name])) or "nothing"
+        if self._running:
+            return (f"{names} not changed: a calibration is running and keeps the settings it started with; "
+                    "set it again once the run has ended")
+        values |= requested
+        try:
+            config = manager_config(values)
+        except (ValueError, TypeError) as error:
+            return f"{names} not changed: {error}"
+        self._use(config)
+        self.get_logger().info(f"{names} set: applies from the next calibration run")
+        return None
 
     def health(self) -> Health:
         """What /diagnostics says: state, the last run, the store's active calibration."""
@@ -323,8 +272,15 @@ class CalibrationManager(GlsNode):
         self.progress.publish(message)
         self.get_logger().info(f"[{fraction:4.0%}] {stage}: {text}")
 
+    def busy(self) -> bool:
+        """A calibration is running (stopping: it ends at its next step, canceled)."""
+        return self._running
+
     def on_goal(self, goal_request) -> GoalResponse:
         """Accept a ``calibrate`` goal unless a calibration runs (it is then refused at once)."""
+        if self.stopping:
+            self.get_logger().warning("the node is stopping; goal refused")
+            return GoalResponse.REJECT
         if self._running:
             self.get_logger().warning("a calibration is already running; goal refused")
             return GoalResponse.REJECT
@@ -338,12 +294,16 @@ class CalibrationManager(GlsNode):
         def feedback(stage: str, fraction: float, text: str) -> None:
             goal_handle.publish_feedback(CalibrateAction.Feedback(
                 stage=stage, fraction=float(min(max(fraction, 0.0), 1.0)), message=text))
-        status = await self._run(goal_handle.request, result, feedback, lambda: goal_handle.is_cancel_requested)
+        status = await self._run(goal_handle.request, result, feedback,
+                                 lambda: goal_handle.is_cancel_requested or self.stopping)
         {"succeeded": goal_handle.succeed, "aborted": goal_handle.abort, "canceled": goal_handle.canceled}[status]()
         return result
 
     async def on_calibrate(self, request: Calibrate.Request, response: Calibrate.Response):
         """Serve ``calibrate``: run the procedure, keep the active calibration unless it succeeds."""
+        if self.stopping:
+            response.success, response.message = False, "the calibration manager is stopping; request refused"
+            return response
         if self._running:
             response.success = False
             response.message = "a calibration is already running; request refused"
@@ -353,7 +313,7 @@ class CalibrationManager(GlsNode):
             response.success, response.message = False, f"request refused: {problem}"
             return response
         self._running = True
-        await self._run(request, response, None, lambda: False)
+        await self._run(request, response, None, lambda: self.stopping)
         return response
 
     async def _run(self, request, response, feedback: Optional[Callable[[str, float, str], None]],
@@ -466,6 +426,11 @@ class CalibrationManager(GlsNode):
         return response
 
 
+def _plain(value):
+    """A parameter value with a list as a list (rclpy gives arrays of numbers as ``array.array``)."""
+    return list(value) if hasattr(value, "tolist") and not isinstance(value, (str, bytes)) else value
+
+
 def _fill_response(response, summary: RunSummary) -> None:
     """The ``calibrate`` answer: the run summary's figures."""
     response.success = True
@@ -475,6 +440,6 @@ def _fill_response(response, summary: RunSummary) -> None:
         setattr(response, name, getattr(summary, name))
 
 
-def main(args=None) -> None:
+def main(args=None) -> int:
     """Console script ``gls-calibration-manager``."""
-    run_node(CalibrationManager, args)
+    return run_node(CalibrationManager, args)

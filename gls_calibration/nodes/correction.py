@@ -13,7 +13,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-import threading
 from typing import Any, Optional
 
 import numpy as np
@@ -127,8 +126,9 @@ class CorrectionNode(GlsNode):
             self._serve(None, str(self.store.pointer_path), problem)
             return False, problem
         self._serve(correction, str(path), "", *record_identity(record), summary=record_summary(record))
-        # Off the executor: a large request arriving meanwhile waits for it, nothing else does.
-        threading.Thread(target=correction.prepare, name="correction-prepare", daemon=True).start()
+        # Off the executor: a large request arriving meanwhile waits for it, nothing else does. An owned
+        # thread, joined before the node is destroyed (a stop right after a calibration aborted the process).
+        self.start_worker(correction.prepare, "correction-prepare")
         self.get_logger().info(f"calibration {self.served.calibration_id} loaded from {path}")
         return True, f"calibration {self.served.calibration_id} loaded from {path}"
 
@@ -222,6 +222,6 @@ class BatchCorrectionNode(GlsNode):
         return await self.owner.answer(self, request, response)
 
 
-def main(args=None) -> None:
+def main(args=None) -> int:
     """Console script ``gls-correction``."""
-    run_node(CorrectionNode, args)
+    return run_node(CorrectionNode, args)

@@ -49,20 +49,3 @@ class Deadlines:
         steps[starts[(starts > 0) & (starts < len(xy_mm))] - 1] = 0.0
         length_mm = float(np.sum(steps[np.isfinite(steps)]))
         return self.limit_s(length_mm / self.marking_speed_mm_s + len(starts) * self.jump_time_s)
-
-
-def declare_deadlines(node) -> Deadlines:
-    """Declare the manager's parameters of the job sizes and slack; return them."""
-    return Deadlines(
-        sweep_length_mm=node.declare("sweep.length_mm", 200.0, "length of each sweep (mm), sent to the scanner",
-                                     minimum=1.0, maximum=5000.0),
-        sweep_speed_mm_s=node.declare("sweep.speed_mm_s", 15.0, "sensor speed of each sweep (mm/s), sent to "
-                                      "the scanner", minimum=0.1, maximum=10000.0),
-        marking_speed_mm_s=node.declare("marking.speed_mm_s", 500.0, "the galvo's marking speed (mm/s), for "
-                                        "the marking time limit", minimum=1.0, maximum=100000.0),
-        jump_time_s=node.declare("marking.jump_time_s", 0.005, "time of one jump between polylines (s), for "
-                                 "the marking time limit", minimum=0.0, maximum=10.0),
-        factor=node.declare("deadline_factor", 2.0, "a sweep or marking job may take this many times its "
-                            "expected duration", minimum=1.0, maximum=100.0),
-        margin_s=node.declare("deadline_margin_s", 10.0, "added to every job's time limit (s)",
-                              minimum=0.1, maximum=600.0))

@@ -42,6 +42,6 @@ class FiducialMeasurementNode(GlsNode):
         return response
 
 
-def main(args=None) -> None:
+def main(args=None) -> int:
     """Console script ``gls-fiducial-measurement``."""
-    run_node(FiducialMeasurementNode, args)
+    return run_node(FiducialMeasurementNode, args)

@@ -16,25 +16,26 @@ HEAD_PARAMETERS = ("head.working_distance_mm", "head.mirror_distance_mm", "head.
                    "head.focus_range_mm")
 
 
+# (name, default, description, minimum, maximum): the keys of config/head.yaml
+HEAD_SPECS = (
+    ("head.working_distance_mm", HEAD_DEFAULTS["working_distance_mm"], "X mirror axis to the work plane, d (mm)",
+     1.0, None),
+    ("head.mirror_distance_mm", HEAD_DEFAULTS["mirror_distance_mm"], "Y mirror axis to X mirror axis, e (mm)",
+     0.0, None),
+    ("head.mirror_limit_deg", HEAD_DEFAULTS["mirror_limit_deg"], "mechanical mirror limit (deg)", 0.1, 45.0),
+    ("head.focus_range_mm", HEAD_DEFAULTS["focus_range_mm"], "focus shift range, +- (mm)", 0.1, None),
+)
+SCANNER_TO_GLS_DEFAULTS = {"scanner_to_gls.translation_mm": [0.0, 0.0, 325.0],
+                           "scanner_to_gls.rpy_rad": [math.pi, 0.0, 0.0]}
+
+
 def declare_head_geometry(node: GlsNode, *, dynamic: bool = False) -> HeadGeometry:
     """Declare ``head.*`` parameters (the keys of config/head.yaml) and return the nominal geometry.
 
     ``dynamic``: the node applies changes at run time (see GlsNode.apply_parameter_changes).
     """
-    values = {
-        "head.working_distance_mm": node.declare(
-            "head.working_distance_mm", HEAD_DEFAULTS["working_distance_mm"],
-            "X mirror axis to the work plane, d (mm)", minimum=1.0, dynamic=dynamic),
-        "head.mirror_distance_mm": node.declare(
-            "head.mirror_distance_mm", HEAD_DEFAULTS["mirror_distance_mm"],
-            "Y mirror axis to X mirror axis, e (mm)", minimum=0.0, dynamic=dynamic),
-        "head.mirror_limit_deg": node.declare(
-            "head.mirror_limit_deg", HEAD_DEFAULTS["mirror_limit_deg"], "mechanical mirror limit (deg)",
-            minimum=0.1, maximum=45.0, dynamic=dynamic),
-        "head.focus_range_mm": node.declare(
-            "head.focus_range_mm", HEAD_DEFAULTS["focus_range_mm"], "focus shift range, +- (mm)",
-            minimum=0.1, dynamic=dynamic),
-    }
+    values = {name: node.declare(name, default, description, minimum=minimum, maximum=maximum, dynamic=dynamic)
+              for name, default, description, minimum, maximum in HEAD_SPECS}
     return head_geometry_from(values)
 
 
@@ -46,13 +47,18 @@ def head_geometry_from(values: dict) -> HeadGeometry:
                         focus_range_mm=values["head.focus_range_mm"])
 
 
-def declare_scanner_to_gls(node: GlsNode) -> RigidTransform:
-    """Declare the CAD mounting of the scanner (sweep start frame -> gls frame) and return it."""
-    translation = node.declare("scanner_to_gls.translation_mm", [0.0, 0.0, 325.0],
-                               "scanner frame origin in the gls frame at the start of a sweep (mm)")
-    rpy = node.declare("scanner_to_gls.rpy_rad", [math.pi, 0.0, 0.0],
-                       "scanner frame orientation in the gls frame: roll, pitch, yaw (rad, extrinsic xyz)")
-    if len(translation) != 3 or len(rpy) != 3:
-        raise ValueError("scanner_to_gls.translation_mm and scanner_to_gls.rpy_rad need 3 numbers each")
-    rotation = Rotation.from_euler("xyz", rpy).as_matrix()
-    return RigidTransform(rotation, np.asarray(translation, dtype=float))
+def scanner_to_gls_from(translation_mm, rpy_rad) -> RigidTransform:
+    """The CAD mounting of the scanner (sweep start frame -> gls frame) from its parameter values;
+    ValueError naming the parameter unless each is 3 finite numbers."""
+    checked = []
+    for name, value in (("scanner_to_gls.translation_mm", translation_mm), ("scanner_to_gls.rpy_rad", rpy_rad)):
+        numbers = None
+        if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
+            items = list(value)
+            if all(isinstance(item, (int, float)) and not isinstance(item, bool) for item in items):
+                numbers = [float(item) for item in items]
+        if numbers is None or len(numbers) != 3 or not all(math.isfinite(number) for number in numbers):
+            raise ValueError(f"parameter {name}: 3 finite numbers are needed, got {value!r}")
+        checked.append(numbers)
+    rotation = Rotation.from_euler("xyz", checked[1]).as_matrix()
+    return RigidTransform(rotation, np.asarray(checked[0], dtype=float))

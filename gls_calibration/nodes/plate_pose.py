@@ -1,6 +1,8 @@
 """plate_pose: serves ``plate_pose/estimate``, the plate plane fitted to a cloud."""
 from __future__ import annotations
 
+import math
+
 from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
 from gls_calibration.plate_pose import estimate_plate_pose
@@ -14,9 +16,9 @@ class PlatePoseNode(GlsNode):
         super().__init__("plate_pose", **kwargs)
         self.distance_threshold_mm = self.declare(
             "distance_threshold_mm", 0.2, "RANSAC inlier distance to the plane (mm)", minimum=1e-4)
-        self.head_direction = self.declare(
+        self.head_direction = head_direction(self.declare(
             "head_direction", [0.0, 0.0, -1.0],
-            "direction towards the galvo head in the scan frame (the normal is oriented along it)")
+            "direction towards the galvo head in the scan frame (the normal is oriented along it)"))
         self.seed = self.declare("seed", 0, "seed of the RANSAC sampling", minimum=0)
         self.create_service(EstimatePlatePose, "plate_pose/estimate", self.on_estimate)
 
@@ -32,6 +34,17 @@ class PlatePoseNode(GlsNode):
         return response
 
 
-def main(args=None) -> None:
+def head_direction(value) -> tuple[float, float, float]:
+    """The ``head_direction`` parameter's value as 3 floats; ValueError unless 3 finite numbers, not all
+    zero (a zero direction orients no normal; checked at start, not at the first request)."""
+    items = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else []
+    numbers = [float(item) for item in items
+               if isinstance(item, (int, float)) and not isinstance(item, bool) and math.isfinite(float(item))]
+    if len(items) != 3 or len(numbers) != 3 or not any(numbers):
+        raise ValueError(f"parameter head_direction: 3 finite numbers, not all zero, are needed, got {value!r}")
+    return numbers[0], numbers[1], numbers[2]
+
+
+def main(args=None) -> int:
     """Console script ``gls-plate-pose``."""
-    run_node(PlatePoseNode, args)
+    return run_node(PlatePoseNode, args)

@@ -47,6 +47,6 @@ class RbfTrainerNode(GlsNode):
         return response
 
 
-def main(args=None) -> None:
+def main(args=None) -> int:
     """Console script ``gls-rbf-trainer``."""
-    run_node(RbfTrainerNode, args)
+    return run_node(RbfTrainerNode, args)

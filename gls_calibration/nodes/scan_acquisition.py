@@ -326,6 +326,6 @@ def request_problem(request) -> str:
     return ""
 
 
-def main(args=None) -> None:
+def main(args=None) -> int:
     """Console script ``gls-scan-acquisition``."""
-    run_node(ScanAcquisitionNode, args)
+    return run_node(ScanAcquisitionNode, args)

@@ -127,6 +127,6 @@ def _polyline_problem(alpha_x, alpha_y, focus, starts, geometry) -> str:
     return ""
 
 
-def main(args=None) -> None:
+def main(args=None) -> int:
     """Console script ``gls-sim-galvo``."""
-    run_node(SimGalvoNode, args)
+    return run_node(SimGalvoNode, args)

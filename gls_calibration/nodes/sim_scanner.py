@@ -206,6 +206,6 @@ def reported_pose_message(pose: np.ndarray, stamp) -> PoseStamped:
     return message
 
 
-def main(args=None) -> None:
+def main(args=None) -> int:
     """Console script ``gls-sim-scanner``."""
-    run_node(SimScannerNode, args)
+    return run_node(SimScannerNode, args)
