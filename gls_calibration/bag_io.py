@@ -23,7 +23,7 @@ import math
 from pathlib import Path
 import shutil
 import tempfile
-from typing import Iterator, Optional, Sequence
+from typing import Callable, Iterator, Optional, Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -123,12 +123,14 @@ class BagRecorder:
     """Writes a cell's streams to a new rosbag2 folder (use as a context manager).
 
     ``flange_to_sensor`` (hand-eye) and ``base_to_gls`` are 4x4 poses in mm (child -> parent), written
-    once on ``/tf_static``. The folder must not exist; the bag is written under a temporary name
+    once on ``/tf_static``. ``tap(topic, message)``, when given, sees every message as it is written
+    (what a live subscriber would receive). The folder must not exist; the bag is written under a temporary name
     beside it and renamed when closed without error, so a failed recording leaves nothing at ``path``.
     """
 
     def __init__(self, path: str | Path, flange_to_sensor: np.ndarray, base_to_gls: np.ndarray,
-                 layout: BagLayout = BagLayout(), storage: str = "sqlite3") -> None:
+                 layout: BagLayout = BagLayout(), storage: str = "sqlite3",
+                 tap: Optional[Callable[[str, object], None]] = None) -> None:
         if storage not in STORAGES:
             raise ValueError(f"storage must be one of {', '.join(STORAGES)}, got {storage!r}")
         self.path = Path(path)
@@ -142,6 +144,7 @@ class BagRecorder:
         self._writer = Writer(self._scratch / self.path.name, version=Writer.VERSION_LATEST,
                               storage_plugin=STORAGES[storage])
         self._static = (flange_to_sensor, base_to_gls)
+        self.tap = tap
         self._connections: dict = {}
         self.clock_ns = 0
 
@@ -168,6 +171,8 @@ class BagRecorder:
     def _write(self, topic: str, stamp_ns: int, message) -> None:
         msgtype = self._connections[topic].msgtype
         self._writer.write(self._connections[topic], int(stamp_ns), _TYPESTORE.serialize_cdr(message, msgtype))
+        if self.tap is not None:
+            self.tap(topic, message)
 
     def write_sweep(self, start_ns: int, end_ns: int, profile_stamps_ns: Sequence[int], profiles_m: np.ndarray,
                     flange_stamps_ns: Sequence[int], base_to_flange_mm: np.ndarray) -> None:
@@ -271,56 +276,96 @@ def read_sweeps(path: str | Path, layout: BagLayout = BagLayout(), limits: Repla
 
 
 def _read(reader: Reader, path: Path, layout: BagLayout, limits: ReplayLimits) -> list[ReplayedSweep]:
-    from gls_calibration.tf_buffer import TfBuffer   # the package's buffer (time interpolation, chains)
-
     topics = {c.topic: c.msgtype for c in reader.connections}
-    wanted = {layout.scan_topic: POINTCLOUD2, layout.tf_topic: TFMESSAGE, layout.tf_static_topic: TFMESSAGE,
-              layout.motion_start_topic: HEADER, layout.motion_end_topic: HEADER}
-    for topic, msgtype in wanted.items():
+    assembler = StreamAssembler(layout, limits, str(path))
+    for topic, msgtype in assembler.topics().items():
         if topic not in topics:
             raise ValueError(f"{path}: topic {topic} is not in the bag (topics: {', '.join(sorted(topics)) or 'none'})")
         if topics[topic] != msgtype:
             raise ValueError(f"{path}: topic {topic} carries {topics[topic]}, not {msgtype}")
-    buffer = TfBuffer()
-    starts: list[int] = []
-    ends: list[int] = []
-    profiles: list[tuple[int, np.ndarray]] = []
-    for topic, _, message in _messages(reader, path, list(wanted)):
+    for topic, _, message in _messages(reader, path, list(assembler.topics())):
+        assembler.add(topic, message)
+    return assembler.sweeps()
+
+
+class StreamAssembler:
+    """Collects a cell's streams (profiles, TF, motion stamps) and assembles sweeps from them.
+
+    Fed message by message, from a bag or live as a subscriber sees them; ``source`` names the stream
+    in error messages. The same arithmetic serves both, so a live run and its replay agree exactly.
+    """
+
+    def __init__(self, layout: BagLayout = BagLayout(), limits: ReplayLimits = ReplayLimits(),
+                 source: str = "stream") -> None:
+        from gls_calibration.tf_buffer import TfBuffer   # the package's buffer (time interpolation, chains)
+
+        self.layout = layout
+        self.limits = limits
+        self.source = source
+        self.buffer = TfBuffer()
+        self.starts: list[int] = []
+        self.ends: list[int] = []
+        self.profiles: list[tuple[int, np.ndarray]] = []
+
+    def topics(self) -> dict[str, str]:
+        """The topics it reads and their message types."""
+        layout = self.layout
+        return {layout.scan_topic: POINTCLOUD2, layout.tf_topic: TFMESSAGE, layout.tf_static_topic: TFMESSAGE,
+                layout.motion_start_topic: HEADER, layout.motion_end_topic: HEADER}
+
+    def add(self, topic: str, message) -> None:
+        """Take one message of one of :meth:`topics` (others are ignored)."""
+        layout = self.layout
         if topic in (layout.tf_topic, layout.tf_static_topic):
             for transform in message.transforms:
-                _add_transform(buffer, transform, static=topic == layout.tf_static_topic)
+                _add_transform(self.buffer, transform, static=topic == layout.tf_static_topic)
         elif topic == layout.motion_start_topic:
-            starts.append(_stamp_ns(message))
+            self.starts.append(_stamp_ns(message))
         elif topic == layout.motion_end_topic:
-            ends.append(_stamp_ns(message))
-        else:
+            self.ends.append(_stamp_ns(message))
+        elif topic == layout.scan_topic:
             if message.header.frame_id != layout.sensor_frame:
-                raise ValueError(f"{path}: a profile on {topic} is in frame {message.header.frame_id!r}, "
+                raise ValueError(f"{self.source}: a profile on {topic} is in frame {message.header.frame_id!r}, "
                                  f"not {layout.sensor_frame!r}")
             stamp = _stamp_ns(message.header)
-            profiles.append((stamp, profile_points(message, limits, f"{path}: profile at {stamp} ns")))
-    windows = _windows(path, starts, ends)
-    stamps = np.array([stamp for stamp, _ in profiles], dtype=np.int64)
-    sweeps = []
-    for number, (start, end) in enumerate(windows, 1):
+            self.profiles.append((stamp, profile_points(message, self.limits, f"{self.source}: profile at {stamp} ns")))
+
+    def sweeps(self) -> list[ReplayedSweep]:
+        """Every complete motion's sweep, in order; ValueError naming the first problem."""
+        windows = _windows(self.source, self.starts, self.ends)
+        stamps = np.array([stamp for stamp, _ in self.profiles], dtype=np.int64)
+        return [self._sweep(number, start, end, stamps) for number, (start, end) in enumerate(windows, 1)]
+
+    def take_last_sweep(self) -> ReplayedSweep:
+        """The latest motion's sweep; the profiles up to its end are dropped afterwards (live use)."""
+        number = len(self.starts)
+        if number == 0 or len(self.ends) != number:
+            raise ValueError(f"{self.source}: no complete motion to assemble")
+        start, end = self.starts[-1], self.ends[-1]
+        stamps = np.array([stamp for stamp, _ in self.profiles], dtype=np.int64)
+        sweep = self._sweep(number, start, end, stamps)
+        self.profiles = [item for item in self.profiles if item[0] > end]
+        return sweep
+
+    def _sweep(self, number: int, start: int, end: int, stamps: np.ndarray) -> ReplayedSweep:
+        where = f"{self.source}: sweep {number} ({start} to {end} ns)"
         inside = np.flatnonzero((stamps >= start) & (stamps <= end))
-        where = f"{path}: sweep {number} ({start} to {end} ns)"
         if inside.size < 2:
             raise ValueError(f"{where}: {inside.size} profile(s) within the motion")
         inside = inside[np.argsort(stamps[inside], kind="stable")]
-        _check_stream(where, stamps[inside], end, limits)
-        widths = {profiles[i][1].shape[0] for i in inside}
+        _check_stream(where, stamps[inside], end, self.limits)
+        widths = {self.profiles[i][1].shape[0] for i in inside}
         if len(widths) != 1:
             raise ValueError(f"{where}: profiles of different widths {sorted(widths)}")
-        points_m = np.stack([profiles[i][1] for i in inside])                         # (H, W, 4)
-        poses = np.stack([_sensor_pose(buffer, layout, limits, int(stamps[i]), where) for i in inside])
+        points_m = np.stack([self.profiles[i][1] for i in inside])                    # (H, W, 4)
+        poses = np.stack([_sensor_pose(self.buffer, self.layout, self.limits, int(stamps[i]), where)
+                          for i in inside])
         xyz = (np.einsum("hij,hwj->hwi", poses[:, :3, :3], points_m[..., :3] * MM_PER_M)
                + poses[:, None, :3, 3])
-        sweeps.append(ReplayedSweep(xyz, points_m[..., 3], stamps[inside], start, end))
-    return sweeps
+        return ReplayedSweep(xyz, points_m[..., 3], stamps[inside], start, end)
 
 
-def _windows(path: Path, starts: list[int], ends: list[int]) -> list[tuple[int, int]]:
+def _windows(path: str, starts: list[int], ends: list[int]) -> list[tuple[int, int]]:
     if not starts:
         raise ValueError(f"{path}: no motion in the bag (no message on the motion start topic)")
     starts, ends = sorted(starts), sorted(ends)

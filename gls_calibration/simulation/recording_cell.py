@@ -5,8 +5,10 @@ one PointCloud2 per profile in the scanner's optical frame in metres, and the fl
 reports (encoder pose, robot base -> flange) on ``/tf`` at each profile's stamp. The robot base frame
 of the recording is the simulation's scanner base frame B (see :mod:`gls_calibration.simulation.scanner`),
 so the calibration flow sees the same clouds live and on replay. What the cell itself measures is
-placed from exactly the numbers it writes (float32 metres), by the reported poses, so that a replay
-can be compared with the live run.
+placed from exactly the messages it writes (float32 metres; TF in metres and quaternions), so that a
+replay can be compared with the live run: the cell measures what a subscriber to its own streams assembles
+(:class:`~gls_calibration.bag_io.StreamAssembler`, fed every message as it is written), the same code
+a replay runs on the bag.
 """
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ import math
 
 import numpy as np
 
-from gls_calibration.bag_io import NS_PER_S, MM_PER_M, BagRecorder
+from gls_calibration.bag_io import NS_PER_S, MM_PER_M, BagRecorder, ReplayLimits, StreamAssembler
 from gls_calibration.fiducials import FiducialMeasurement
 from gls_calibration.plate_pose import PlatePose
 from gls_calibration.simulation.direct_cell import Cloud, DirectCell, _refusing
@@ -39,6 +41,8 @@ class RecordingCell(DirectCell):
         if not self.placed_by_pose:
             raise ValueError("a recording cell places profiles by the robot's pose, as a replay does")
         self.recorder = recorder
+        self.stream = StreamAssembler(recorder.layout, ReplayLimits(), "live stream")
+        recorder.tap = self.stream.add
         self.live_poses: list[PlatePose] = []
         self.live_measurements: list[FiducialMeasurement] = []
 
@@ -54,10 +58,8 @@ class RecordingCell(DirectCell):
         base_to_flange = data.reported_poses @ np.linalg.inv(SIM_FLANGE_TO_SENSOR)
         self.recorder.write_sweep(int(stamps_ns[0]), int(stamps_ns[-1]), stamps_ns, profiles_m, stamps_ns,
                                   base_to_flange)
-        points_mm = profiles_m[..., :3].astype(float) * MM_PER_M
-        xyz = (np.einsum("hij,hwj->hwi", data.reported_poses[:, :3, :3], points_mm)
-               + data.reported_poses[:, None, :3, 3])
-        return xyz, profiles_m[..., 3].astype(float)
+        sweep = _refusing(self.stream.take_last_sweep)
+        return sweep.xyz_mm, sweep.intensity
 
     async def estimate_plate_pose(self, cloud: Cloud) -> PlatePose:
         pose = await super().estimate_plate_pose(cloud)
