@@ -214,3 +214,36 @@ def test_a_failed_recording_leaves_nothing(tmp_path):
     (tmp_path / "bag").mkdir()
     with pytest.raises(ValueError, match="exists already"):
         BagRecorder(tmp_path / "bag", np.eye(4), np.eye(4))
+
+
+@pytest.mark.slow
+def test_gls_sim_cell_records_a_bag_that_replays(tmp_path, capsys):
+    from gls_calibration.cli.sim_cell import main as sim_cell_main
+
+    bag = tmp_path / "bag"
+    assert sim_cell_main(["--out", str(tmp_path / "out"), "--record", str(bag), "--grid", "3", "--no-validate",
+                          "--sweep-plan", "0+", "--measurement", "ideal"]) == 0, capsys.readouterr().err
+    assert "recorded 5 sweep(s)" in capsys.readouterr().out       # 4 plain (config/gls.yaml) and 1 marked
+    sweeps = read_sweeps(bag)
+    assert len(sweeps) == 5
+    # 200 mm sweeps (config/sim.yaml): plain at 1 mm, marked at 0.1 mm (config/gls.yaml)
+    assert [sweep.xyz_mm.shape[0] for sweep in sweeps] == [201] * 4 + [2001]
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--serve"], "not with --serve"),
+    (["--placement", "time"], "not with --placement time"),
+])
+def test_gls_sim_cell_record_refuses_bad_options(tmp_path, capsys, extra, message):
+    from gls_calibration.cli.sim_cell import main as sim_cell_main
+
+    with pytest.raises(SystemExit) as stopped:
+        sim_cell_main(["--out", str(tmp_path / "out"), "--record", str(tmp_path / "bag")] + extra)
+    assert stopped.value.code == 2
+    assert message in capsys.readouterr().err
+    (tmp_path / "bag").mkdir()
+    with pytest.raises(SystemExit) as stopped:
+        sim_cell_main(["--out", str(tmp_path / "out"), "--record", str(tmp_path / "bag")])
+    assert stopped.value.code == 2
+    assert "exists already" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
