@@ -12,6 +12,9 @@ pose, measures the fiducials with the same core function as the fiducial_measure
   detections drawn;
 - ``summary.json``: counts, median/max uncertainty, coverage, plate pose and time.
 
+With ``--bag BAG`` (a rosbag2 recording, see :mod:`gls_calibration.bag_io`) every sweep is assembled
+in the base frame and measured the same way, into ``DIR/sweep_NN/``, with ``DIR/sweeps.json``.
+
 Exit 0 on success (also when no fiducial is found), 2 on bad input (unreadable file, missing or
 mismatched arrays, no plane, 1 to 3 fiducials found: too few to use); nothing is written then.
 """
