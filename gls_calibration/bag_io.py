@@ -262,12 +262,23 @@ def _messages(reader: Reader, path: Path, topics: Sequence[str]) -> Iterator[tup
 
 def read_sweeps(path: str | Path, layout: BagLayout = BagLayout(), limits: ReplayLimits = ReplayLimits()
                 ) -> list[ReplayedSweep]:
-    """Every sweep of a bag, assembled and placed in ``layout.base_frame`` (see the module docstring).
+    """Every sweep of a bag (see :func:`read_recording`; no galvo frame needed)."""
+    return _read_path(Path(path), layout, limits)[0]
+
+
+def read_recording(path: str | Path, layout: BagLayout = BagLayout(), limits: ReplayLimits = ReplayLimits()
+                   ) -> tuple[list[ReplayedSweep], np.ndarray]:
+    """Every sweep of a bag, assembled and placed in ``layout.base_frame`` (see the module docstring), and
+    the pose of ``layout.gls_frame`` in that frame (4x4, mm) at the first motion's start.
 
     ValueError (naming the problem) for an unreadable bag, a missing topic or frame, a motion without
     its end, a profile without a recent enough pose, a stream that stops mid-sweep, a cloud not in metres.
     """
-    path = Path(path)
+    sweeps, buffer = _read_path(Path(path), layout, limits)
+    return sweeps, _pose_at(buffer, layout.base_frame, layout.gls_frame, sweeps[0].start_ns, limits, str(path))
+
+
+def _read_path(path: Path, layout: BagLayout, limits: ReplayLimits):
     reader = _open(path)
     try:
         return _read(reader, path, layout, limits)
@@ -275,7 +286,7 @@ def read_sweeps(path: str | Path, layout: BagLayout = BagLayout(), limits: Repla
         reader.close()
 
 
-def _read(reader: Reader, path: Path, layout: BagLayout, limits: ReplayLimits) -> list[ReplayedSweep]:
+def _read(reader: Reader, path: Path, layout: BagLayout, limits: ReplayLimits):
     topics = {c.topic: c.msgtype for c in reader.connections}
     assembler = StreamAssembler(layout, limits, str(path))
     for topic, msgtype in assembler.topics().items():
@@ -285,7 +296,7 @@ def _read(reader: Reader, path: Path, layout: BagLayout, limits: ReplayLimits) -
             raise ValueError(f"{path}: topic {topic} carries {topics[topic]}, not {msgtype}")
     for topic, _, message in _messages(reader, path, list(assembler.topics())):
         assembler.add(topic, message)
-    return assembler.sweeps()
+    return assembler.sweeps(), assembler.buffer
 
 
 class StreamAssembler:
@@ -404,5 +415,10 @@ def _add_transform(buffer, transform, static: bool) -> None:
 
 
 def _sensor_pose(buffer, layout: BagLayout, limits: ReplayLimits, stamp_ns: int, where: str) -> np.ndarray:
-    return buffer.lookup(layout.base_frame, layout.sensor_frame, stamp_ns,
-                         max_age_ns=int(round(limits.max_pose_age_s * NS_PER_S)), where=where)
+    return _pose_at(buffer, layout.base_frame, layout.sensor_frame, stamp_ns, limits, where)
+
+
+def _pose_at(buffer, target: str, source: str, stamp_ns: int, limits: ReplayLimits, where: str) -> np.ndarray:
+    """Pose of ``source`` in ``target`` (4x4, mm) at ``stamp_ns``; ValueError naming a missing frame or pose."""
+    return buffer.lookup(target, source, stamp_ns, max_age_ns=int(round(limits.max_pose_age_s * NS_PER_S)),
+                         where=where)

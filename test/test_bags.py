@@ -247,3 +247,25 @@ def test_gls_sim_cell_record_refuses_bad_options(tmp_path, capsys, extra, messag
     assert stopped.value.code == 2
     assert "exists already" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_gls_train_bag_reproduces_the_recorded_calibration(recorded, tmp_path, capsys):
+    from gls_calibration.cli.train import main as train_main
+
+    cell, bag = recorded
+    out = tmp_path / "replayed.yaml"
+    arguments = ["--bag", str(bag), "--out", str(out), "--grid", str(GRID), "--grid-size", str(GRID_SIZE_MM),
+                 "--sweep-plan", "0+", "--plain-sweeps", str(PLAIN_SWEEPS), "--force"]
+    assert train_main(arguments) == 0, capsys.readouterr().err
+    (live,) = cell.store.history()
+
+    def content(path):
+        return [line for line in path.read_text().splitlines() if not line.startswith("created_utc:")]
+    assert content(out) == content(live)          # the same calibration, number for number
+    report = tmp_path / "replayed.yaml.report"
+    assert {"report.md", "summary.json", "training.csv", "fiducials.csv"} <= {p.name for p in report.iterdir()}
+    # a plate takes 3 sweeps (2 plain, 1 marked): with 3 plain sweeps the bag does not hold whole plates
+    again = tmp_path / "again.yaml"
+    assert train_main(arguments[:2] + ["--out", str(again)] + arguments[4:10] + ["--plain-sweeps", "3"]) == 2
+    assert "a plate takes 4 (3 plain and 1 marked)" in capsys.readouterr().err
+    assert not again.exists() and not (tmp_path / "again.yaml.report").exists()

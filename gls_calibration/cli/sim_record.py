@@ -24,12 +24,21 @@ from gls_calibration.simulation.reference_plate import calibration_plan
 from gls_calibration.simulation.world import SimulatedCell
 
 
+def _grid_value(key: str, default):
+    def parse(document):
+        grid = parameters_block(document).get("grid") or {}
+        return grid.get(key, default)
+    return read_config_file(config_path("gls.yaml"), "parameter file", parse)
+
+
 def grid_size_mm() -> float:
     """``grid.size_mm`` of config/gls.yaml (the procedure's default when the file leaves it out)."""
-    def parse(document) -> float:
-        grid = parameters_block(document).get("grid") or {}
-        return float(grid.get("size_mm", ProcedureSettings.grid_size_mm))
-    return read_config_file(config_path("gls.yaml"), "parameter file", parse)
+    return float(_grid_value("size_mm", ProcedureSettings.grid_size_mm))
+
+
+def grid_per_side() -> int:
+    """``grid.per_side`` of config/gls.yaml (the procedure's default when the file leaves it out)."""
+    return int(_grid_value("per_side", ProcedureSettings.grid_per_side))
 
 
 def run_recording(args: argparse.Namespace) -> int:
