@@ -184,17 +184,27 @@ class BagRecorder:
                 transform_msg(layout.flange_frame, layout.sensor_frame, flange_to_sensor, start_ns),
                 transform_msg(layout.base_frame, layout.gls_frame, base_to_gls, start_ns)]))
         self._write(layout.motion_start_topic, start_ns, _header(start_ns, layout.base_frame))
+        self.write_stream(profile_stamps_ns, profiles_m, flange_stamps_ns, base_to_flange_mm)
+        self._write(layout.motion_end_topic, end_ns, _header(end_ns, layout.base_frame))
+        self.clock_ns = max(self.clock_ns, int(end_ns))
+
+    def write_stream(self, profile_stamps_ns: Sequence[int], profiles_m: np.ndarray, flange_stamps_ns: Sequence[int],
+                     base_to_flange_mm: np.ndarray) -> None:
+        """Profiles (H, W, 4: x, y, z in m, intensity) and flange poses (N, 4, 4, mm), in time order, poses
+        first at equal stamps; outside a motion they are what a scanner streams while the robot is not
+        sweeping."""
+        layout = self.layout
         events = sorted([(int(t), 0, i) for i, t in enumerate(flange_stamps_ns)]
                         + [(int(t), 1, i) for i, t in enumerate(profile_stamps_ns)])
-        for stamp, kind, index in events:     # in time order, poses first, as a live stream arrives
+        for stamp, kind, index in events:
             if kind == 0:
                 message = _TYPESTORE.types[TFMESSAGE](transforms=[transform_msg(
                     layout.base_frame, layout.flange_frame, base_to_flange_mm[index], stamp)])
                 self._write(layout.tf_topic, stamp, message)
             else:
                 self._write(layout.scan_topic, stamp, profile_msg(profiles_m[index], layout.sensor_frame, stamp))
-        self._write(layout.motion_end_topic, end_ns, _header(end_ns, layout.base_frame))
-        self.clock_ns = max(self.clock_ns, int(end_ns))
+        if len(events):
+            self.clock_ns = max(self.clock_ns, events[-1][0])
 
 
 # --------------------------------------------------------------------------------------------- reading

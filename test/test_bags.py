@@ -135,7 +135,7 @@ PERIOD_NS = 10_000_000          # a 100 Hz scanner
 START_NS = 1_000 * 1_000_000_000
 
 
-def _synthetic_bag(path, *, profiles_scale=1.0, drop_profiles=(), flange_every=1, motions=1, end=True):
+def _synthetic_bag(path, *, profiles_scale=1.0, drop_profiles=(), flange_every=1, motions=1, end=True, stray=0):
     """A bag of ``motions`` short sweeps over a flat plate 0.3 m below the sensor, written with BagRecorder."""
     x = np.linspace(-0.02, 0.02, WIDTH)
     profiles = np.zeros((ROWS, WIDTH, 4))
@@ -153,6 +153,9 @@ def _synthetic_bag(path, *, profiles_scale=1.0, drop_profiles=(), flange_every=1
             every = sorted(set(range(0, ROWS, flange_every)) | {ROWS - 1})
             recorder.write_sweep(int(stamps[0]), int(stamps[-1]), stamps[keep], profiles[keep],
                                  stamps[every], flange[every])
+            if stray:    # the scanner keeps streaming after the motion, the robot keeps reporting
+                after = stamps[-1] + PERIOD_NS * np.arange(1, stray + 1)
+                recorder.write_stream(after, profiles[:stray] + 0.01, after, flange[-1:].repeat(stray, axis=0))
     if not end:      # the recording was cut before the last motion's end: delete that message
         db = next(path.glob("*.db3"))
         with sqlite3.connect(db) as connection:
@@ -163,8 +166,8 @@ def _synthetic_bag(path, *, profiles_scale=1.0, drop_profiles=(), flange_every=1
 
 
 def test_a_synthetic_bag_is_placed_through_the_chain(tmp_path):
-    sweeps = read_sweeps(_synthetic_bag(tmp_path / "bag", motions=2, flange_every=3))
-    assert len(sweeps) == 2
+    sweeps = read_sweeps(_synthetic_bag(tmp_path / "bag", motions=2, flange_every=3, stray=5))
+    assert len(sweeps) == 2     # the profiles streamed between the motions belong to neither
     xyz = sweeps[0].xyz_mm
     assert xyz.shape == (ROWS, WIDTH, 3)
     # flange at y = 0.1 mm per row, sensor 100 mm below it along z, plate 300 mm further: exact positions

@@ -26,6 +26,7 @@ SIM_FLANGE_TO_SENSOR = pose_matrix([40.0, 0.0, 180.0], [0.0, 0.0, math.pi / 2])
 """The simulated hand-eye mounting (scanner optical frame -> flange, mm): 180 mm below the flange,
 40 mm off its axis, turned a quarter turn, so that replay exercises a real chain."""
 SWEEP_GAP_NS = NS_PER_S       # the robot's time between two sweeps (repositioning), nothing streamed
+STREAM_AFTER_PROFILES = 5     # profiles the scanner streams after each motion's end (outside the sweep)
 FIRST_STAMP_NS = 1_700_000_000 * NS_PER_S    # a fixed epoch, so that recordings are reproducible
 
 
@@ -58,6 +59,11 @@ class RecordingCell(DirectCell):
         base_to_flange = data.reported_poses @ np.linalg.inv(SIM_FLANGE_TO_SENSOR)
         self.recorder.write_sweep(int(stamps_ns[0]), int(stamps_ns[-1]), stamps_ns, profiles_m, stamps_ns,
                                   base_to_flange)
+        # the scanner keeps streaming for a moment after the robot stopped: not part of the sweep
+        period_ns = int(stamps_ns[1] - stamps_ns[0]) if len(stamps_ns) > 1 else SWEEP_GAP_NS // 10
+        after = int(stamps_ns[-1]) + period_ns * np.arange(1, STREAM_AFTER_PROFILES + 1)
+        self.recorder.write_stream(after, np.repeat(profiles_m[-1:], after.size, axis=0), after,
+                                   np.repeat(base_to_flange[-1:], after.size, axis=0))
         sweep = _refusing(self.stream.take_last_sweep)
         return sweep.xyz_mm, sweep.intensity
 
