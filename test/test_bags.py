@@ -178,9 +178,9 @@ def test_a_synthetic_bag_is_placed_through_the_chain(tmp_path):
 
 @pytest.mark.parametrize("build, layout, limits, message", [
     (dict(), BagLayout(scan_topic="/laser"), ReplayLimits(), "topic /laser is not in the bag"),
-    (dict(), BagLayout(base_frame="world"), ReplayLimits(), "no transform from scanner_optical to world"),
+    (dict(), BagLayout(base_frame="world"), ReplayLimits(), "frame world is not in the transform tree"),
     (dict(flange_every=10), BagLayout(), ReplayLimits(max_pose_age_s=0.05),
-     "older than the profile"),
+     r"the newest pose of flange in robot_base is 0.06 s older than 1000060000000 ns \(limit 0.05 s\)"),
     (dict(drop_profiles=range(10, 20)), BagLayout(), ReplayLimits(), "the profile stream stops for 0.11 s"),
     (dict(drop_profiles=range(20, 30)), BagLayout(), ReplayLimits(), "before the motion ends"),
     (dict(profiles_scale=1000.0), BagLayout(), ReplayLimits(), "the cloud is not in metres"),
@@ -272,3 +272,35 @@ def test_gls_train_bag_reproduces_the_recorded_calibration(recorded, tmp_path, c
     assert train_main(arguments[:2] + ["--out", str(again)] + arguments[4:10] + ["--plain-sweeps", "3"]) == 2
     assert "a plate takes 4 (3 plain and 1 marked)" in capsys.readouterr().err
     assert not again.exists() and not (tmp_path / "again.yaml.report").exists()
+
+
+def test_the_tf_buffer_interpolates_and_names_what_is_missing():
+    from gls_calibration.tf_buffer import TfBuffer
+
+    buffer = TfBuffer()
+    buffer.set_transform("base", "flange", 0, pose_matrix([0.0, 0.0, 0.0], [0.0, 0.0, 0.0]))
+    buffer.set_transform("base", "flange", 100, pose_matrix([10.0, 20.0, 0.0], [0.0, 0.0, np.pi / 2]))
+    buffer.set_transform("flange", "sensor", 0, pose_matrix([1.0, 0.0, 0.0], [0.0, 0.0, 0.0]), static=True)
+    buffer.set_transform("base", "gls", 0, pose_matrix([0.0, 0.0, 5.0], [0.0, 0.0, 0.0]), static=True)
+    # a quarter of the way: translation (2.5, 5, 0), rotation 22.5 deg about z; the sensor 1 mm along x of it
+    angle = np.pi / 8
+    expected = pose_matrix([2.5 + np.cos(angle), 5.0 + np.sin(angle), 0.0], [0.0, 0.0, angle])
+    np.testing.assert_allclose(buffer.lookup("base", "sensor", 25, max_age_ns=100), expected, atol=1e-12)
+    # between two branches of the tree: gls -> base -> flange -> sensor
+    in_gls = buffer.lookup("gls", "sensor", 25, max_age_ns=100)
+    np.testing.assert_allclose(in_gls[:3, 3], expected[:3, 3] - [0.0, 0.0, 5.0], atol=1e-12)
+    with pytest.raises(ValueError, match=r"is 2.5e-08 s older than 25 ns \(limit 1e-08 s\)"):
+        buffer.lookup("base", "sensor", 25, max_age_ns=10)
+    with pytest.raises(ValueError, match="no pose of flange in base after 150 ns"):
+        buffer.lookup("base", "sensor", 150, max_age_ns=100)
+    with pytest.raises(ValueError, match="frame camera is not in the transform tree"):
+        buffer.lookup("base", "camera", 25, max_age_ns=100)
+    with pytest.raises(ValueError, match="frame sensor has two parents"):
+        buffer.set_transform("gls", "sensor", 0, np.eye(4), static=True)
+    bent = np.eye(4)
+    bent[0, 0] = 1.01
+    with pytest.raises(ValueError, match="does not hold a proper rotation"):
+        buffer.set_transform("base", "flange", 200, bent)
+    buffer.set_transform("world", "table", 0, np.eye(4), static=True)
+    with pytest.raises(ValueError, match="no transform from table to base"):
+        buffer.lookup("base", "table", 25, max_age_ns=100)
