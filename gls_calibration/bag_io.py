@@ -19,7 +19,6 @@ Every problem of the input is a ``ValueError`` naming it; nothing is guessed.
 from __future__ import annotations
 
 from dataclasses import dataclass
-import math
 from pathlib import Path
 import shutil
 import tempfile

@@ -20,7 +20,6 @@ from gls_calibration.head_config import parameters_block
 from gls_calibration.persistence import CalibrationStore
 from gls_calibration.procedure import CalibrationError, ProcedureSettings, calibrate
 from gls_calibration.simulation.recording_cell import SIM_FLANGE_TO_SENSOR, RecordingCell, base_to_gls
-from gls_calibration.simulation.reference_plate import calibration_plan
 from gls_calibration.simulation.world import SimulatedCell
 
 

@@ -15,7 +15,6 @@ import asyncio
 from dataclasses import replace
 import math
 from pathlib import Path
-import shutil
 import sys
 import tempfile
 
@@ -65,9 +64,8 @@ def train_from_bag(args: argparse.Namespace, settings: ProcedureSettings) -> int
         if report_dir.exists():
             raise ValueError(f"{report_dir}: exists already (the report folder of --out)")
         geometry, _ = load_head_config(args.head)
-        layout = BagLayout(**{name: value for name, value in (("scan_topic", args.scan_topic),
-                                                               ("base_frame", args.base_frame),
-                                                               ("sensor_frame", args.sensor_frame)) if value is not None})
+        given = {"scan_topic": args.scan_topic, "base_frame": args.base_frame, "sensor_frame": args.sensor_frame}
+        layout = BagLayout(**{name: value for name, value in given.items() if value is not None})
         sweeps, gls_in_base = read_recording(args.bag, layout)
         scanner_to_gls = np.linalg.inv(gls_in_base)
         settings = replace(settings, scanner_to_gls=RigidTransform(scanner_to_gls[:3, :3], scanner_to_gls[:3, 3]),
