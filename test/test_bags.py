@@ -1,6 +1,7 @@
 """Record a simulated calibration to a rosbag2 bag and replay it (bag_io, RecordingCell, gls-measure --bag)."""
 from __future__ import annotations
 
+import argparse
 import asyncio
 import dataclasses
 import sqlite3
@@ -13,6 +14,7 @@ from rosbags.typesys import Stores, get_typestore
 from gls_calibration import procedure
 from gls_calibration.bag_io import BagLayout, BagRecorder, ReplayLimits, read_sweeps
 from gls_calibration.calibration_record import build_record, save_candidate
+from gls_calibration.cli.measure import csv_text, measure_cloud
 from gls_calibration.cli.measure import main as measure_main
 from gls_calibration.fiducials import measure_fiducials
 from gls_calibration.persistence import CalibrationStore
@@ -20,10 +22,13 @@ from gls_calibration.plate_pose import estimate_plate_pose, mean_plate_pose
 from gls_calibration.simulation.recording_cell import SIM_FLANGE_TO_SENSOR, RecordingCell, base_to_gls
 from gls_calibration.simulation.scanner import pose_matrix
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
+from gls_calibration.targets import RING_RADII_MM
+from gls_calibration.sweep_plan import parse_plan
 
 GRID = 3
 GRID_SIZE_MM = 80.0
 PLAIN_SWEEPS = 2
+PLAN = "0+,90-"      # forward, then reversed with the sensor turned: the chain's rotations matter
 
 
 def _small_config(preset: str):
@@ -33,12 +38,12 @@ def _small_config(preset: str):
 
 
 def _record(folder, preset: str, storage: str):
-    """A one-iteration calibration of a 3x3 grid on the direct cell, recorded into ``folder / 'bag'``."""
+    """A one-iteration calibration of a 3x3 grid (plan ``PLAN``) on the direct cell, recorded into ``folder / 'bag'``."""
     config = _small_config(preset)
     with BagRecorder(folder / "bag", SIM_FLANGE_TO_SENSOR, base_to_gls(config), storage=storage) as recorder:
         cell = RecordingCell(SimulatedCell(config), CalibrationStore(folder / "store"), recorder=recorder)
         settings = cell.settings(grid_per_side=GRID, grid_size_mm=GRID_SIZE_MM, plain_sweeps=PLAIN_SWEEPS,
-                                 plain_sweep_step_mm=2.0)
+                                 plain_sweep_step_mm=2.0, sweep_plan=parse_plan(PLAN))
 
         def save(runs, models):
             return save_candidate(cell.store, build_record(config.geometry, settings, runs, models, []),
@@ -111,13 +116,12 @@ def test_gls_measure_bag_measures_every_sweep(recorded, tmp_path, capsys):
                          "--out", str(out)]) == 0, capsys.readouterr().err
     folders = sorted(path.name for path in out.iterdir() if path.is_dir())
     assert folders == [f"sweep_{n:02d}" for n in range(1, cell.sweeps + 1)]
-    marked = out / folders[-1] / "centres.csv"
-    rows = np.loadtxt(marked, delimiter=",", skiprows=1, usecols=(0, 1, 2))
-    assert rows.shape == (GRID ** 2, 3)
-    live = np.asarray(cell.live_measurements[-1].centres)
-    # its own plate pose (from the marked sweep itself) moves a centre by well under a micrometre
-    distance = np.min(np.linalg.norm(rows[:, None, :2] - live[None, :, :2], axis=2), axis=1)
-    assert np.max(distance) < 1e-3
+    # each sweep measured as `gls-measure --cloud` measures one cloud (its own plate pose, polarity found)
+    arguments = argparse.Namespace(grid=GRID, rings=RING_RADII_MM, pixel=0.1)
+    for folder, sweep in zip(folders, read_sweeps(bag)):
+        _, measurement, _ = measure_cloud(sweep.xyz_mm, sweep.intensity, arguments)
+        assert (out / folder / "centres.csv").read_text() == csv_text(measurement)
+    assert len((out / folders[-1] / "centres.csv").read_text().splitlines()) == 1 + GRID ** 2
     assert (out / "sweeps.json").is_file()
 
 
@@ -258,7 +262,7 @@ def test_gls_train_bag_reproduces_the_recorded_calibration(recorded, tmp_path, c
     cell, bag = recorded
     out = tmp_path / "replayed.yaml"
     arguments = ["--bag", str(bag), "--out", str(out), "--grid", str(GRID), "--grid-size", str(GRID_SIZE_MM),
-                 "--sweep-plan", "0+", "--plain-sweeps", str(PLAIN_SWEEPS), "--force"]
+                 "--sweep-plan", PLAN, "--plain-sweeps", str(PLAIN_SWEEPS), "--force"]
     assert train_main(arguments) == 0, capsys.readouterr().err
     (live,) = cell.store.history()
 
@@ -267,10 +271,10 @@ def test_gls_train_bag_reproduces_the_recorded_calibration(recorded, tmp_path, c
     assert content(out) == content(live)          # the same calibration, number for number
     report = tmp_path / "replayed.yaml.report"
     assert {"report.md", "summary.json", "training.csv", "fiducials.csv"} <= {p.name for p in report.iterdir()}
-    # a plate takes 3 sweeps (2 plain, 1 marked): with 3 plain sweeps the bag does not hold whole plates
+    # a plate takes 4 sweeps (2 plain, 2 marked): with 3 plain sweeps the bag does not hold whole plates
     again = tmp_path / "again.yaml"
     assert train_main(arguments[:2] + ["--out", str(again)] + arguments[4:10] + ["--plain-sweeps", "3"]) == 2
-    assert "a plate takes 4 (3 plain and 1 marked)" in capsys.readouterr().err
+    assert "a plate takes 5 (3 plain and 2 marked)" in capsys.readouterr().err
     assert not again.exists() and not (tmp_path / "again.yaml.report").exists()
 
 
