@@ -17,6 +17,10 @@ it, the unit in which the plate's extent holds the grid (``--size`` plus its rin
 exceeding it more than ``MAX_EXTENT_RATIO`` times (``cloud_units``). Outputs are in mm either way.
 Without ``--pixel`` the raster pixel of an unorganized cloud comes from its own point spacing.
 
+With ``--bag BAG`` (a rosbag2 recording, see :mod:`gls_calibration.bag_io`) every sweep is assembled
+in the base frame and measured the same way, into ``DIR/sweep_NN/`` (NN the motion's number in the
+bag; stand-stills, one line of profiles each, are skipped), with ``DIR/sweeps.json``.
+
 Exit 0 on success (also when no fiducial is found), 2 on bad input (unreadable file, missing or
 mismatched arrays, a cloud whose extent cannot hold the grid, no plane, 1 to 3 fiducials found: too
 few to use); nothing is written then.
@@ -33,6 +37,7 @@ import time
 import cv2
 import numpy as np
 
+from gls_calibration.bag_io import BagLayout, read_sweeps
 from gls_calibration.fiducials import STATUS_OK, FiducialMeasurement, measure_fiducials
 from gls_calibration.persistence import atomic_write_bytes, atomic_write_text
 from gls_calibration.plate_pose import PlatePose, estimate_plate_pose
@@ -215,7 +220,8 @@ def detections_png(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose, meas
     return encoded.tobytes()
 
 
-def summary(measurement: FiducialMeasurement, pose: PlatePose, args, seconds: float, units: str) -> dict:
+def summary(measurement: FiducialMeasurement, pose: PlatePose, args, seconds: float, source: str,
+            units: str) -> dict:
     """summary.json content."""
     sigma_um = np.asarray(measurement.sigma_xy_mm).reshape(-1, 2) * 1000
 
@@ -224,7 +230,7 @@ def summary(measurement: FiducialMeasurement, pose: PlatePose, args, seconds: fl
 
     expected = args.grid**2
     return {
-        "cloud": str(args.cloud),
+        "cloud": source,
         "grid": {"per_side": args.grid, "size_mm": args.size, "expected": expected},
         "rings_mm": list(args.rings),
         "candidates": len(measurement.centres) + int(measurement.rejected),
@@ -247,10 +253,57 @@ def summary(measurement: FiducialMeasurement, pose: PlatePose, args, seconds: fl
     }
 
 
+def measure_cloud(xyz: np.ndarray, intensity: np.ndarray, args) -> tuple[PlatePose, FiducialMeasurement, float]:
+    """Plate pose and fiducials of one cloud (mm) as the tool measures them, and the seconds it took;
+    ValueError for no plane or 1 to 3 fiducials (too few to use)."""
+    start = time.perf_counter()
+    pose = estimate_plate_pose(xyz)
+    measurement = measure_fiducials(xyz, intensity, pose, ring_radii_mm=args.rings, pixel_size_mm=args.pixel,
+                                    expected_count=args.grid**2, marks_darker=None, allow_empty=True)
+    seconds = time.perf_counter() - start
+    found = len(measurement.centres)
+    if 0 < found < MIN_FOUND:
+        raise ValueError(f"only {found} fiducial(s) found; at least {MIN_FOUND} are needed "
+                         f"(grid {args.grid}x{args.grid})")
+    return pose, measurement, seconds
+
+
+def _outputs(xyz, intensity, args, source: str, units: str) -> tuple[dict[str, str], bytes, FiducialMeasurement,
+                                                                     float]:
+    """The texts and picture of one cloud's results (``xyz`` in mm, read from ``units``; nothing written)."""
+    pose, measurement, seconds = measure_cloud(xyz, intensity, args)
+    texts = {"centres.csv": csv_text(measurement),
+             "summary.json": json.dumps(summary(measurement, pose, args, seconds, source, units), indent=2) + "\n"}
+    picture = detections_png(xyz, intensity, pose, measurement, max(measurement.pixel_pitch_mm), max(args.rings))
+    return texts, picture, measurement, seconds
+
+
+def _bag_outputs(args) -> dict[str, tuple[dict[str, str], bytes, FiducialMeasurement, float]]:
+    """Results of every sweep of ``args.bag`` by sub-folder name (``sweep_01``, ...)."""
+    layout = BagLayout(**{name: value for name, value in (("scan_topic", args.scan_topic),
+                                                           ("base_frame", args.base_frame),
+                                                           ("sensor_frame", args.sensor_frame)) if value is not None})
+    sweeps = read_sweeps(args.bag, layout)
+    width = max(2, len(str(len(sweeps))))
+    results = {}
+    for number, sweep in enumerate(sweeps, 1):
+        try:
+            if sweep.standstill:    # profiles of one line (the plate height at marking): no fiducials to measure
+                continue
+            # bag_io reads the standard clouds in metres (REP 103) and gives millimetres
+            results[f"sweep_{number:0{width}d}"] = _outputs(sweep.xyz_mm, sweep.intensity, args,
+                                                            f"{args.bag} sweep {number}", "m")
+        except ValueError as error:
+            raise ValueError(f"{args.bag}: sweep {number}: {error}") from None
+    return results
+
+
 def main(argv: list[str] | None = None) -> int:
     """Exit 0 on success, 2 on bad input (nothing written then)."""
     parser = argparse.ArgumentParser(prog="gls-measure", description=__doc__.splitlines()[0])
-    parser.add_argument("--cloud", type=Path, required=True, help=".npz (x, y, z, intensity), .pcd or .ply")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--cloud", type=Path, help=".npz (x, y, z, intensity), .pcd or .ply")
+    source.add_argument("--bag", type=Path, help="rosbag2 folder (SQLite3 or MCAP): every sweep measured")
     parser.add_argument("--grid", type=_positive_int, required=True, help="fiducials per side of the grid")
     parser.add_argument("--size", type=_positive_float, required=True, help="grid span, first to last centre (mm)")
     parser.add_argument("--out", type=Path, required=True, help="output directory (created)")
@@ -260,42 +313,52 @@ def main(argv: list[str] | None = None) -> int:
                         help="units of the cloud's coordinates (default: found from the plate's extent and --size)")
     parser.add_argument("--rings", type=_rings, default=RING_RADII_MM,
                         help=f"ring radii in mm (default {','.join(f'{r:g}' for r in RING_RADII_MM)})")
+    defaults = BagLayout()
+    parser.add_argument("--scan-topic", help=f"with --bag: the profiles' topic (default {defaults.scan_topic})")
+    parser.add_argument("--base-frame", help=f"with --bag: the frame the sweeps are placed in "
+                        f"(default {defaults.base_frame})")
+    parser.add_argument("--sensor-frame", help=f"with --bag: the profiles' frame (default {defaults.sensor_frame})")
     args = parser.parse_args(argv)
+    if args.cloud is not None and any(v is not None for v in (args.scan_topic, args.base_frame, args.sensor_frame)):
+        parser.error("--scan-topic, --base-frame and --sensor-frame go with --bag")
+    if args.bag is not None and args.units is not None:
+        parser.error("--units goes with --cloud (a bag's clouds are in metres, REP 103)")
     try:
         if args.out.exists() and not args.out.is_dir():
             raise ValueError(f"{args.out}: exists and is not a directory")
-        xyz, intensity = load_cloud(args.cloud)
-        units = cloud_units(plate_extent(xyz), args.units, args.grid, args.size, max(args.rings))
-        xyz = xyz * MM_PER_UNIT[units]
-        start = time.perf_counter()
-        pose = estimate_plate_pose(xyz)
-        measurement = measure_fiducials(xyz, intensity, pose, ring_radii_mm=args.rings, pixel_size_mm=args.pixel,
-                                        expected_count=args.grid**2, marks_darker=None, allow_empty=True)
-        seconds = time.perf_counter() - start
-        found = len(measurement.centres)
-        if 0 < found < MIN_FOUND:
-            raise ValueError(f"only {found} fiducial(s) found; at least {MIN_FOUND} are needed "
-                             f"(grid {args.grid}x{args.grid})")
         # Everything is prepared before the first file is written.
-        texts = {"centres.csv": csv_text(measurement),
-                 "summary.json": json.dumps(summary(measurement, pose, args, seconds, units), indent=2) + "\n"}
-        picture = detections_png(xyz, intensity, pose, measurement, max(measurement.pixel_pitch_mm), max(args.rings))
+        if args.bag is not None:
+            results = _bag_outputs(args)
+            overview = {"bag": str(args.bag), "sweeps": {name: {"accepted": len(result[2].centres),
+                                                                 "rejected": int(result[2].rejected)}
+                                                          for name, result in results.items()}}
+        else:
+            xyz, intensity = load_cloud(args.cloud)
+            units = cloud_units(plate_extent(xyz), args.units, args.grid, args.size, max(args.rings))
+            results = {"": _outputs(xyz * MM_PER_UNIT[units], intensity, args, str(args.cloud), units)}
     except ValueError as error:
         print(f"gls-measure: {error}", file=sys.stderr)
         return 2
     try:
         args.out.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(args.out / "detections.png", picture)
-        for name, text in texts.items():
-            atomic_write_text(args.out / name, text)
+        for folder, (texts, picture, _, _) in results.items():
+            (args.out / folder).mkdir(exist_ok=True)
+            atomic_write_bytes(args.out / folder / "detections.png", picture)
+            for name, text in texts.items():
+                atomic_write_text(args.out / folder / name, text)
+        if args.bag is not None:
+            atomic_write_text(args.out / "sweeps.json", json.dumps(overview, indent=2) + "\n")
     except OSError as error:
         print(f"gls-measure: cannot write to {args.out}: {error}", file=sys.stderr)
         return 2
-    if measurement.extra:
-        print(f"gls-measure: warning: {found} fiducials accepted, more than the {args.grid**2} of a "
-              f"{args.grid}x{args.grid} grid: check --grid", file=sys.stderr)
-    print(f"{found} of {args.grid**2} fiducials accepted, {measurement.rejected} candidate(s) rejected "
-          f"in {seconds:.2f} s; written to {args.out}")
+    for folder, (_, _, measurement, seconds) in results.items():
+        found = len(measurement.centres)
+        where = f"{folder}: " if folder else ""
+        if measurement.extra:
+            print(f"gls-measure: warning: {where}{found} fiducials accepted, more than the {args.grid**2} of a "
+                  f"{args.grid}x{args.grid} grid: check --grid", file=sys.stderr)
+        print(f"{where}{found} of {args.grid**2} fiducials accepted, {measurement.rejected} candidate(s) rejected "
+              f"in {seconds:.2f} s; written to {args.out / folder}")
     return 0
 
 

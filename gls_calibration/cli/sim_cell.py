@@ -6,6 +6,8 @@ With ``--serve`` it only starts the nodes and serves until interrupted, so that 
 the sim configuration's ``measurement.preset``, ``paper_like`` in the package's file); its name goes
 into summary.json (``measurement_preset``) and the report. ``--reference-plate`` runs the simulated
 reference-plate check instead of a calibration (no ROS) and writes ``DIR/summary.json``.
+``--record BAG`` runs one calibration in-process on the direct cell and records it as a rosbag2 bag
+(:mod:`gls_calibration.cli.sim_record`).
 """
 from __future__ import annotations
 
@@ -166,6 +168,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                              "written to DIR/reference_check.yaml; --serve uses one only when given)")
     checks.add_argument("--no-reference-check", action="store_true",
                         help="state no accuracy: the measured figures are self-consistency only")
+    parser.add_argument("--record", type=Path, default=None, metavar="DIR",
+                        help="run the calibration in-process on the direct simulated cell (no ROS graph) and "
+                             "record every sweep (profiles, /tf, /tf_static, motion stamps) as a rosbag2 bag "
+                             "in DIR (a new folder); replay with gls-measure --bag DIR")
+    parser.add_argument("--record-storage", choices=("sqlite3", "mcap"), default="sqlite3",
+                        help="storage of the recorded bag (default sqlite3)")
     parser.add_argument("--namespace", default=None,
                         help="namespace of the cell's nodes (default: 'gls' with --serve; otherwise a private "
                              "one, so that concurrent one-shot cells on the same ROS domain never meet)")
@@ -206,6 +214,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
             parse_plan(args.sweep_plan)
         except ValueError as error:
             parser.error(f"--sweep-plan: {error}")
+    if args.record is not None:
+        if args.serve or args.reference_plate:
+            parser.error("--record runs one calibration: not with --serve or --reference-plate")
+        if args.placement != "pose":
+            parser.error("--record places profiles by the robot's pose (/tf): not with --placement time")
+        if args.record.exists() or args.record.is_symlink():
+            parser.error(f"--record {args.record}: exists already; a bag is written only into a new folder")
+        if not args.record.parent.is_dir():
+            parser.error(f"--record {args.record}: no such folder {args.record.parent}")
     if args.measurement is not None and args.measurement not in PRESETS:
         parser.error(f"--measurement: unknown measurement preset {args.measurement!r}; known: {', '.join(PRESETS)}")
     try:
@@ -275,6 +292,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.reference_plate:
         return run_reference_plate(args)
+    if args.record is not None:
+        from gls_calibration.cli.sim_record import run_recording
+
+        shutil.rmtree(args.out / "calibrations", ignore_errors=True)    # a one-shot run is a new cell
+        return run_recording(args)
     if args.reference_check is None and not (args.serve or args.no_reference_check):
         args.reference_check = measure_reference_check(args)
     # The store lives beside the report, so the summary names the calibration file where it stays.

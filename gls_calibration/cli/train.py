@@ -167,14 +167,49 @@ def train_file(measured_csv: Path, head_file: Path, config: Path, physics_first:
 def main(argv: Optional[list[str]] = None) -> int:
     """Exit 0 on success, 2 on bad input or an unwritable output (nothing written)."""
     parser = argparse.ArgumentParser(prog="gls-train", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--measured", type=Path, required=True, help="CSV x_cmd,y_cmd,x_meas,y_meas (mm)")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--measured", type=Path, help="CSV x_cmd,y_cmd,x_meas,y_meas (mm)")
+    source.add_argument("--bag", type=Path, help="rosbag2 recording of a calibration: the calibrate flow run "
+                        "again from it (report in <out>.report/)")
     parser.add_argument("--out", type=Path, required=True, help="calibration file to write (YAML)")
     parser.add_argument("--physics-first", action="store_true", help="fit the named physical effects first")
     parser.add_argument("--head", type=Path, default=None, help="head file (default: config/head.yaml)")
     parser.add_argument("--config", type=Path, default=None, help="trainer grid search (default: config/gls.yaml)")
     parser.add_argument("--plane-z", type=float, default=None,
                         help="height the targets were commanded at (mm; default: mean z_cmd of the CSV, else 0)")
+    bag = parser.add_argument_group("with --bag")
+    bag.add_argument("--grid", type=int, default=None, help="fiducials per side (default: config/gls.yaml)")
+    bag.add_argument("--grid-size", type=float, default=None, help="grid span in mm (default: config/gls.yaml)")
+    bag.add_argument("--sweep-plan", default=None, help="passes over the marked plate (default: config/gls.yaml)")
+    bag.add_argument("--plain-sweeps", type=int, default=None, help="plain sweeps per plate (default: config/gls.yaml)")
+    bag.add_argument("--standstill-height", action=argparse.BooleanOptionalAction, default=None,
+                     help="each plate's plain sweeps are followed by stand-still profiles at the marking pose "
+                     "(default: config/gls.yaml)")
+    bag.add_argument("--validate", action="store_true", help="the bag's last plate is the validation plate")
+    bag.add_argument("--force", action="store_true", help="train even when within tolerance")
+    bag.add_argument("--scan-topic", default=None, help="the profiles' topic")
+    bag.add_argument("--base-frame", default=None, help="the robot base frame")
+    bag.add_argument("--sensor-frame", default=None, help="the profiles' frame")
     args = parser.parse_args(argv)
+    bag_only = ("grid", "grid_size", "sweep_plan", "plain_sweeps", "standstill_height", "validate", "force", "scan_topic", "base_frame",
+                "sensor_frame")
+    if args.bag is None and any(getattr(args, name) not in (None, False) for name in bag_only):
+        parser.error("--grid, --grid-size, --sweep-plan, --plain-sweeps, --standstill-height, --validate, --force and "
+                     "the topic and frame options go with --bag")
+    if args.bag is not None:
+        from gls_calibration.cli.train_bag import recording_settings, train_from_bag
+
+        if args.plane_z is not None:
+            parser.error("--plane-z goes with --measured (with --bag the plate pose gives the plane)")
+        try:
+            settings = recording_settings(args.grid, args.grid_size, args.sweep_plan, args.plain_sweeps,
+                                          args.standstill_height)
+            args.training = training_options(args.config or config_path("gls.yaml"))
+        except ValueError as error:
+            print(f"gls-train: {error}", file=sys.stderr)
+            return 2
+        args.head = args.head or default_head_config_path()
+        return train_from_bag(args, settings)
     try:
         if args.plane_z is not None and not np.isfinite(args.plane_z):
             raise ValueError(f"--plane-z must be finite, got {args.plane_z}")
