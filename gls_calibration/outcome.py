@@ -6,7 +6,7 @@ report writes it as ``summary.json`` and ``gls-sim-cell`` prints it.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 import math
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Optional
@@ -15,6 +15,7 @@ import numpy as np
 
 from gls_calibration.chain_map import NO_CHAIN_MAP
 from gls_calibration.stated_accuracy import SELF_CONSISTENCY, ChainCheck, stated_accuracy
+from gls_calibration.time_budget import StageTimes
 from gls_calibration.validation import as_points, as_positive_number
 
 if TYPE_CHECKING:  # the procedure builds outcomes from these; imported for the annotations only
@@ -130,6 +131,7 @@ class CalibrationOutcome:
     rejection: str = ""
     active_validation: Optional["PlateRun"] = None
     active_calibration: bool = False
+    stage_times: StageTimes = StageTimes()     # wall time per stage of the flow (``time_budget``)
 
 
 @dataclass(frozen=True)
@@ -188,12 +190,15 @@ class RunSummary:
     active_post_max_mm: float = math.nan
     true_active_post_rms_mm: float = math.nan
     accepted_against: str = ""
+    stage_wall_s: Mapping[str, float] = field(default_factory=dict)   # wall time per stage (time_budget)
+    last_sweep_to_result_s: float = math.nan    # end of the last marked-plate sweep to the flow's result
 
     def to_dict(self) -> dict:
         """The summary as plain values, in field order (``summary.json``)."""
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         values["iteration_rms_mm"] = list(self.iteration_rms_mm)
         values["reference_sigma_mm"] = list(self.reference_sigma_mm)
+        values["stage_wall_s"] = dict(self.stage_wall_s)
         return values
 
 
@@ -234,6 +239,7 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
         scanner_share=math.hypot(first.scanner_error_rms_mm, first.motion_error_rms_mm)
         / _full(first.metrics, "rms_abs_mm"),
         **_stated(measured_after, chain_check, first.sweep_plan, placement, first.chain_map),
+        stage_wall_s=dict(outcome.stage_times.wall_s), last_sweep_to_result_s=outcome.stage_times.last_sweep_to_result_s,
         **_kinds(outcome))
 
 

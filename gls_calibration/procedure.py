@@ -26,6 +26,7 @@ from gls_calibration.plate_pose import PlatePose, mean_plate_pose, pose_at_heigh
 from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
 from gls_calibration.separation import SeparationSettings
 from gls_calibration.sweep_plan import CellTimeModel, CombinedSweeps, SweepPass, combine_sweeps, plan_label
+from gls_calibration.time_budget import StageClock
 from gls_calibration.training import TrainedModel
 from gls_calibration.validation import as_positive_number
 
@@ -449,6 +450,8 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
     judged against that (``CalibrationOutcome.active_validation``).
     """
     began = time.monotonic()
+    clock = StageClock()
+    progress = clock.wrap(progress)
     iterations = iterations or settings.default_iterations
     training_grid = grid.grid_targets(settings.grid_per_side, settings.grid_size_mm)
     compare_active = validate and active_calibration
@@ -468,7 +471,7 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
             return CalibrationOutcome(f"deviation RMS {rms:.4f} mm is within the tolerance of "
                                       f"{settings.tolerance_rms_mm} mm: nothing trained (use force to train)",
                                       tuple(runs), None, tuple(models), None, time.monotonic() - began,
-                                      active_calibration=active_calibration)
+                                      active_calibration=active_calibration, stage_times=clock.times())
         progress("training", (iteration + 0.9) * span, f"training on {len(run.deviations)} deviations")
         models.append(await cell.train(run.measured_gls[:, :2], run.corrections))
         check_model_explains(models[-1], rms, centre_uncertainty_mm(run, settings), settings)
@@ -498,8 +501,9 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
             progress("done", 1.0, rejected)
             return CalibrationOutcome(rejected, tuple(runs), validation, tuple(models), candidate,
                                       time.monotonic() - began, rejection=rejected,
-                                      active_validation=active_validation, active_calibration=active_calibration)
+                                      active_validation=active_validation, active_calibration=active_calibration,
+                                      stage_times=clock.times())
     progress("done", 1.0, "calibration finished")
     return CalibrationOutcome("calibrated", tuple(runs), validation, tuple(models), candidate,
                               time.monotonic() - began, active_validation=active_validation,
-                              active_calibration=active_calibration)
+                              active_calibration=active_calibration, stage_times=clock.times())

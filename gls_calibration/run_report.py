@@ -52,6 +52,11 @@ def measurement_lines(summary: RunSummary) -> tuple[str, ...]:
                      f"{summary.scanner_error_rms_mm:.4f} mm RMS fixed to the scanner frame, "
                      f"{summary.motion_error_rms_mm:.4f} mm RMS of per-sweep motion "
                      f"({summary.scanner_share:.1%} of the measured deviation RMS)")
+    if summary.stage_wall_s:
+        stages = ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in summary.stage_wall_s.items())
+        last = summary.last_sweep_to_result_s
+        lines.append(f"time budget (wall, this run): {stages}; from the end of the last sweep to the result "
+                     f"{'n/a' if not np.isfinite(last) else f'{last:.1f} s'}")
     return tuple(lines)
 
 

@@ -138,6 +138,12 @@ def test_two_iterations_and_validation_leave_a_saved_inactive_candidate(tmp_path
     fractions = [fraction for _, fraction in stages]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
     assert stages[-1][0] == "done"
+    # The time budget: every stage the flow reported but the last has a wall time, and they add up to
+    # the run's duration up to what came before the first message and after the last one.
+    wall = outcome.stage_times.wall_s
+    assert set(wall) == {stage for stage, _ in stages[:-1]} and all(value >= 0.0 for value in wall.values())
+    assert sum(wall.values()) <= outcome.duration_s <= sum(wall.values()) + 1.0
+    assert 0.0 <= outcome.stage_times.last_sweep_to_result_s <= wall["measurement"] + wall["deviations"] + 1.0
 
 
 class NoPlateChanger(DirectCell):

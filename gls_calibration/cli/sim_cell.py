@@ -14,10 +14,12 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 import json
+import math
 import os
 from pathlib import Path
 import shutil
 import sys
+import time
 from typing import Optional
 
 import rclpy
@@ -352,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
             status = stop.exit_status
             return status
         stop.interrupting = True         # Ctrl-C now ends the wait for calibrate's answer
-        status = run_calibration(args, nodes[-1])
+        status = run_calibration(args, nodes[-1], threads)
         return status
     except KeyboardInterrupt:
         status = stop.exit_status
@@ -373,8 +375,9 @@ def main(argv: list[str] | None = None) -> int:
         exit_now_if_stuck(left, status)
 
 
-def run_calibration(args: argparse.Namespace, manager: CalibrationManager) -> int:
-    """Call ``calibrate`` from a client node of the cell, with a progress bar; print the summary."""
+def run_calibration(args: argparse.Namespace, manager: CalibrationManager, threads: NodeThreads) -> int:
+    """Call ``calibrate`` from a client node of the cell, with a progress bar; print the summary and
+    the time budget."""
     client_node = rclpy.create_node("sim_cell_client", namespace=manager.get_namespace(), context=manager.context)
     bar = ProgressBar(sys.stderr)
     client_node.create_subscription(CalibrationProgress, "calibration/progress", bar.update, 10)
@@ -399,11 +402,38 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager) -> in
         if truth.get("true_post_rms_mm") is not None:
             print(f"true error after (simulation ground truth): RMS {truth['true_post_rms_mm']:.4f} mm, "
                   f"max {truth['true_post_max_mm']:.4f} mm")
+        print(write_time_budget(Path(response.report_dir), truth, threads.cpu_s()))
     if not response.success:
         print(f"calibration failed: {response.message}", file=sys.stderr)
         return 1
     print(f"report: {Path(response.report_dir) / 'report.md'}")
     return 0
+
+
+def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, float]) -> str:
+    """``report_dir/time_budget.json`` (the run's cell time, wall time per stage, CPU per node; see
+    ``time_budget``) and the table printed from it. The simulated nodes' CPU (``sim_*``) is the
+    simulation's, not the pipeline's; CPU in threads a node does not own is not attributed."""
+    pipeline = {name: cpu for name, cpu in cpu_by_node.items() if not name.startswith("sim_")}
+    simulation = {name: cpu for name, cpu in cpu_by_node.items() if name.startswith("sim_")}
+    budget = {"cell_time_s": summary.get("cell_time_s"), "stage_wall_s": summary.get("stage_wall_s", {}),
+              "last_sweep_to_result_s": summary.get("last_sweep_to_result_s"),
+              "cpu_s_by_node": cpu_by_node, "compute_cpu_s": sum(pipeline.values()),
+              "simulation_cpu_s": sum(simulation.values()), "process_cpu_s": time.process_time()}
+    atomic_write_text(report_dir / "time_budget.json", json.dumps(budget, indent=2) + "\n")
+
+    def seconds(value) -> str:
+        return "n/a" if value is None or not math.isfinite(value) else f"{value:.1f} s"
+
+    stages = ", ".join(f"{stage} {seconds(value)}" for stage, value in budget["stage_wall_s"].items())
+    nodes = ", ".join(f"{name} {seconds(value)}" for name, value in sorted(pipeline.items(), key=lambda i: -i[1]))
+    return "\n".join([
+        f"time budget: cell time {seconds(budget['cell_time_s'])} (simulated robot, sweeps, marking)",
+        f"  wall by stage: {stages}",
+        f"  last sweep to result: {seconds(budget['last_sweep_to_result_s'])}",
+        f"  CPU of the pipeline {seconds(budget['compute_cpu_s'])}: {nodes}",
+        f"  CPU of the simulation {seconds(budget['simulation_cpu_s'])}; whole process "
+        f"{seconds(budget['process_cpu_s'])} (imports, reference check, DDS and library threads included)"])
 
 
 def note_measurement(report_dir: Path, preset: str) -> None:

@@ -432,6 +432,13 @@ class NodeThreads:
                     return
                 node.get_logger().error(f"a callback failed (a bug); still serving:\n{traceback.format_exc()}")
 
+    def cpu_s(self) -> dict[str, float]:
+        """CPU time (s) each node's executor thread has used so far, by node name (``time_budget``);
+        read it while the threads spin (an ended thread gives NaN)."""
+        from gls_calibration.time_budget import thread_cpu_s
+
+        return {node.get_name(): thread_cpu_s(thread) for node, thread in zip(self.nodes, self.threads)}
+
     def join(self) -> None:
         """Block until the executors stop (shutdown of the context)."""
         for thread in self.threads:

@@ -1,0 +1,85 @@
+"""Where a calibration's time goes: wall time per stage of the calibrate flow, and CPU per node.
+
+The calibrate flow reports its stage with every progress message (``procedure.Progress``:
+``sweep_plain``, ``plate_pose``, ``marking``, ``sweep_marked``, ``measurement``, ``deviations``,
+``training``, ``done``). :class:`StageClock` wraps that callback and stamps each message; a stage's
+wall time is the time from its first message to the next message of another stage, summed over the
+plates. ``last_sweep_to_result_s`` is the time from the end of the last marked-plate sweep (the
+first message after the last ``sweep_marked`` one) to the flow's result (its last message): what a
+user waits for once the cell has stopped moving, before the report is written and the calibration
+activated.
+
+CPU per node is only visible where the nodes share a process (``gls-sim-cell``): each node spins in
+a thread of its own (``nodes.base.NodeThreads``) whose CPU clock :func:`thread_cpu_s` reads. Work done
+in threads a node does not own (OpenCV's and BLAS's pools, DDS) is not attributed to it.
+
+Example
+-------
+>>> ticks = iter([0.0, 1.0, 4.0, 4.5, 6.0])
+>>> clock = StageClock(clock_s=lambda: next(ticks))
+>>> report = clock.wrap(lambda stage, part, text: None)
+>>> for stage in ("sweep_plain", "sweep_marked", "measurement", "training", "done"):
+...     report(stage, 0.0, "")
+>>> times = clock.times()
+>>> times.wall_s["sweep_marked"], times.last_sweep_to_result_s
+(3.0, 2.0)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+import threading
+import time
+from typing import Callable, Mapping
+
+SWEEP_STAGE = "sweep_marked"
+
+
+@dataclass(frozen=True)
+class StageTimes:
+    """Wall time per stage (s, in the order the stages first came) and from the last marked-plate
+    sweep to the result (s; NaN without a marked-plate sweep followed by another message)."""
+
+    wall_s: Mapping[str, float] = field(default_factory=dict)
+    last_sweep_to_result_s: float = math.nan
+
+
+class StageClock:
+    """Stamps the progress messages of one calibrate flow (``clock_s``: a monotonic clock in s)."""
+
+    def __init__(self, clock_s: Callable[[], float] = time.monotonic) -> None:
+        self._clock_s = clock_s
+        self._events: list[tuple[str, float]] = []
+        self._lock = threading.Lock()
+
+    def wrap(self, progress: Callable[[str, float, str], None]) -> Callable[[str, float, str], None]:
+        """``progress`` that first stamps each message's stage."""
+        def stamped(stage: str, fraction: float, text: str) -> None:
+            with self._lock:
+                self._events.append((stage, self._clock_s()))
+            progress(stage, fraction, text)
+        return stamped
+
+    def times(self) -> StageTimes:
+        """The stage times of the messages so far."""
+        with self._lock:
+            events = list(self._events)
+        wall: dict[str, float] = {}
+        for (stage, began), (_, ended) in zip(events, events[1:]):
+            wall[stage] = wall.get(stage, 0.0) + (ended - began)
+        sweeps = [index for index, (stage, _) in enumerate(events) if stage == SWEEP_STAGE]
+        last = math.nan
+        if sweeps and sweeps[-1] + 1 < len(events):
+            last = events[-1][1] - events[sweeps[-1] + 1][1]
+        return StageTimes(wall, last)
+
+
+def thread_cpu_s(thread: threading.Thread) -> float:
+    """CPU time (s) a running thread has used so far; NaN when it has ended or the platform cannot
+    tell (``time.pthread_getcpuclockid``)."""
+    if not thread.is_alive():    # the ident of an ended thread names no clock (pthread: undefined)
+        return math.nan
+    try:
+        return time.clock_gettime(time.pthread_getcpuclockid(thread.ident))
+    except (AttributeError, OSError, TypeError, ProcessLookupError):
+        return math.nan

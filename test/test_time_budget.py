@@ -1,0 +1,82 @@
+"""The time budget's clock: wall time per stage of the calibrate flow and CPU per thread."""
+import json
+import math
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from gls_calibration.time_budget import StageClock, thread_cpu_s
+
+
+def stamped(stages_and_times):
+    ticks = iter(t for _, t in stages_and_times)
+    seen = []
+    clock = StageClock(clock_s=lambda: next(ticks))
+    report = clock.wrap(lambda stage, part, text: seen.append(stage))
+    for stage, _ in stages_and_times:
+        report(stage, 0.5, "text")
+    return clock.times(), seen
+
+
+def test_stage_times_sum_over_plates_and_end_at_the_result():
+    times, seen = stamped([("sweep_plain", 0.0), ("sweep_marked", 2.0), ("measurement", 5.0),
+                           ("sweep_marked", 6.0), ("measurement", 10.0), ("training", 11.0),
+                           ("sweep_plain", 12.0), ("sweep_marked", 13.0), ("measurement", 17.0),
+                           ("done", 19.5)])
+    assert seen[-1] == "done"          # the wrapped callback still gets every message
+    assert times.wall_s == {"sweep_plain": 3.0, "sweep_marked": 11.0, "measurement": 4.5, "training": 1.0}
+    assert times.last_sweep_to_result_s == 2.5      # from the end of the last sweep (17 s) to the result
+
+
+def test_without_a_finished_marked_sweep_there_is_no_last_sweep_time():
+    assert math.isnan(stamped([("sweep_plain", 0.0), ("plate_pose", 1.0)])[0].last_sweep_to_result_s)
+    assert math.isnan(stamped([("sweep_plain", 0.0), ("sweep_marked", 1.0)])[0].last_sweep_to_result_s)
+    empty = StageClock().times()
+    assert empty.wall_s == {} and math.isnan(empty.last_sweep_to_result_s)
+
+
+def test_thread_cpu_counts_a_busy_thread_and_not_an_idle_one():
+    stop = threading.Event()
+
+    def busy():
+        while not stop.is_set():
+            sum(range(1000))
+
+    workers = [threading.Thread(target=busy), threading.Thread(target=stop.wait)]
+    for worker in workers:
+        worker.start()
+    time.sleep(0.3)
+    busy_cpu, idle_cpu = (thread_cpu_s(worker) for worker in workers)
+    stop.set()
+    for worker in workers:
+        worker.join()
+    assert busy_cpu > 0.05 and idle_cpu < 0.02
+    assert math.isnan(thread_cpu_s(workers[0]))       # ended: its clock is gone
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_gls_sim_cell_writes_and_prints_the_time_budget(tmp_path):
+    out = tmp_path / "out"
+    done = subprocess.run([sys.executable, "-m", "gls_calibration.cli.sim_cell", "--out", str(out), "--grid", "3",
+                           "--no-validate", "--sweep-plan", "0+", "--measurement", "ideal", "--no-reference-check"],
+                          capture_output=True, text=True, timeout=800)
+    assert done.returncode == 0, done.stderr[-3000:]
+    budget = json.loads((out / "time_budget.json").read_text())
+    summary = json.loads((out / "summary.json").read_text())
+    assert budget["stage_wall_s"] == summary["stage_wall_s"] and budget["cell_time_s"] == summary["cell_time_s"]
+    assert {"sweep_plain", "plate_pose", "marking", "sweep_marked", "measurement", "training"} <= set(
+        budget["stage_wall_s"])
+    assert budget["last_sweep_to_result_s"] == summary["last_sweep_to_result_s"] > 0.0
+    cpu = budget["cpu_s_by_node"]
+    # every node of the cell has its thread's CPU; the ones that did work have some
+    assert {"calibration_manager", "scan_acquisition", "fiducial_measurement", "sim_scanner"} <= set(cpu)
+    assert cpu["fiducial_measurement"] > 0.0 and cpu["sim_scanner"] > 0.0
+    pipeline = sum(value for name, value in cpu.items() if not name.startswith("sim_"))
+    assert budget["compute_cpu_s"] == pytest.approx(pipeline)
+    assert budget["process_cpu_s"] >= budget["compute_cpu_s"] + budget["simulation_cpu_s"]
+    assert "time budget: cell time" in done.stdout and "CPU of the pipeline" in done.stdout
+    assert "time budget (wall, this run): sweep_plain" in (out / "report.md").read_text()
