@@ -1,0 +1,92 @@
+"""Accuracy against cell time: which measurement plans buy accuracy, on a robot whose errors repeat.
+
+Runs the calibrate flow (one iteration, validation plate) through ``DirectCell`` -- the core steps
+of the nodes, without ROS -- for each plan and seed and prints the TRUE and MEASURED RMS on the
+validation grid and the cell time of the whole calibration (training and validation plate: sweeps
+at the configured speed, robot moves, marking; ``sweep_plan.CellTimeModel``). A plan is the number
+of plain-plate sweeps and the passes over the marked plate; the stand-still plate height is on in
+every plan. ``--chain-map`` also runs each plan with a chain map of its own lines, measured once
+before (its cell time printed apart: it is renewed on a schedule, not per calibration).
+
+The sweep speed is not varied: the simulated robot's errors do not depend on its speed (its
+ripple and wander are functions of the distance travelled), so a faster sweep would look free here
+and the figure would describe the simulator, not a cell.
+
+Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_cell_time.py [--preset paper_like]
+     [--seeds 1 2 3] [--chain-map]
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import statistics
+import tempfile
+from pathlib import Path
+
+from gls_calibration import procedure
+from gls_calibration.calibration_record import build_record, save_candidate
+from gls_calibration.persistence import CalibrationStore
+from gls_calibration.simulation.direct_cell import DirectCell
+from gls_calibration.simulation.reference_plate import calibration_plan, measure_chain_map
+from gls_calibration.simulation.world import SimulatedCell, load_sim_config
+from gls_calibration.sweep_plan import parse_plan
+
+PLANS = ((4, "0+,0-,90+,90-"), (1, "0+,0-,90+,90-"), (2, "0+,90+"), (1, "0+,90+"), (1, "0+"))
+"""(plain sweeps, passes over the marked plate); the first is config/gls.yaml's."""
+
+
+def calibrate(preset: str, seed: int, plain_sweeps: int, passes: str, chain_map, store_dir: Path) -> dict:
+    config = dataclasses.replace(load_sim_config(preset=preset), seed=seed)
+    cell = DirectCell(SimulatedCell(config), CalibrationStore(store_dir))
+    plan = calibration_plan()
+    settings = cell.settings(sweep_plan=parse_plan(passes), plain_sweeps=plain_sweeps,
+                             plain_sweep_step_mm=plan.plain_step_mm, marked_sweep_step_mm=plan.marked_step_mm,
+                             profiles_placed_by_pose=True, chain_map=chain_map)
+
+    def save(runs, models):
+        return save_candidate(cell.store, build_record(config.geometry, settings, runs, models, []), config.geometry)
+
+    outcome = asyncio.run(procedure.calibrate(cell, settings, iterations=1, validate=True, force=True,
+                                              want_truth=True, progress=lambda *_: None, save_candidate=save))
+    validation = outcome.validation
+    return {"true_rms": validation.true_metrics.full.rms_abs_mm, "measured_rms": validation.metrics.full.rms_abs_mm,
+            "cell_time_s": sum(run.cell_time_s for run in outcome.runs) + validation.cell_time_s}
+
+
+def map_for(preset: str, seed: int, passes: str):
+    """The chain map of ``passes``' lines on the cell of ``preset`` and ``seed``, and its cell time (s)."""
+    config = dataclasses.replace(load_sim_config(preset=preset), seed=seed)
+    plan = dataclasses.replace(calibration_plan(), passes=parse_plan(passes))
+    timing = procedure.ProcedureSettings().cell_time
+    repeats = 2
+    return measure_chain_map(config, plan, seed=seed, repeats=repeats), repeats * len(plan.passes) * timing.plate_s(1, 0.0)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="paper_like")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3])
+    parser.add_argument("--chain-map", action="store_true", help="also run each plan with a chain map of its lines")
+    args = parser.parse_args()
+    print(f"DirectCell, {args.preset}, 19x19, 1 iteration + validation plate, stand-still height; TRUE and "
+          "MEASURED RMS on the validation grid (mm), cell time of the whole calibration (s)")
+    print(f"{'plain':>5} {'passes':>14} {'map':>4} {'seed':>4} {'TRUE':>8} {'MEASURED':>9} {'cell s':>7} {'map s':>6}")
+    for plain, passes in PLANS:
+        for with_map in (False, True) if args.chain_map else (False,):
+            rows = []
+            for seed in args.seeds:
+                chain_map, map_s = map_for(args.preset, seed, passes) if with_map else (None, 0.0)
+                with tempfile.TemporaryDirectory() as store:
+                    row = calibrate(args.preset, seed, plain, passes, chain_map, Path(store))
+                rows.append(row)
+                print(f"{plain:>5} {passes:>14} {'yes' if with_map else 'no':>4} {seed:>4} {row['true_rms']:>8.4f} "
+                      f"{row['measured_rms']:>9.4f} {row['cell_time_s']:>7.0f} {map_s:>6.0f}", flush=True)
+            print(f"{plain:>5} {passes:>14} {'yes' if with_map else 'no':>4} {'med':>4} "
+                  f"{statistics.median(r['true_rms'] for r in rows):>8.4f} "
+                  f"{statistics.median(r['measured_rms'] for r in rows):>9.4f} "
+                  f"{statistics.median(r['cell_time_s'] for r in rows):>7.0f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
