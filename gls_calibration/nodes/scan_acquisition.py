@@ -38,6 +38,7 @@ MAX_SPEED_MM_S = 10000.0
 MAX_STEP_MM = 100.0
 MALFORMED_GRACE_S = 2.0    # profiles still in flight after the end of sweep: wait this before giving up
 MAX_ENDS_KEPT = 16         # ends of sweep remembered during one acquisition, per sweep id and of ids
+ANNOUNCED_COUNT_SLACK = 1   # profiles a driver's rounding of length / step may add or drop
 SCANNER_TOPICS_WAIT_S = 5.0  # before a sweep: how long to wait for the scanner's topics to match (after a restart)
 
 
@@ -76,6 +77,11 @@ class ScanAcquisitionNode(GlsNode):
         self.expected_profiles = 0             # what the scanner announced for it
         self.ignored_end = ""                  # why an end of sweep with this sweep's id was not believed
         self.malformed = 0
+        # A sweep this node started whose end never came (the acquisition failed first): its id and until
+        # when its end is awaited before the next sweep is asked for, so that a scanner still sweeping
+        # does not refuse the next one.
+        self.unfinished: Optional[tuple[int, float]] = None
+        self.waiting = False                   # an acquisition waits for the unfinished sweep's end
         self.start_client = self.client(StartSweep, "scanner/start_sweep")
         self.standstill_client = self.client(StartSweep, "scanner/start_standstill")
         self.points_subscription = self.create_subscription(
@@ -128,8 +134,12 @@ class ScanAcquisitionNode(GlsNode):
     def on_sweep_done(self, message: SweepDone) -> None:
         """Remember an end of sweep while acquiring; only the one of the sweep this node started counts.
 
-        Kept by id because it may arrive before the scanner's answer that tells the id.
+        Kept by id because it may arrive before the scanner's answer that tells the id. The end of an
+        unfinished sweep (see ``_wait_for_unfinished``) frees the scanner for the next one.
         """
+        unfinished = self.unfinished
+        if unfinished is not None and message.sweep_id == unfinished[0]:
+            self.unfinished = None
         if self.collector is None:
             return
         if message.sweep_id == self.sweep_id and self._ignored(message):
@@ -211,7 +221,7 @@ class ScanAcquisitionNode(GlsNode):
         return await self._acquire(request, response, standstill=True)
 
     async def _acquire(self, request, response, standstill: bool):
-        if self.collector is not None:
+        if self.collector is not None or self.waiting:
             response.success = False
             response.message = "a sweep is already being acquired; request refused"
             return response
@@ -225,6 +235,7 @@ class ScanAcquisitionNode(GlsNode):
             response.success = False
             response.message = f"direction must be +1, -1 or 0 (+1), got {request.direction}"
             return response
+        await self._wait_for_unfinished(timeout_s)
         self.collector, self.sweep_id, self.malformed = SweepCollector(self.max_profiles, self.max_points), None, 0
         self.poses = PoseTrack(self.max_profiles) if self.use_poses else None
         self.ends.clear()
@@ -239,6 +250,10 @@ class ScanAcquisitionNode(GlsNode):
             if not started.success:
                 raise ServiceCallError(f"the scanner refused the sweep: {started.message}")
             self.sweep_id, self.expected_profiles = started.sweep_id, started.expected_profiles
+            # The scanner owns the count (its rounding, its own step); a mismatch is said, not refused.
+            announced = announcement_problem(started.expected_profiles, request.length_mm, request.step_mm)
+            if announced:
+                self.get_logger().warning(f"sweep {started.sweep_id}: {announced}")
             # Complete when the end of this sweep came and each of its profiles was kept or dropped;
             # the scanner is watched meanwhile, so a scanner that dies fails the sweep at once.
             await self.wait_for(self._sweep_over, timeout_s,
@@ -274,6 +289,9 @@ class ScanAcquisitionNode(GlsNode):
             response.message = str(error)
             return response
         finally:
+            if self.sweep_id is not None and self.end is None:
+                # the scanner accepted a sweep whose end never came: it may still be sweeping
+                self.unfinished = (self.sweep_id, time.monotonic() + max(timeout_s, self.default_timeout_s))
             self.collector, self.poses, self.sweep_id = None, None, None
         response.cloud = conversions.cloud_to_msg(cloud, self.frame_id, first_stamp)
         response.placed_by_pose = by_pose
@@ -282,7 +300,31 @@ class ScanAcquisitionNode(GlsNode):
                             + ("by the reported pose" if by_pose else "by time at the nominal speed"))
         if junk:
             response.message += f"; dropped {junk}"
+        if announced:
+            response.message += f"; {announced}"
         return response
+
+    async def _wait_for_unfinished(self, timeout_s: float) -> None:
+        """Before a sweep: await the end of the sweep a failed acquisition left running, so that the
+        scanner is free. At most ``timeout_s`` (this sweep's limit), and no longer than the larger of
+        that acquisition's limit and ``timeout_s`` (the parameter) after it failed; a scanner that leaves
+        the graph ends the wait. Then the sweep is asked for anyway (the scanner says if it is busy)."""
+        unfinished = self.unfinished
+        if unfinished is None:
+            return
+        sweep_id, until = unfinished
+        remaining_s = min(until - time.monotonic(), timeout_s)
+        if remaining_s > 0.0:
+            self.waiting = True
+            self.get_logger().info(f"waiting up to {remaining_s:.1f} s for the end of sweep {sweep_id}, "
+                                   "left running by a failed acquisition")
+            try:
+                await self.wait_for(lambda: self.unfinished is None, remaining_s, "", watch=[self.start_client])
+            except ServiceCallError:
+                self.get_logger().warning(f"sweep {sweep_id} never ended; the next sweep is asked for anyway")
+            finally:
+                self.waiting = False
+        self.unfinished = None
 
     def _junk_phrase(self, foreign: int) -> str:
         """The profiles dropped from the sweep, by reason ('' when none)."""
@@ -313,6 +355,19 @@ class ScanAcquisitionNode(GlsNode):
             return (f"sweep not complete after {timeout_s:g} s: {received} of {expected} profiles "
                     f"received{malformed} and no end of sweep{ignored}")
         return message
+
+
+def announcement_problem(announced: int, length_mm: float, step_mm: float) -> str:
+    """Why a scanner's announced profile count contradicts the request's length and step (empty when
+    it does not, or when the request leaves either to the driver): a sweep of length L every s mm has
+    L / s + 1 profiles, one more or fewer by the driver's rounding."""
+    if length_mm <= 0.0 or step_mm <= 0.0:
+        return ""
+    expected = math.floor(length_mm / step_mm + 1e-9) + 1
+    if abs(int(announced) - expected) <= ANNOUNCED_COUNT_SLACK:
+        return ""
+    return (f"the scanner announced {announced} profiles for {length_mm:g} mm every {step_mm:g} mm, which gives "
+            f"{expected}")
 
 
 def request_problem(request) -> str:
