@@ -452,11 +452,14 @@ def test_well_formed_junk_in_a_sweep_is_dropped_by_layout_stamp_and_width(ros_co
     assert response.cloud.height == PROFILES                      # 20 rows, not 30
     assert response.placed_by_pose                                # the junk stamps did not switch to time
     assert response.cloud.header.stamp.sec == 1000                # stamped with the sweep's first profile
-    dropped = {why: int(count) for count, why in re.findall(r"(\d+) profile\(s\) (malformed|wider|not of)",
-                                                              response.message)}
+    dropped = {why: int(count) for count, why in re.findall(
+        r"(\d+) profile\(s\) (malformed|wider|not of|not in the scanner's declared format)", response.message)}
     assert dropped["wider"] == 5, response.message
-    assert dropped.get("malformed", 0) + dropped.get("not of", 0) == 5, response.message
-    assert dropped.get("not of", 0) >= 3, response.message        # float64 layout, stamp zero, stamp 2.1e9
+    # float64 zeros, float64 metres, the big-endian flag: not the format the scanner declares (float32, little-endian)
+    assert dropped["not in the scanner's declared format"] == 3, response.message
+    assert "(float32, little-endian; parameters profile_field_type, profile_big_endian)" in response.message
+    assert dropped["not of"] == 2, response.message             # stamp zero, stamp 2.1e9: outside the time window
+    assert "malformed" not in dropped, response.message
     again = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))
     assert again.success and again.cloud.height == PROFILES, again.message
 

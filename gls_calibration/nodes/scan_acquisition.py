@@ -26,7 +26,7 @@ from sensor_msgs.msg import PointCloud2
 from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
 from gls_calibration.nodes.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
-from gls_calibration.sweep import PoseTrack, SweepCollector, SweepMotion, nominal_start_pose, stamp_window_s
+from gls_calibration.sweep import PoseTrack, ProfileRules, SweepCollector, SweepMotion, nominal_start_pose
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, StartSweep
 
@@ -54,8 +54,17 @@ class ScanAcquisitionNode(GlsNode):
         super().__init__("scan_acquisition", **kwargs)
         self.max_profiles = self.declare("max_profiles", 4000, "most profiles kept from one sweep",
                                          minimum=1, maximum=100000)
-        self.max_points = self.declare("max_points_per_profile", 4096, "most points kept from one profile",
-                                       minimum=1, maximum=100000)
+        defaults = ProfileRules()
+        self.max_points = self.declare("max_points_per_profile", defaults.max_points,
+                                       "most points of one profile; a wider one is dropped (counted), the sweep "
+                                       "goes on", minimum=1, maximum=100000)
+        field_type = self.declare("profile_field_type", defaults.field_type,
+                                  "type the scanner declares for x, y, z, intensity on scan/points: float32 or "
+                                  "float64; profiles declaring another are dropped (counted)")
+        big_endian = self.declare("profile_big_endian", defaults.big_endian,
+                                  "byte order the scanner declares on scan/points (false: little-endian); "
+                                  "profiles with the other flag are dropped (counted)")
+        self.rules = ProfileRules(field_type=field_type, big_endian=big_endian, max_points=self.max_points)
         self.default_timeout_s = self.declare("timeout_s", 120.0, "default time limit of one sweep (s)",
                                               minimum=0.1, maximum=MAX_TIMEOUT_S)
         unit = self.declare("profile_unit", "m",
@@ -77,6 +86,7 @@ class ScanAcquisitionNode(GlsNode):
         self.expected_profiles = 0             # what the scanner announced for it
         self.ignored_end = ""                  # why an end of sweep with this sweep's id was not believed
         self.malformed = 0
+        self.wrong_format = 0                  # profiles not in the scanner's declared format (self.rules)
         # A sweep this node started whose end never came (the acquisition failed first): its id and until
         # when its end is awaited before the next sweep is asked for, so that a scanner still sweeping
         # does not refuse the next one.
@@ -105,6 +115,14 @@ class ScanAcquisitionNode(GlsNode):
         """
         collector = self.collector
         if collector is None:
+            return
+        problem = self.rules.format_problem(
+            {field.name: conversions.point_field_type_name(field.datatype) for field in message.fields},
+            message.is_bigendian)
+        if problem:
+            self.wrong_format += 1
+            self.get_logger().warning(f"profile dropped ({self.wrong_format} in this sweep): {problem}",
+                                      throttle_duration_sec=1.0)
             return
         try:
             stamp = message.header.stamp
@@ -166,7 +184,7 @@ class ScanAcquisitionNode(GlsNode):
 
     def _members(self, done: SweepDone):
         """Mask of the kept profiles that form the sweep ``done`` ends (layout and time window)."""
-        return self.collector.members(stamp_window_s(done.profiles, done.step_mm, done.speed_mm_s))
+        return self.collector.members(self.rules.stamp_window_s(done.profiles, done.step_mm, done.speed_mm_s))
 
     def _end_problem(self, done: SweepDone) -> str:
         """Why an end of sweep with this sweep's id cannot be its end (empty when it can): its count
@@ -202,7 +220,7 @@ class ScanAcquisitionNode(GlsNode):
         collector = self.collector
         members = int(np.count_nonzero(self._members(done)))
         accounted = members + collector.dropped
-        junk = self.malformed + collector.too_wide + len(collector) - members
+        junk = self.malformed + self.wrong_format + collector.too_wide + len(collector) - members
         return accounted >= done.profiles or (
             accounted + junk >= done.profiles and time.monotonic() - arrived >= MALFORMED_GRACE_S)
 
@@ -237,6 +255,7 @@ class ScanAcquisitionNode(GlsNode):
             return response
         await self._wait_for_unfinished(timeout_s)
         self.collector, self.sweep_id, self.malformed = SweepCollector(self.max_profiles, self.max_points), None, 0
+        self.wrong_format = 0
         self.poses = PoseTrack(self.max_profiles) if self.use_poses else None
         self.ends.clear()
         self.stamps, self.ignored_end, self.expected_profiles, self.end = {}, "", 0, None
@@ -329,6 +348,8 @@ class ScanAcquisitionNode(GlsNode):
     def _junk_phrase(self, foreign: int) -> str:
         """The profiles dropped from the sweep, by reason ('' when none)."""
         parts = [(self.malformed, "malformed"),
+                 (self.wrong_format, f"not in the scanner's declared format ({self.rules.describe()}; parameters "
+                                     "profile_field_type, profile_big_endian)"),
                  (self.collector.too_wide if self.collector is not None else 0,
                   f"wider than {self.max_points} points (parameter max_points_per_profile)"),
                  (foreign, "not of this sweep (another wire layout or a stamp outside its time window)")]
@@ -350,7 +371,8 @@ class ScanAcquisitionNode(GlsNode):
     def _timeout_message(self, timeout_s: float, expected: int):
         def message() -> str:
             received = len(self.collector) if self.collector is not None else 0
-            malformed = f" ({self.malformed} malformed dropped)" if self.malformed else ""
+            junk = self._junk_phrase(0) if self.collector is not None else ""
+            malformed = f" ({junk} dropped)" if junk else ""
             ignored = f"; {self.ignored_end}" if self.ignored_end else ""
             return (f"sweep not complete after {timeout_s:g} s: {received} of {expected} profiles "
                     f"received{malformed} and no end of sweep{ignored}")
