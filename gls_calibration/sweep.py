@@ -50,6 +50,9 @@ class ProfileRules:
     stamp_window_margin_s : float
         ... plus this (default 1.0 s). A profile stamped outside it (zero, far in the future, another
         sweep's) is not of the sweep.
+    count_slack : int
+        Profiles by which a scanner's announced count may differ from length / step + 1 (default 1:
+        the driver's rounding) before the mismatch is reported.
     """
 
     field_type: str = "float32"
@@ -57,12 +60,14 @@ class ProfileRules:
     max_points: int = 4096
     stamp_window_factor: float = 1.5
     stamp_window_margin_s: float = 1.0
+    count_slack: int = 1
 
     def __post_init__(self) -> None:
         if self.field_type not in ("float32", "float64"):
             raise ValueError(f"profile field type must be float32 or float64, got {self.field_type!r}")
-        if self.max_points < 1:
-            raise ValueError(f"max_points must be at least 1, got {self.max_points}")
+        if self.max_points < 1 or self.count_slack < 0:
+            raise ValueError(f"max_points must be at least 1 and count_slack at least 0, got {self.max_points} "
+                             f"and {self.count_slack}")
         if not (math.isfinite(self.stamp_window_factor) and self.stamp_window_factor >= 1.0
                 and math.isfinite(self.stamp_window_margin_s) and self.stamp_window_margin_s >= 0.0):
             raise ValueError("the stamp window needs a finite factor of at least 1 and a finite margin of at "
@@ -83,6 +88,18 @@ class ProfileRules:
             listed = ", ".join(f"{name} {kind}" for name, kind in other.items())
             return f"fields {listed}, the sensor declares {self.describe()}"
         return ""
+
+    def announcement_problem(self, announced: int, length_mm: float, step_mm: float) -> str:
+        """Why a scanner's announced profile count contradicts a sweep's length and step (empty when
+        it does not, or when either is 0: left to the driver): floor(L / s) + 1 profiles, within
+        ``count_slack``."""
+        if length_mm <= 0.0 or step_mm <= 0.0:
+            return ""
+        expected = math.floor(length_mm / step_mm + 1e-9) + 1
+        if abs(int(announced) - expected) <= self.count_slack:
+            return ""
+        return (f"the scanner announced {announced} profiles for {length_mm:g} mm every {step_mm:g} mm, which "
+                f"gives {expected}")
 
     def stamp_window_s(self, profiles: int, step_mm: float, speed_mm_s: float) -> float:
         """Length (s) of the time window that holds every profile of a sweep of ``profiles`` profiles."""

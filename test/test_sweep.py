@@ -150,3 +150,13 @@ def test_profile_rules_drop_what_the_sensor_did_not_declare_and_refuse_bad_limit
                 dict(stamp_window_margin_s=math.nan)):
         with pytest.raises(ValueError):
             ProfileRules(**bad)
+
+
+def test_an_announced_count_is_checked_against_length_and_step_within_the_slack():
+    from gls_calibration.sweep import ProfileRules
+    rules = ProfileRules()
+    assert rules.announcement_problem(2001, 200.0, 0.1) == ""          # floor(200 / 0.1) + 1
+    assert rules.announcement_problem(2000, 200.0, 0.1) == ""          # a driver that rounds the other way
+    assert rules.announcement_problem(20, 0.0, 0.15) == ""             # length left to the driver
+    assert rules.announcement_problem(20, 30.0, 0.15) == ("the scanner announced 20 profiles for 30 mm every "
+                                                          "0.15 mm, which gives 201")

@@ -38,7 +38,6 @@ MAX_SPEED_MM_S = 10000.0
 MAX_STEP_MM = 100.0
 MALFORMED_GRACE_S = 2.0    # profiles still in flight after the end of sweep: wait this before giving up
 MAX_ENDS_KEPT = 16         # ends of sweep remembered during one acquisition, per sweep id and of ids
-ANNOUNCED_COUNT_SLACK = 1   # profiles a driver's rounding of length / step may add or drop
 SCANNER_TOPICS_WAIT_S = 5.0  # before a sweep: how long to wait for the scanner's topics to match (after a restart)
 
 
@@ -108,8 +107,9 @@ class ScanAcquisitionNode(GlsNode):
     def on_profile(self, message: PointCloud2) -> None:
         """Keep a profile of the running sweep; profiles outside a sweep are ignored.
 
-        A malformed profile (see ``sweep.profile_problem``, or a message that does not hold what
-        its header says) is dropped with a throttled warning and counted; it never stops the node.
+        A profile not in the scanner's declared format (``self.rules``: field type, byte order) or
+        malformed (see ``sweep.profile_problem``, or a message that does not hold what its header says)
+        is dropped with a throttled warning and counted; it never stops the node.
         Well-formed profiles that are not of the sweep (another wire layout than the sweep's, a
         stamp outside its time window) are kept apart at the end (``SweepCollector.members``).
         """
@@ -270,7 +270,8 @@ class ScanAcquisitionNode(GlsNode):
                 raise ServiceCallError(f"the scanner refused the sweep: {started.message}")
             self.sweep_id, self.expected_profiles = started.sweep_id, started.expected_profiles
             # The scanner owns the count (its rounding, its own step); a mismatch is said, not refused.
-            announced = announcement_problem(started.expected_profiles, request.length_mm, request.step_mm)
+            announced = self.rules.announcement_problem(started.expected_profiles, request.length_mm,
+                                                        request.step_mm)
             if announced:
                 self.get_logger().warning(f"sweep {started.sweep_id}: {announced}")
             # Complete when the end of this sweep came and each of its profiles was kept or dropped;
@@ -377,19 +378,6 @@ class ScanAcquisitionNode(GlsNode):
             return (f"sweep not complete after {timeout_s:g} s: {received} of {expected} profiles "
                     f"received{malformed} and no end of sweep{ignored}")
         return message
-
-
-def announcement_problem(announced: int, length_mm: float, step_mm: float) -> str:
-    """Why a scanner's announced profile count contradicts the request's length and step (empty when
-    it does not, or when the request leaves either to the driver): a sweep of length L every s mm has
-    L / s + 1 profiles, one more or fewer by the driver's rounding."""
-    if length_mm <= 0.0 or step_mm <= 0.0:
-        return ""
-    expected = math.floor(length_mm / step_mm + 1e-9) + 1
-    if abs(int(announced) - expected) <= ANNOUNCED_COUNT_SLACK:
-        return ""
-    return (f"the scanner announced {announced} profiles for {length_mm:g} mm every {step_mm:g} mm, which gives "
-            f"{expected}")
 
 
 def request_problem(request) -> str:
