@@ -113,7 +113,7 @@ def rule_applied(text: str, held: Any) -> bool:
 def unapplied_rule_problem(node: Node, argv: Sequence[str]) -> str:
     """Why a ``-p`` rule of ``argv`` that reaches ``node`` is not what the node holds (empty when every
     one is). Only parameters the node declares are checked; the last rule of a name counts."""
-    last: dict[str, str] = {}
+    last: dict[str, tuple[str, str]] = {}
     for rule in parameter_rules(argv):
         target, assign, text = rule.partition(":=")
         name = _reaches(target, node) if assign else None
