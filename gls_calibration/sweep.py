@@ -27,10 +27,84 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 XYZI_FIELDS = ("x", "y", "z", "intensity")
-# A sweep's profiles are stamped within (profiles - 1) step / speed of each other; a profile stamped
-# beyond this window around them (zero, far in the future, another sweep's) is not of the sweep.
-STAMP_WINDOW_FACTOR = 1.5      # room for a robot slower than commanded
-STAMP_WINDOW_MARGIN_S = 1.0
+
+
+@dataclass(frozen=True)
+class ProfileRules:
+    """What a profile must be to join a running sweep: the one owner of these limits.
+
+    Attributes
+    ----------
+    field_type : str
+        numpy name of the type the sensor declares for x, y, z and intensity (default "float32", what
+        the package's drivers publish). A profile whose fields declare another type is dropped.
+    big_endian : bool
+        Byte order the sensor declares (default False: little-endian, every ROS 2 platform). A profile
+        with the other ``is_bigendian`` flag is dropped.
+    max_points : int
+        Most points of one profile (default 4096); a wider profile is dropped, the sweep goes on.
+    stamp_window_factor : float
+        A sweep's profiles are stamped within (profiles - 1) step / speed of each other; the window
+        that holds them is this many times longer (default 1.5: room for a robot slower than
+        commanded) ...
+    stamp_window_margin_s : float
+        ... plus this (default 1.0 s). A profile stamped outside it (zero, far in the future, another
+        sweep's) is not of the sweep.
+    count_slack : int
+        Profiles by which a scanner's announced count may differ from length / step + 1 (default 1:
+        the driver's rounding) before the mismatch is reported.
+    """
+
+    field_type: str = "float32"
+    big_endian: bool = False
+    max_points: int = 4096
+    stamp_window_factor: float = 1.5
+    stamp_window_margin_s: float = 1.0
+    count_slack: int = 1
+
+    def __post_init__(self) -> None:
+        if self.field_type not in ("float32", "float64"):
+            raise ValueError(f"profile field type must be float32 or float64, got {self.field_type!r}")
+        if self.max_points < 1 or self.count_slack < 0:
+            raise ValueError(f"max_points must be at least 1 and count_slack at least 0, got {self.max_points} "
+                             f"and {self.count_slack}")
+        if not (math.isfinite(self.stamp_window_factor) and self.stamp_window_factor >= 1.0
+                and math.isfinite(self.stamp_window_margin_s) and self.stamp_window_margin_s >= 0.0):
+            raise ValueError("the stamp window needs a finite factor of at least 1 and a finite margin of at "
+                             f"least 0 s, got {self.stamp_window_factor} and {self.stamp_window_margin_s} s")
+
+    def describe(self) -> str:
+        """The declared format in words, e.g. 'float32, little-endian'."""
+        return f"{self.field_type}, {'big' if self.big_endian else 'little'}-endian"
+
+    def format_problem(self, field_types: dict[str, str], big_endian: bool) -> str:
+        """Why a profile whose fields declare ``field_types`` (name -> numpy type name) and byte order
+        ``big_endian`` is not in the sensor's declared format (empty when it is; a missing field is
+        for :func:`profile_problem`)."""
+        if bool(big_endian) != self.big_endian:
+            return f"byte order {'big' if big_endian else 'little'}-endian, the sensor declares {self.describe()}"
+        other = {name: kind for name, kind in field_types.items() if name in XYZI_FIELDS and kind != self.field_type}
+        if other:
+            listed = ", ".join(f"{name} {kind}" for name, kind in other.items())
+            return f"fields {listed}, the sensor declares {self.describe()}"
+        return ""
+
+    def announcement_problem(self, announced: int, length_mm: float, step_mm: float) -> str:
+        """Why a scanner's announced profile count contradicts a sweep's length and step (empty when
+        it does not, or when either is 0: left to the driver): floor(L / s) + 1 profiles, within
+        ``count_slack``."""
+        if length_mm <= 0.0 or step_mm <= 0.0:
+            return ""
+        expected = math.floor(length_mm / step_mm + 1e-9) + 1
+        if abs(int(announced) - expected) <= self.count_slack:
+            return ""
+        return (f"the scanner announced {announced} profiles for {length_mm:g} mm every {step_mm:g} mm, which "
+                f"gives {expected}")
+
+    def stamp_window_s(self, profiles: int, step_mm: float, speed_mm_s: float) -> float:
+        """Length (s) of the time window that holds every profile of a sweep of ``profiles`` profiles."""
+        span = max(profiles - 1, 0) * step_mm / speed_mm_s if speed_mm_s > 0.0 else math.inf
+        return self.stamp_window_factor * span + self.stamp_window_margin_s if math.isfinite(span) else math.inf
 
 
 @dataclass(frozen=True)
@@ -77,10 +151,9 @@ def profile_problem(stamp_s: float, profile: np.ndarray) -> str:
     return ""
 
 
-def stamp_window_s(profiles: int, step_mm: float, speed_mm_s: float) -> float:
-    """Length (s) of the time window that holds every profile of a sweep of ``profiles`` profiles."""
-    span = max(profiles - 1, 0) * step_mm / speed_mm_s if speed_mm_s > 0.0 else math.inf
-    return STAMP_WINDOW_FACTOR * span + STAMP_WINDOW_MARGIN_S if math.isfinite(span) else math.inf
+def stamp_window_s(profiles: int, step_mm: float, speed_mm_s: float, rules: ProfileRules = ProfileRules()) -> float:
+    """Length (s) of the time window that holds every profile of a sweep (see :class:`ProfileRules`)."""
+    return rules.stamp_window_s(profiles, step_mm, speed_mm_s)
 
 
 def nominal_start_pose(length_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> np.ndarray:

@@ -452,11 +452,14 @@ def test_well_formed_junk_in_a_sweep_is_dropped_by_layout_stamp_and_width(ros_co
     assert response.cloud.height == PROFILES                      # 20 rows, not 30
     assert response.placed_by_pose                                # the junk stamps did not switch to time
     assert response.cloud.header.stamp.sec == 1000                # stamped with the sweep's first profile
-    dropped = {why: int(count) for count, why in re.findall(r"(\d+) profile\(s\) (malformed|wider|not of)",
-                                                              response.message)}
+    dropped = {why: int(count) for count, why in re.findall(
+        r"(\d+) profile\(s\) (malformed|wider|not of|not in the scanner's declared format)", response.message)}
     assert dropped["wider"] == 5, response.message
-    assert dropped.get("malformed", 0) + dropped.get("not of", 0) == 5, response.message
-    assert dropped.get("not of", 0) >= 3, response.message        # float64 layout, stamp zero, stamp 2.1e9
+    # float64 zeros, float64 metres, the big-endian flag: not the format the scanner declares (float32, little-endian)
+    assert dropped["not in the scanner's declared format"] == 3, response.message
+    assert "(float32, little-endian; parameters profile_field_type, profile_big_endian)" in response.message
+    assert dropped["not of"] == 2, response.message             # stamp zero, stamp 2.1e9: outside the time window
+    assert "malformed" not in dropped, response.message
     again = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))
     assert again.success and again.cloud.height == PROFILES, again.message
 
@@ -501,6 +504,61 @@ def test_an_end_of_sweep_that_contradicts_the_sweep_is_ignored_and_the_real_end_
     assert answered >= scanner.finished          # not before the scanner's own end: it is not left running
     again = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))
     assert again.success and again.cloud.height == PROFILES, again.message
+
+
+class BusyScanner(FakeScanner):
+    """Refuses a sweep while one runs (as the simulated scanner does); a new id per sweep; slow."""
+
+    def __init__(self, node: Node, script: str, period_s: float) -> None:
+        super().__init__(node, script)
+        self.period_s, self.running, self.refused = period_s, False, 0
+
+    def on_start(self, request, response):
+        if self.running:
+            self.refused += 1
+            response.success, response.message = False, "a sweep is running; request refused"
+            return response
+        self.running = True
+        response = super().on_start(request, response)
+        response.sweep_id = 7 + len(self.requests)
+        return response
+
+    def stream(self) -> None:
+        sweep_id = 7 + len(self.requests)
+        for index in range(PROFILES):
+            stamp_s = 100.0 * sweep_id + index * 0.01
+            self.points.publish(stamped(cloud_to_msg(self.profiles[index], "scanner_sensor"), stamp_s))
+            time.sleep(self.period_s)
+        self.running = False
+        self.done.publish(SweepDone(sweep_id=sweep_id, profiles=PROFILES, step_mm=0.15, speed_mm_s=15.0,
+                                    direction=[0.0, 1.0, 0.0], complete=True))
+
+
+def test_a_sweep_left_running_by_a_failed_acquisition_does_not_get_the_next_one_refused(ros_context, add_node,
+                                                                                      client):
+    # Issue 31 item 8: an acquisition that fails before its sweep ended left the scanner sweeping, and
+    # the next sweep was refused ("a sweep is running"). The next acquisition now awaits that end.
+    add_node(ScanAcquisitionNode(context=ros_context))
+    scanner = BusyScanner(add_node(Node("fake_scanner", namespace=NAMESPACE, context=ros_context)), "complete",
+                          period_s=0.1)
+    acquire = client(AcquireSweep, "scan/acquire")
+    failed = acquire(AcquireSweep.Request(timeout_s=0.5))           # the sweep takes ~2 s
+    assert not failed.success and failed.message.startswith("sweep not complete after 0.5 s"), failed.message
+    again = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S))
+    assert again.success, again.message
+    assert again.cloud.height == PROFILES and scanner.refused == 0
+
+
+def test_an_announcement_that_contradicts_the_requested_length_and_step_is_said(ros_context, add_node, client):
+    add_node(ScanAcquisitionNode(context=ros_context))
+    FakeScanner(add_node(Node("fake_scanner", namespace=NAMESPACE, context=ros_context)), "complete")
+    acquire = client(AcquireSweep, "scan/acquire")
+    # 20 profiles announced for 30 mm every 0.15 mm (201): the scanner's count is used, the mismatch said
+    response = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S, length_mm=30.0, step_mm=0.15))
+    assert response.success and response.cloud.height == PROFILES, response.message
+    assert response.message.endswith("; the scanner announced 20 profiles for 30 mm every 0.15 mm, which gives 201")
+    again = acquire(AcquireSweep.Request(timeout_s=TIMEOUT_S, length_mm=2.85, step_mm=0.15))   # 20 profiles
+    assert again.success and again.message.endswith("by time at the nominal speed"), again.message
 
 
 def test_malformed_profiles_and_foreign_ends_of_sweep_are_dropped_counted_and_survived(ros_context, add_node,

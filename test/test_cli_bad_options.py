@@ -389,6 +389,11 @@ def test_gls_sim_cell_refuses_a_manager_parameter_rule_of_the_wrong_type(tmp_pat
     ("head_direction:=[1.0]", "parameter head_direction: 3 finite numbers, not all zero, are needed, got [1.0]"),
     ("scanner_to_gls.translation_mm:=[0.0,325.0]",
      "parameter scanner_to_gls.translation_mm: 3 finite numbers are needed, got [0.0, 325.0]"),
+    # rcl drops these rules without a word (the files set them): the nodes check what they hold
+    ("head_direction:=[]", "plate_pose: parameter head_direction: the rule -p head_direction:=[] was not applied"),
+    ("effects.galvo_gain_x:=[]", "parameter effects.galvo_gain_x: the rule -p effects.galvo_gain_x:=[] was not applied"),
+    ("head.working_distance_mm:=480.0", "parameter head.working_distance_mm: the rule -p "
+                                        "head.working_distance_mm:=480.0 was not applied"),
 ])
 def test_gls_sim_cell_refuses_a_node_parameter_at_start_with_exit_2(tmp_path, capsys, monkeypatch, rule, message):
     """A value of the right type that a node refuses when it is built: said, exit 2, no calibration."""

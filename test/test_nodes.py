@@ -309,6 +309,29 @@ def test_a_calibration_with_absurd_weights_is_refused_when_loaded_not_on_every_c
     assert bad.exists()
 
 
+def test_a_reload_of_an_absurd_calibration_is_refused_and_the_serving_one_stays(ros_context, add_node, tmp_path):
+    # Issue 31 item 8 on correction/load: a model that overflows (weights 1e308) or predicts corrections
+    # beyond the field (weights x 1e5: hundreds of mm) is refused when loaded; the good one keeps serving.
+    store = CalibrationStore(tmp_path / "store")
+    record, expected = trained_record()
+    good = store.save(record, activate=True)
+    start_correction_node(ros_context, add_node, store.directory)
+    node = client_node(ros_context, add_node)
+    serving = correct(node, [10.0], [-20.0])
+    assert serving.success and serving.message == "corrected", serving.message
+    scaled, _ = trained_record()
+    scaled["models"][0]["weights"] = [[1e5 * value for value in pair] for pair in scaled["models"][0]["weights"]]
+    for broken in (huge_weight_record(), scaled):
+        store.save(broken, activate=True)
+        refused = load(node, "")
+        assert not refused.success
+        assert "the correction is unusable" in refused.message and "not finite or exceeds 100 mm" in refused.message
+        assert refused.message.endswith(f"still serving {good}"), refused.message
+        still = correct(node, [10.0], [-20.0])
+        assert still.success and still.calibration_id == serving.calibration_id, still.message
+        np.testing.assert_array_equal(np.asarray(still.alpha_x), np.asarray(serving.alpha_x))
+
+
 def test_correction_load_of_another_file_is_refused_and_the_active_one_stays(ros_context, add_node, tmp_path):
     start_correction_node(ros_context, add_node, tmp_path / "store")
     node = client_node(ros_context, add_node)

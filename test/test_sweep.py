@@ -132,3 +132,31 @@ def test_junk_profiles_are_kept_apart_by_layout_and_time_window_and_wide_ones_dr
     assert collector.first_stamp_s(members) == stamps[0]
     # a profile of zeros is no measurement at all
     assert "sensor's origin" in profile_problem(1.0, profile(np.zeros(x.size), np.zeros(x.size)))
+
+
+def test_profile_rules_drop_what_the_sensor_did_not_declare_and_refuse_bad_limits():
+    from gls_calibration.sweep import ProfileRules
+    rules = ProfileRules()
+    float32 = {name: "float32" for name in ("x", "y", "z", "intensity")}
+    assert rules.format_problem(float32 | {"ring": "uint16"}, False) == ""     # other fields are free
+    assert rules.format_problem(float32, True) == ("byte order big-endian, the sensor declares float32, "
+                                                   "little-endian")
+    assert rules.format_problem(float32 | {"z": "float64"}, False) == ("fields z float64, the sensor declares "
+                                                                       "float32, little-endian")
+    assert ProfileRules(field_type="float64", big_endian=True).format_problem(
+        {name: "float64" for name in float32}, True) == ""
+    assert rules.stamp_window_s(201, 0.15, 15.0) == pytest.approx(1.5 * 2.0 + 1.0)
+    for bad in (dict(field_type="int8"), dict(max_points=0), dict(stamp_window_factor=0.5),
+                dict(stamp_window_margin_s=math.nan)):
+        with pytest.raises(ValueError):
+            ProfileRules(**bad)
+
+
+def test_an_announced_count_is_checked_against_length_and_step_within_the_slack():
+    from gls_calibration.sweep import ProfileRules
+    rules = ProfileRules()
+    assert rules.announcement_problem(2001, 200.0, 0.1) == ""          # floor(200 / 0.1) + 1
+    assert rules.announcement_problem(2000, 200.0, 0.1) == ""          # a driver that rounds the other way
+    assert rules.announcement_problem(20, 0.0, 0.15) == ""             # length left to the driver
+    assert rules.announcement_problem(20, 30.0, 0.15) == ("the scanner announced 20 profiles for 30 mm every "
+                                                          "0.15 mm, which gives 201")

@@ -34,11 +34,12 @@ from gls_calibration.simulation.measurement import PRESETS
 from gls_calibration.simulation.world import load_sim_config
 from gls_calibration.stated_accuracy import load_chain_check, save_chain_check
 from gls_calibration.sweep_plan import parse_plan
-from gls_calibration.nodes.base import (NodeThreads, StopSignals, exit_now_if_stuck, use_fast_liveliness,
-                                       with_companions)
+from gls_calibration.nodes.base import (NodeThreads, StopSignals, discard, exit_now_if_stuck,
+                                       use_fast_liveliness)
 from gls_calibration.persistence import atomic_write_text
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.manager_parameters import MANAGER_PARAMETERS, value_problem
+from gls_calibration.nodes.parameter_rules import unapplied_rule_problem
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
 from gls_calibration.nodes.plate_pose import PlatePoseNode
@@ -327,8 +328,8 @@ def main(argv: list[str] | None = None) -> int:
     context = rclpy.Context()
     # "--" ends the cell's ROS arguments; the user's command line follows with its own --ros-args.
     user = ["--", *args.user_ros_arguments] if args.user_ros_arguments else []
-    rclpy.init(args=ros_arguments(args, store, args.out) + user, context=context,
-               signal_handler_options=SignalHandlerOptions.NO)
+    cell_arguments = ros_arguments(args, store, args.out) + user
+    rclpy.init(args=cell_arguments, context=context, signal_handler_options=SignalHandlerOptions.NO)
     namespace = cell_namespace(args)
     nodes: list = []
     threads: Optional[NodeThreads] = None
@@ -337,6 +338,10 @@ def main(argv: list[str] | None = None) -> int:
         try:
             for node_type in NODE_TYPES:
                 nodes.append(node_type(context=context, namespace=namespace))
+                # rcl drops some -p rules without a word (another type than the file's, []): refuse them
+                problem = unapplied_rule_problem(nodes[-1], cell_arguments)
+                if problem:
+                    raise ValueError(f"{nodes[-1].get_name()}: {problem}")
         except (ValueError, TypeError, ParameterException) as error:
             # a parameter a node refuses at start (e.g. grid.size_mm:=abc): said, nothing runs
             print(f"gls-sim-cell: {error}", file=sys.stderr)
@@ -368,8 +373,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             left = []
             for node in nodes:
-                for member in with_companions(node):
-                    member.destroy_node()
+                discard(node)
         context.try_shutdown()
         stop.restore()
         exit_now_if_stuck(left, status)

@@ -23,6 +23,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 
+from gls_calibration.nodes.parameter_rules import unapplied_rule_problem
 from gls_calibration.parameter_specs import FLOAT_LIMITS, INTEGER_LIMITS, ParameterSpec
 
 DEFAULT_NAMESPACE = "gls"
@@ -557,6 +558,12 @@ def run_node(factory: Callable[..., Node], args: list[str] | None = None) -> int
         except (ValueError, TypeError, ParameterException) as error:
             print(f"{_program()}: {error}", file=sys.stderr)
             return 2
+        # rcl drops a -p rule of another type than the parameter file's without a word: say so, spin nothing
+        problem = unapplied_rule_problem(node, sys.argv if args is None else args)
+        if problem:
+            print(f"{_program()}: {problem}", file=sys.stderr)
+            discard(node)
+            return 2
         threads = NodeThreads([node])
         while context.ok() and not stop.requested.wait(0.2):
             pass
@@ -568,6 +575,14 @@ def run_node(factory: Callable[..., Node], args: list[str] | None = None) -> int
         stop.restore()
     exit_now_if_stuck(left, 0)
     return 0
+
+
+def discard(node: Node) -> None:
+    """Destroy a node that was built but never spun, with its companions, once its own threads end."""
+    for member in with_companions(node):
+        if isinstance(member, GlsNode):
+            member.join_workers(THREAD_JOIN_TIMEOUT_S)
+        member.destroy_node()
 
 
 def _program() -> str:

@@ -48,6 +48,12 @@ _SUPPORTED_TYPE_NAMES = ", ".join(numpy_type.name for numpy_type in _POINT_FIELD
 _XYZ = ("x", "y", "z")
 
 
+def point_field_type_name(datatype: int) -> str:
+    """The numpy name of a PointField datatype code (e.g. "float32"); "unknown <code>" for others."""
+    numpy_type = _POINT_FIELD_TYPES.get(datatype)
+    return numpy_type.name if numpy_type is not None else f"unknown {datatype}"
+
+
 def xyzi_dtype() -> np.dtype:
     """Packed float32 x, y, z, intensity point (16 bytes): the package's default cloud layout."""
     return np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])

@@ -26,7 +26,7 @@ from sensor_msgs.msg import PointCloud2
 from gls_calibration.nodes import conversions
 from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
 from gls_calibration.nodes.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
-from gls_calibration.sweep import PoseTrack, SweepCollector, SweepMotion, nominal_start_pose, stamp_window_s
+from gls_calibration.sweep import PoseTrack, ProfileRules, SweepCollector, SweepMotion, nominal_start_pose
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, StartSweep
 
@@ -53,8 +53,17 @@ class ScanAcquisitionNode(GlsNode):
         super().__init__("scan_acquisition", **kwargs)
         self.max_profiles = self.declare("max_profiles", 4000, "most profiles kept from one sweep",
                                          minimum=1, maximum=100000)
-        self.max_points = self.declare("max_points_per_profile", 4096, "most points kept from one profile",
-                                       minimum=1, maximum=100000)
+        defaults = ProfileRules()
+        self.max_points = self.declare("max_points_per_profile", defaults.max_points,
+                                       "most points of one profile; a wider one is dropped (counted), the sweep "
+                                       "goes on", minimum=1, maximum=100000)
+        field_type = self.declare("profile_field_type", defaults.field_type,
+                                  "type the scanner declares for x, y, z, intensity on scan/points: float32 or "
+                                  "float64; profiles declaring another are dropped (counted)")
+        big_endian = self.declare("profile_big_endian", defaults.big_endian,
+                                  "byte order the scanner declares on scan/points (false: little-endian); "
+                                  "profiles with the other flag are dropped (counted)")
+        self.rules = ProfileRules(field_type=field_type, big_endian=big_endian, max_points=self.max_points)
         self.default_timeout_s = self.declare("timeout_s", 120.0, "default time limit of one sweep (s)",
                                               minimum=0.1, maximum=MAX_TIMEOUT_S)
         unit = self.declare("profile_unit", "m",
@@ -76,6 +85,12 @@ class ScanAcquisitionNode(GlsNode):
         self.expected_profiles = 0             # what the scanner announced for it
         self.ignored_end = ""                  # why an end of sweep with this sweep's id was not believed
         self.malformed = 0
+        self.wrong_format = 0                  # profiles not in the scanner's declared format (self.rules)
+        # A sweep this node started whose end never came (the acquisition failed first): its id and until
+        # when its end is awaited before the next sweep is asked for, so that a scanner still sweeping
+        # does not refuse the next one.
+        self.unfinished: Optional[tuple[int, float]] = None
+        self.waiting = False                   # an acquisition waits for the unfinished sweep's end
         self.start_client = self.client(StartSweep, "scanner/start_sweep")
         self.standstill_client = self.client(StartSweep, "scanner/start_standstill")
         self.points_subscription = self.create_subscription(
@@ -92,13 +107,22 @@ class ScanAcquisitionNode(GlsNode):
     def on_profile(self, message: PointCloud2) -> None:
         """Keep a profile of the running sweep; profiles outside a sweep are ignored.
 
-        A malformed profile (see ``sweep.profile_problem``, or a message that does not hold what
-        its header says) is dropped with a throttled warning and counted; it never stops the node.
+        A profile not in the scanner's declared format (``self.rules``: field type, byte order) or
+        malformed (see ``sweep.profile_problem``, or a message that does not hold what its header says)
+        is dropped with a throttled warning and counted; it never stops the node.
         Well-formed profiles that are not of the sweep (another wire layout than the sweep's, a
         stamp outside its time window) are kept apart at the end (``SweepCollector.members``).
         """
         collector = self.collector
         if collector is None:
+            return
+        problem = self.rules.format_problem(
+            {field.name: conversions.point_field_type_name(field.datatype) for field in message.fields},
+            message.is_bigendian)
+        if problem:
+            self.wrong_format += 1
+            self.get_logger().warning(f"profile dropped ({self.wrong_format} in this sweep): {problem}",
+                                      throttle_duration_sec=1.0)
             return
         try:
             stamp = message.header.stamp
@@ -128,8 +152,12 @@ class ScanAcquisitionNode(GlsNode):
     def on_sweep_done(self, message: SweepDone) -> None:
         """Remember an end of sweep while acquiring; only the one of the sweep this node started counts.
 
-        Kept by id because it may arrive before the scanner's answer that tells the id.
+        Kept by id because it may arrive before the scanner's answer that tells the id. The end of an
+        unfinished sweep (see ``_wait_for_unfinished``) frees the scanner for the next one.
         """
+        unfinished = self.unfinished
+        if unfinished is not None and message.sweep_id == unfinished[0]:
+            self.unfinished = None
         if self.collector is None:
             return
         if message.sweep_id == self.sweep_id and self._ignored(message):
@@ -156,7 +184,7 @@ class ScanAcquisitionNode(GlsNode):
 
     def _members(self, done: SweepDone):
         """Mask of the kept profiles that form the sweep ``done`` ends (layout and time window)."""
-        return self.collector.members(stamp_window_s(done.profiles, done.step_mm, done.speed_mm_s))
+        return self.collector.members(self.rules.stamp_window_s(done.profiles, done.step_mm, done.speed_mm_s))
 
     def _end_problem(self, done: SweepDone) -> str:
         """Why an end of sweep with this sweep's id cannot be its end (empty when it can): its count
@@ -192,7 +220,7 @@ class ScanAcquisitionNode(GlsNode):
         collector = self.collector
         members = int(np.count_nonzero(self._members(done)))
         accounted = members + collector.dropped
-        junk = self.malformed + collector.too_wide + len(collector) - members
+        junk = self.malformed + self.wrong_format + collector.too_wide + len(collector) - members
         return accounted >= done.profiles or (
             accounted + junk >= done.profiles and time.monotonic() - arrived >= MALFORMED_GRACE_S)
 
@@ -211,7 +239,7 @@ class ScanAcquisitionNode(GlsNode):
         return await self._acquire(request, response, standstill=True)
 
     async def _acquire(self, request, response, standstill: bool):
-        if self.collector is not None:
+        if self.collector is not None or self.waiting:
             response.success = False
             response.message = "a sweep is already being acquired; request refused"
             return response
@@ -225,7 +253,9 @@ class ScanAcquisitionNode(GlsNode):
             response.success = False
             response.message = f"direction must be +1, -1 or 0 (+1), got {request.direction}"
             return response
+        await self._wait_for_unfinished(timeout_s)
         self.collector, self.sweep_id, self.malformed = SweepCollector(self.max_profiles, self.max_points), None, 0
+        self.wrong_format = 0
         self.poses = PoseTrack(self.max_profiles) if self.use_poses else None
         self.ends.clear()
         self.stamps, self.ignored_end, self.expected_profiles, self.end = {}, "", 0, None
@@ -239,6 +269,11 @@ class ScanAcquisitionNode(GlsNode):
             if not started.success:
                 raise ServiceCallError(f"the scanner refused the sweep: {started.message}")
             self.sweep_id, self.expected_profiles = started.sweep_id, started.expected_profiles
+            # The scanner owns the count (its rounding, its own step); a mismatch is said, not refused.
+            announced = self.rules.announcement_problem(started.expected_profiles, request.length_mm,
+                                                        request.step_mm)
+            if announced:
+                self.get_logger().warning(f"sweep {started.sweep_id}: {announced}")
             # Complete when the end of this sweep came and each of its profiles was kept or dropped;
             # the scanner is watched meanwhile, so a scanner that dies fails the sweep at once.
             await self.wait_for(self._sweep_over, timeout_s,
@@ -274,6 +309,9 @@ class ScanAcquisitionNode(GlsNode):
             response.message = str(error)
             return response
         finally:
+            if self.sweep_id is not None and self.end is None:
+                # the scanner accepted a sweep whose end never came: it may still be sweeping
+                self.unfinished = (self.sweep_id, time.monotonic() + max(timeout_s, self.default_timeout_s))
             self.collector, self.poses, self.sweep_id = None, None, None
         response.cloud = conversions.cloud_to_msg(cloud, self.frame_id, first_stamp)
         response.placed_by_pose = by_pose
@@ -282,11 +320,37 @@ class ScanAcquisitionNode(GlsNode):
                             + ("by the reported pose" if by_pose else "by time at the nominal speed"))
         if junk:
             response.message += f"; dropped {junk}"
+        if announced:
+            response.message += f"; {announced}"
         return response
+
+    async def _wait_for_unfinished(self, timeout_s: float) -> None:
+        """Before a sweep: await the end of the sweep a failed acquisition left running, so that the
+        scanner is free. At most ``timeout_s`` (this sweep's limit), and no longer than the larger of
+        that acquisition's limit and ``timeout_s`` (the parameter) after it failed; a scanner that leaves
+        the graph ends the wait. Then the sweep is asked for anyway (the scanner says if it is busy)."""
+        unfinished = self.unfinished
+        if unfinished is None:
+            return
+        sweep_id, until = unfinished
+        remaining_s = min(until - time.monotonic(), timeout_s)
+        if remaining_s > 0.0:
+            self.waiting = True
+            self.get_logger().info(f"waiting up to {remaining_s:.1f} s for the end of sweep {sweep_id}, "
+                                   "left running by a failed acquisition")
+            try:
+                await self.wait_for(lambda: self.unfinished is None, remaining_s, "", watch=[self.start_client])
+            except ServiceCallError:
+                self.get_logger().warning(f"sweep {sweep_id} never ended; the next sweep is asked for anyway")
+            finally:
+                self.waiting = False
+        self.unfinished = None
 
     def _junk_phrase(self, foreign: int) -> str:
         """The profiles dropped from the sweep, by reason ('' when none)."""
         parts = [(self.malformed, "malformed"),
+                 (self.wrong_format, f"not in the scanner's declared format ({self.rules.describe()}; parameters "
+                                     "profile_field_type, profile_big_endian)"),
                  (self.collector.too_wide if self.collector is not None else 0,
                   f"wider than {self.max_points} points (parameter max_points_per_profile)"),
                  (foreign, "not of this sweep (another wire layout or a stamp outside its time window)")]
@@ -308,7 +372,8 @@ class ScanAcquisitionNode(GlsNode):
     def _timeout_message(self, timeout_s: float, expected: int):
         def message() -> str:
             received = len(self.collector) if self.collector is not None else 0
-            malformed = f" ({self.malformed} malformed dropped)" if self.malformed else ""
+            junk = self._junk_phrase(0) if self.collector is not None else ""
+            malformed = f" ({junk} dropped)" if junk else ""
             ignored = f"; {self.ignored_end}" if self.ignored_end else ""
             return (f"sweep not complete after {timeout_s:g} s: {received} of {expected} profiles "
                     f"received{malformed} and no end of sweep{ignored}")
