@@ -256,6 +256,10 @@ def test_fiducial_measurement_refuses_bad_clouds_and_poses_and_then_measures(ros
     measure.refuses(MeasureFiducials.Request(cloud=scan, pose=bad_centre), "centre")
     good = measure(MeasureFiducials.Request(cloud=scan, pose=pose_msg, expected_count=3))
     assert good.success and len(good.x) == 3, good.message
+    # an unorganized cloud: rasterised at its own point spacing (pixel_size_mm 0, the default)
+    loose = cloud_to_msg(xyzi_array(xyz.reshape(-1, 3), intensity.reshape(-1)), "scanner")
+    good = measure(MeasureFiducials.Request(cloud=loose, pose=pose_msg, expected_count=3))
+    assert good.success and len(good.x) == 3, good.message
 
 
 def test_fiducial_measurement_logs_a_surplus_and_answers_missing_never_negative(ros_context, add_node, client,
@@ -357,6 +361,8 @@ def test_manager_refuses_bad_requests_and_hostile_files_and_then_serves(start_ce
 
 @pytest.mark.parametrize("node_type, name, value, match", [
     (FiducialMeasurementNode, "grid.ring_radii_mm", [-2.5, 2.7], "parameter grid.ring_radii_mm"),
+    (FiducialMeasurementNode, "pixel_size_mm", 0.001, r"parameter pixel_size_mm must be 0 \(from the point "
+                                                       r"spacing\) or at least 0.005 mm, got 0.001"),
     (RbfTrainerNode, "spreads_mm", [35.0, NAN], "parameter spreads_mm"),
     (RbfTrainerNode, "mse_goals_mm2", [0.0], "parameter mse_goals_mm2"),
     (RbfTrainerNode, "tps_smoothings", [-1.0], "parameter tps_smoothings"),

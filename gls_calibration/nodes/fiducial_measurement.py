@@ -8,6 +8,10 @@ from gls_calibration.targets import RING_RADII_MM
 from gls_calibration_msgs.srv import MeasureFiducials
 
 
+MIN_PIXEL_MM = 0.005
+"""A given raster pixel below this makes a plate image of tens of thousands of pixels a side."""
+
+
 class FiducialMeasurementNode(GlsNode):
     """Thin wrapper over ``fiducials.measure_fiducials``."""
 
@@ -17,8 +21,13 @@ class FiducialMeasurementNode(GlsNode):
         self.ring_radii_mm = tuple(self.declare_numbers(
             "grid.ring_radii_mm", list(RING_RADII_MM), "radii of the rings of a fiducial (mm), for requests "
             "that carry none (the calibration manager sends the radii it marked with)"))
-        self.pixel_size_mm = self.declare("pixel_size_mm", 0.1,
-                                          "raster pixel for unorganized clouds (mm)", minimum=0.005, maximum=5.0)
+        # 0 (the default): from the cloud's own point spacing, as gls-measure does without --pixel
+        pixel_mm = self.declare("pixel_size_mm", 0.0, "raster pixel for unorganized clouds (mm); 0: from the "
+                                "cloud's own point spacing", minimum=0.0, maximum=5.0)
+        if 0.0 < pixel_mm < MIN_PIXEL_MM:
+            raise ValueError(f"parameter pixel_size_mm must be 0 (from the point spacing) or at least "
+                             f"{MIN_PIXEL_MM:g} mm, got {pixel_mm:g}")
+        self.pixel_size_mm = pixel_mm or None
         self.marks_darker = self.declare("marks_darker", True, "marks are darker than the plain plate")
         self.create_service(MeasureFiducials, "fiducials/measure", self.on_measure)
 
