@@ -31,6 +31,7 @@ from typing import Optional
 
 import numpy as np
 from nav_msgs.msg import Path
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
@@ -58,7 +59,7 @@ class Session:
     profiles: int = 0
     started: bool = False
     end_ns: Optional[int] = None
-    end_arrived_s: float = 0.0
+    last_arrival_s: float = 0.0     # monotonic time of the latest message of the session's streams
     problems: list = field(default_factory=list)
 
 
@@ -78,8 +79,9 @@ class StreamAcquisitionNode(GlsNode):
                                                "step nor speed", minimum=0.01, maximum=10000.0)
         self.default_timeout_s = self.declare("default_timeout_s", 120.0, "time limit of a sweep when a request "
                                               "says 0", minimum=0.1, maximum=3600.0)
-        self.end_grace_s = self.declare("end_grace_s", 1.0, "after the motion's end: how long to wait for a "
-                                        "profile and a pose stamped after it", minimum=0.0, maximum=60.0)
+        self.end_grace_s = self.declare("end_grace_s", 1.0, "after the motion's end: how long the streams may be "
+                                        "quiet before the sweep is taken without a profile and a pose stamped after "
+                                        "the end", minimum=0.0, maximum=60.0)
         self.max_profiles = self.declare("max_profiles", 30000, "most profiles kept during one acquisition",
                                          minimum=2)
         self.limits = ReplayLimits(
@@ -95,7 +97,9 @@ class StreamAcquisitionNode(GlsNode):
         self.statics: dict[str, TFMessage] = {}
         self.session: Optional[Session] = None
         self.last_sweep = None
-        group = self.reentrant_group
+        # the streams one callback at a time, each topic in arrival order: a profile's order and the newest
+        # stamps mean what they say (a multi-threaded executor would otherwise run them side by side)
+        group = MutuallyExclusiveCallbackGroup()
         depth = self.max_profiles
         self.create_subscription(PointCloud2, scan_topic, self.on_profile, stream_qos(depth), callback_group=group)
         self.create_subscription(TFMessage, LAYOUT.tf_topic, self.on_tf, stream_qos(depth), callback_group=group)
@@ -104,8 +108,9 @@ class StreamAcquisitionNode(GlsNode):
         self.create_subscription(Header, LAYOUT.motion_start_topic, self.on_start, stream_qos(10), callback_group=group)
         self.create_subscription(Header, LAYOUT.motion_end_topic, self.on_end, stream_qos(10), callback_group=group)
         self.line = self.create_publisher(Path, LINE_TOPIC, stream_qos(10))
-        self.create_service(AcquireSweep, "scan/acquire", self.on_acquire, callback_group=group)
-        self.create_service(AcquireSweep, "scan/acquire_standstill", self.on_acquire_standstill, callback_group=group)
+        self.create_service(AcquireSweep, "scan/acquire", self.on_acquire, callback_group=self.reentrant_group)
+        self.create_service(AcquireSweep, "scan/acquire_standstill", self.on_acquire_standstill,
+                            callback_group=self.reentrant_group)
 
     # --- the streams ------------------------------------------------------------------------------
 
@@ -125,6 +130,7 @@ class StreamAcquisitionNode(GlsNode):
             session.out_of_order += 1
             return
         session.newest_profile_ns = stamp
+        session.last_arrival_s = time.monotonic()
         session.profiles += 1
         if session.profiles > self.max_profiles:
             if session.profiles == self.max_profiles + 1:
@@ -137,6 +143,7 @@ class StreamAcquisitionNode(GlsNode):
         session = self.session
         if session is None:
             return
+        session.last_arrival_s = time.monotonic()
         for transform in message.transforms:
             if transform.child_frame_id == self.layout.flange_frame:
                 session.newest_tf_ns = max(session.newest_tf_ns, stamp_ns(transform.header.stamp))
@@ -161,7 +168,7 @@ class StreamAcquisitionNode(GlsNode):
         if session is None or not session.started or session.end_ns is not None:
             return
         session.end_ns = stamp_ns(message.stamp)
-        session.end_arrived_s = time.monotonic()
+        session.last_arrival_s = time.monotonic()
         self._add(session, LAYOUT.motion_end_topic, message)
 
     # --- the service ------------------------------------------------------------------------------
@@ -200,11 +207,12 @@ class StreamAcquisitionNode(GlsNode):
         return start @ to_flange, end @ to_flange, duration
 
     def _complete(self) -> bool:
-        """The motion ended and a profile and a flange pose stamped after its end came (or the grace passed)."""
+        """The motion ended and a profile and a flange pose stamped after its end came, or the streams have
+        been quiet for ``end_grace_s`` since."""
         session = self.session
         if session.end_ns is None:
             return False
-        if time.monotonic() - session.end_arrived_s >= self.end_grace_s:
+        if time.monotonic() - session.last_arrival_s >= self.end_grace_s:
             return True
         return session.newest_profile_ns > session.end_ns and session.newest_tf_ns >= session.end_ns
 

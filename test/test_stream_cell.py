@@ -1,0 +1,94 @@
+"""The simulated streaming cell (sim_robot + sim_line_scanner + stream_acquisition) gives the clouds of
+the direct cells for the same seed: exactly those of RecordingCell (the same float32-metre streams
+assembled by the same code) and DirectCell's to float32 precision."""
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.parameter import Parameter
+from std_srvs.srv import SetBool
+
+from gls_calibration.bag_io import BagRecorder
+from gls_calibration.nodes import conversions
+from gls_calibration.nodes.sim_line_scanner import SimLineScannerNode
+from gls_calibration.nodes.sim_robot import SimRobotNode
+from gls_calibration.nodes.stream_acquisition import StreamAcquisitionNode
+from gls_calibration.persistence import CalibrationStore
+from gls_calibration.simulation.direct_cell import DirectCell
+from gls_calibration.simulation.recording_cell import SIM_FLANGE_TO_SENSOR, RecordingCell, base_to_gls
+from gls_calibration.simulation.world import SimulatedCell, load_sim_config
+from gls_calibration_msgs.srv import AcquireSweep
+
+from ros_helpers import call_service
+
+PRESET, SEED = "paper_like", 1
+STEP_MM = 1.0
+PROFILE_RATE_HZ = 150.0
+FLOAT32_MM = 1e-4          # float32 metres near 0.3 m: about 3e-5 mm
+
+
+@pytest.fixture
+def stream_cell(ros_context, add_node):
+    def parameters(**values):
+        return [Parameter(name, value=value) for name, value in values.items()]
+    # TF at twice the profile rate: a sample at every profile's stamp, so that interpolation adds nothing
+    robot = add_node(SimRobotNode(context=ros_context, parameter_overrides=parameters(
+        measurement_preset=PRESET, seed=SEED, tf_rate_hz=2 * PROFILE_RATE_HZ, profile_rate_hz=PROFILE_RATE_HZ)))
+    scanner = add_node(SimLineScannerNode(robot, context=ros_context))
+    acquisition = add_node(StreamAcquisitionNode(context=ros_context, parameter_overrides=parameters(
+        profile_rate_hz=PROFILE_RATE_HZ, end_grace_s=0.5)))
+    client_node = add_node(rclpy.create_node("stream_cell_test", namespace="gls", context=ros_context))
+    return robot, scanner, acquisition, client_node
+
+
+def _call(client_node, service: str, request, srv=AcquireSweep):
+    return call_service(client_node, client_node.create_client(srv, service), request, timeout_s=60.0)
+
+
+def test_streaming_cell_gives_the_direct_cells_clouds(stream_cell, tmp_path):
+    robot, _, acquisition, client_node = stream_cell
+    config = load_sim_config(preset=PRESET)
+    assert config.seed == SEED
+    direct = DirectCell(SimulatedCell(config), CalibrationStore(tmp_path / "direct"))
+    with BagRecorder(tmp_path / "bag", SIM_FLANGE_TO_SENSOR, base_to_gls(config)) as recorder:
+        recording = RecordingCell(SimulatedCell(config), CalibrationStore(tmp_path / "recording"), recorder=recorder)
+        for direction, orientation in ((1, 0.0), (-1, 90.0), (0, None)):
+            if orientation is None:          # a stand-still: as many profiles as a sweep of 200 mm at 1 mm
+                answer = _call(client_node, "scan/acquire_standstill",
+                               AcquireSweep.Request(length_mm=200.0, step_mm=STEP_MM))
+                expected, _ = asyncio.run(recording.acquire_standstill(201))
+                reference, _ = asyncio.run(direct.acquire_standstill(201))
+            else:
+                answer = _call(client_node, "scan/acquire", AcquireSweep.Request(
+                    length_mm=200.0, step_mm=STEP_MM, direction=direction, orientation_deg=orientation))
+                expected, _ = asyncio.run(recording.acquire_sweep(STEP_MM, direction, orientation))
+                reference, _ = asyncio.run(direct.acquire_sweep(STEP_MM, direction, orientation))
+            assert answer.success, answer.message
+            assembled = acquisition.last_sweep.xyz_mm
+            assert assembled.shape == expected.shape == (201, 2101, 3)
+            assert np.array_equal(np.isnan(assembled), np.isnan(expected))
+            assert np.nanmax(np.abs(assembled - expected)) <= 1e-6
+            answered, _ = conversions.cloud_arrays_from_msg(answer.cloud)
+            assert np.array_equal(np.isnan(answered), np.isnan(reference))
+            assert np.nanmax(np.abs(answered - reference)) <= FLOAT32_MM
+    assert robot.refused == 0
+
+
+def test_scanner_off_and_a_line_the_robot_refuses_fail_the_sweep(stream_cell):
+    robot, scanner, _, client_node = stream_cell
+    off = _call(client_node, "scanner/enable", SetBool.Request(data=False), SetBool)
+    assert off.success and not scanner.enabled
+    silent = _call(client_node, "scan/acquire", AcquireSweep.Request(length_mm=200.0, step_mm=10.0, timeout_s=20.0))
+    assert not silent.success and "0 profile(s) within the motion" in silent.message, silent.message
+    assert _call(client_node, "scanner/enable", SetBool.Request(data=True), SetBool).success
+    # the simulation stands still at the middle of its 200 mm sweep only: a 100 mm stand-still is refused
+    refused = _call(client_node, "scan/acquire_standstill",
+                    AcquireSweep.Request(length_mm=100.0, step_mm=10.0, timeout_s=2.0))
+    assert not refused.success
+    assert refused.message == "the robot did not start the line within 2 s (nothing on /motion/start)"
+    assert robot.refused == 1
+    bad = _call(client_node, "scan/acquire", AcquireSweep.Request(length_mm=200.0, direction=2))
+    assert not bad.success and bad.message == "direction must be +1, -1 or 0 (+1), got 2"
