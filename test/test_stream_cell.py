@@ -32,16 +32,20 @@ FLOAT32_MM = 1e-4          # float32 metres near 0.3 m: about 3e-5 mm
 
 @pytest.fixture
 def stream_cell(ros_context, add_node):
+    """start(**acquisition_parameters) -> robot, scanner, acquisition and a client node, in-process."""
     def parameters(**values):
         return [Parameter(name, value=value) for name, value in values.items()]
-    # TF at twice the profile rate: a sample at every profile's stamp, so that interpolation adds nothing
-    robot = add_node(SimRobotNode(context=ros_context, parameter_overrides=parameters(
-        measurement_preset=PRESET, seed=SEED, tf_rate_hz=2 * PROFILE_RATE_HZ, profile_rate_hz=PROFILE_RATE_HZ)))
-    scanner = add_node(SimLineScannerNode(robot, context=ros_context))
-    acquisition = add_node(StreamAcquisitionNode(context=ros_context, parameter_overrides=parameters(
-        profile_rate_hz=PROFILE_RATE_HZ, end_grace_s=0.5)))
-    client_node = add_node(rclpy.create_node("stream_cell_test", namespace="gls", context=ros_context))
-    return robot, scanner, acquisition, client_node
+
+    def start(**acquisition_parameters):
+        # TF at twice the profile rate: a sample at every profile's stamp, so that interpolation adds nothing
+        robot = add_node(SimRobotNode(context=ros_context, parameter_overrides=parameters(
+            measurement_preset=PRESET, seed=SEED, tf_rate_hz=2 * PROFILE_RATE_HZ, profile_rate_hz=PROFILE_RATE_HZ)))
+        scanner = add_node(SimLineScannerNode(robot, context=ros_context))
+        acquisition = add_node(StreamAcquisitionNode(context=ros_context, parameter_overrides=parameters(
+            profile_rate_hz=PROFILE_RATE_HZ, end_grace_s=0.5, **acquisition_parameters)))
+        client_node = add_node(rclpy.create_node("stream_cell_test", namespace="gls", context=ros_context))
+        return robot, scanner, acquisition, client_node
+    return start
 
 
 def _call(client_node, service: str, request, srv=AcquireSweep):
@@ -49,7 +53,7 @@ def _call(client_node, service: str, request, srv=AcquireSweep):
 
 
 def test_streaming_cell_gives_the_direct_cells_clouds(stream_cell, tmp_path):
-    robot, _, acquisition, client_node = stream_cell
+    robot, _, acquisition, client_node = stream_cell()
     config = load_sim_config(preset=PRESET)
     assert config.seed == SEED
     direct = DirectCell(SimulatedCell(config), CalibrationStore(tmp_path / "direct"))
@@ -78,13 +82,14 @@ def test_streaming_cell_gives_the_direct_cells_clouds(stream_cell, tmp_path):
 
 
 def test_scanner_off_and_a_line_the_robot_refuses_fail_the_sweep(stream_cell):
-    robot, scanner, _, client_node = stream_cell
+    # the simulation stands still at the middle of its 200 mm sweep only: an acquisition that takes the
+    # marking pose at the middle of 100 mm commands a line the robot refuses
+    robot, scanner, _, client_node = stream_cell(default_length_mm=100.0)
     off = _call(client_node, "scanner/enable", SetBool.Request(data=False), SetBool)
     assert off.success and not scanner.enabled
     silent = _call(client_node, "scan/acquire", AcquireSweep.Request(length_mm=200.0, step_mm=10.0, timeout_s=20.0))
     assert not silent.success and "0 profile(s) within the motion" in silent.message, silent.message
     assert _call(client_node, "scanner/enable", SetBool.Request(data=True), SetBool).success
-    # the simulation stands still at the middle of its 200 mm sweep only: a 100 mm stand-still is refused
     refused = _call(client_node, "scan/acquire_standstill",
                     AcquireSweep.Request(length_mm=100.0, step_mm=10.0, timeout_s=2.0))
     assert not refused.success

@@ -22,12 +22,15 @@ from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
 from gls_calibration.cell_frames import load_cell_frames
-from gls_calibration.nodes.base import GlsNode
+from gls_calibration.nodes import conversions
+from gls_calibration.nodes.base import GlsNode, ServiceCallError
+from gls_calibration.nodes.sim_scanner import MARKS_RESEND_AFTER_S
 from gls_calibration.nodes.sim_parameters import declare_sim_config
 from gls_calibration.nodes.stream_topics import (LAYOUT, LINE_TOPIC, line_from_msg, static_qos, stream_qos, time_msg,
                                                  transform_msg)
 from gls_calibration.simulation.line_motion import LineCommand, MotionRun, SimulatedLineMotion
 from gls_calibration.simulation.world import SimulatedCell
+from gls_calibration_msgs.srv import GetMarkedPaths
 
 TF_MARGIN_SAMPLES = 2     # TF samples before the start and after the end: a lookup never extrapolates
 
@@ -45,6 +48,9 @@ class SimRobotNode(GlsNode):
         self.batch = self.declare("samples_per_tick", 50, "TF samples published per timer tick", minimum=1)
         path = self.declare("cell_frames", "", "cell frames file (empty: the package's config/cell_frames.yaml)")
         self.frames = load_cell_frames(path or None)
+        marks = self.declare("marks_service", "", "the simulated galvo's marks query (sim/marked_paths), asked before "
+                             "each line so that the simulated scanner sees the plate's marks (empty: a plain plate)")
+        self.marks_client = self.client(GetMarkedPaths, marks) if marks else None
         self.motion = SimulatedLineMotion(SimulatedCell(config), self.frames.flange_to_sensor, rate)
         self.run_listeners: list[Callable[[MotionRun], None]] = []
         self.tf = self.create_publisher(TFMessage, LAYOUT.tf_topic, stream_qos(10000))
@@ -61,14 +67,16 @@ class SimRobotNode(GlsNode):
         self.timer = self.create_timer(0.001, self.publish_batch, callback_group=group)
         self.timer.cancel()
 
-    def on_line(self, message: Path) -> None:
+    async def on_line(self, message: Path) -> None:
         """Run a commanded line (refused, with an error in the log, while one runs or when malformed)."""
         try:
             if self.job is not None:
                 raise ValueError("a line is running")
             start, end, duration_s = line_from_msg(message, self.frames.base)
+            if self.marks_client is not None:
+                await self._load_marks()
             run = self.motion.run(LineCommand(start, end, duration_s), self.get_clock().now().nanoseconds)
-        except ValueError as error:
+        except (ValueError, ServiceCallError) as error:
             self.refused += 1
             self.get_logger().error(f"line refused: {error}")
             return
@@ -82,6 +90,17 @@ class SimRobotNode(GlsNode):
         for listener in self.run_listeners:
             listener(run)
         self.timer.reset()
+
+    async def _load_marks(self) -> None:
+        """The plate's marks as the simulated galvo landed them (the simulation's truth, as sim_scanner loads it)."""
+        answer = await self.call(self.marks_client, GetMarkedPaths.Request(), 10.0, resend_after_s=MARKS_RESEND_AFTER_S)
+        paths, plate = answer.paths, self.motion.sim.plate
+        plate.load_clean([self.motion.sim.config.seed, paths.plate_id])
+        points = np.column_stack([conversions.float64_array(paths.x), conversions.float64_array(paths.y),
+                                  conversions.float64_array(paths.z)])
+        if len(points):
+            for polyline in np.split(points, np.asarray(paths.polyline_starts[1:], dtype=int)):
+                plate.add_mark(polyline)
 
     def publish_batch(self) -> None:
         """The next TF samples of the running line; after the last, the end of the motion."""

@@ -13,8 +13,8 @@ replay uses, so that a live sweep and its replay agree exactly).
 The line: the sensor's nominal sweep (``sweep.nominal_start_pose``) turned into flange poses through
 the file's hand-eye. A scanner streams at its own rate (``profile_rate_hz``, the driver's setting),
 so a requested step sets the speed: step x rate; without a step the request's speed (or
-``default_speed_mm_s``) is used. A stand-still is a line of no length at the middle of the sweep,
-lasting as many profile periods as the sweep would have steps.
+``default_speed_mm_s``) is used. A stand-still is a line of no length at the marking pose (the middle
+of a ``default_length_mm`` sweep), lasting as many profile periods as the request's length has steps.
 
 Refused (``success`` false, the message naming the problem; the sweep is not used): a profile in
 another frame or not in metres, a profile within the motion without a pose of the flange within
@@ -195,9 +195,10 @@ class StreamAcquisitionNode(GlsNode):
         speed = request.step_mm * self.rate_hz if request.step_mm else request.speed_mm_s or self.default_speed_mm_s
         start = nominal_start_pose(length, direction, request.orientation_deg)
         end = start.copy()
-        if standstill:
+        if standstill:     # at the marking pose: the middle of the default sweep; the request sets the count
             step = request.step_mm or speed / self.rate_hz
-            start[:3, 3] += 0.5 * length * start[:3, 1]
+            start = nominal_start_pose(self.default_length_mm)
+            start[:3, 3] += 0.5 * self.default_length_mm * start[:3, 1]
             end = start
             duration = math.floor(length / step + 1e-9) / self.rate_hz
         else:
