@@ -97,3 +97,16 @@ def test_scanner_off_and_a_line_the_robot_refuses_fail_the_sweep(stream_cell):
     assert robot.refused == 1
     bad = _call(client_node, "scan/acquire", AcquireSweep.Request(length_mm=200.0, direction=2))
     assert not bad.success and bad.message == "direction must be +1, -1 or 0 (+1), got 2"
+
+
+@pytest.mark.parametrize("extra", [["--placement", "time"], ["--reference-plate"], ["--record", "BAG"]])
+def test_sim_cell_streaming_refuses_what_it_cannot_do(tmp_path, extra, capsys):
+    from gls_calibration.cli.sim_cell import main as sim_cell_main
+
+    extra = [str(tmp_path / "bag") if item == "BAG" else item for item in extra]
+    with pytest.raises(SystemExit) as exit_:
+        sim_cell_main(["--out", str(tmp_path / "out"), "--streaming"] + extra)
+    assert exit_.value.code == 2
+    assert ("--streaming places profiles through TF: not with --record, --reference-plate or --placement time"
+            in capsys.readouterr().err)
+    assert not (tmp_path / "out").exists() and not (tmp_path / "bag").exists()

@@ -277,7 +277,7 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
     }
     if args.sweep_plan is not None:
         overrides["sweep.plan"] = args.sweep_plan
-    if getattr(args, "streaming", False):
+    if args.streaming:
         overrides["marks_service"] = "sim/marked_paths"
     if args.reference_check is not None:
         overrides["reference_check_file"] = str(args.reference_check.resolve())

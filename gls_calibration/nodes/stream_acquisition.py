@@ -228,7 +228,7 @@ class StreamAcquisitionNode(GlsNode):
             return response
         timeout_s = request.timeout_s or self.default_timeout_s
         session = Session(StreamAssembler(self.layout, self.limits, "stream"))
-        for message in self.statics.values():
+        for message in list(self.statics.values()):    # a copy: the static subscription may add meanwhile
             self._add(session, LAYOUT.tf_static_topic, message)
         self.session = session
         try:
@@ -236,6 +236,7 @@ class StreamAcquisitionNode(GlsNode):
                                       ROBOT_WAIT_S, "nobody subscribes to", "line commanded anyway")
             self.line.publish(line_msg(self.frames.base, start, end, duration))
             await self.wait_for(self._complete, timeout_s, lambda: self._timeout_message(timeout_s))
+            self.session = None     # closed: what comes from now on is not added while the sweep is assembled
             sweep = self._sweep(session)
         except (ServiceCallError, ValueError) as error:
             response.success, response.message = False, str(error)
