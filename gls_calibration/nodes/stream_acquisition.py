@@ -96,7 +96,6 @@ class StreamAcquisitionNode(GlsNode):
                                 sensor_frame=self.frames.sensor, gls_frame=self.frames.gls)
         self.statics: dict[str, TFMessage] = {}
         self.session: Optional[Session] = None
-        self.last_sweep = None
         # the streams one callback at a time, each topic in arrival order: a profile's order and the newest
         # stamps mean what they say (a multi-threaded executor would otherwise run them side by side)
         group = MutuallyExclusiveCallbackGroup()
@@ -243,7 +242,6 @@ class StreamAcquisitionNode(GlsNode):
             return response
         finally:
             self.session = None
-        self.last_sweep = sweep
         points = conversions.xyzi_array(sweep.xyz_mm, sweep.intensity)
         response.cloud = conversions.cloud_to_msg(points, self.frame_id, time_msg(int(sweep.stamps_ns[0])))
         response.placed_by_pose = True
