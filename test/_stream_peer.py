@@ -12,7 +12,7 @@ behave, in plain rclpy. It imports NOTHING of gls_calibration (checked at start)
 - ``--modes a,b,...``: the n-th command is run in the n-th mode: ``normal``; ``no_hand_eye`` (the
   hand-eye never published: a frame is missing); ``stale`` (the flange pose only every 0.2 s);
   ``stops`` (the profiles stop halfway through the line); ``mm`` (profiles in millimetres);
-  ``out_of_order`` (two profiles swapped).
+  ``out_of_order`` (two profiles swapped); ``late`` (one profile of the line sent LATE_S after the end).
 
     python test/_stream_peer.py --rate 50 --modes normal,stale [--lifetime 60]
 """
@@ -44,7 +44,8 @@ TF_RATE_HZ = 250.0
 BEFORE, AFTER = 3, 5
 RELIABLE = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-MODES = ("normal", "no_hand_eye", "stale", "stops", "mm", "out_of_order")
+MODES = ("normal", "no_hand_eye", "stale", "stops", "mm", "out_of_order", "late")
+LATE_S = 1.5          # "late": one profile of the line held back this long after the motion's end
 
 
 def pose(translation_m, rotation: Rotation) -> np.ndarray:
@@ -149,6 +150,7 @@ class Peer(Node):
         order = list(range(len(profile_stamps)))
         if mode == "out_of_order":
             order[BEFORE + 4], order[BEFORE + 5] = order[BEFORE + 5], order[BEFORE + 4]
+        held_back = order.pop(BEFORE + 10) if mode == "late" else None
         for index in order:
             ns = profile_stamps[index]
             if ns == start_ns:
@@ -156,6 +158,10 @@ class Peer(Node):
             points = profile_points_m(flange_at(ns) @ HAND_EYE)
             self.profiles.publish(cloud(points * (1000.0 if mode == "mm" else 1.0), ns))
         self.ends.publish(Header(stamp=stamp(end_ns), frame_id="robot_base"))
+        if held_back is not None:
+            time.sleep(LATE_S)
+            ns = profile_stamps[held_back]
+            self.profiles.publish(cloud(profile_points_m(flange_at(ns) @ HAND_EYE), ns))
 
 
 def main() -> int:

@@ -18,7 +18,7 @@ from gls_calibration.nodes import conversions
 from gls_calibration.nodes.stream_acquisition import StreamAcquisitionNode
 from gls_calibration_msgs.srv import AcquireSweep
 
-from ros_helpers import call_service, default_sigint, stop_process
+from ros_helpers import call_service, default_sigint, stop_process, wait_for
 
 PEER = Path(__file__).with_name("_stream_peer.py")
 RATE_HZ = 50.0
@@ -93,7 +93,7 @@ def _check_closed_form(response, rows: int, direction: int, orientation_deg: flo
 
 
 def test_sweeps_from_a_peer_process_match_closed_form_and_bad_streams_are_refused(peer_session):
-    node, acquire, log = peer_session(["no_hand_eye", "normal", "out_of_order", "stale", "stops", "mm"])
+    node, acquire, log = peer_session(["no_hand_eye", "normal", "out_of_order", "late", "stale", "stops", "mm"])
     missing = acquire()
     assert not missing.success
     assert "frame scanner_optical is not in the transform tree" in missing.message, missing.message
@@ -113,7 +113,14 @@ def test_sweeps_from_a_peer_process_match_closed_form_and_bad_streams_are_refuse
     assert "1 out of order dropped" in swapped.message and "20 profiles of 41 points" in swapped.message
     _check_closed_form(swapped, 20, -1, 90.0)
 
+    held_back = acquire()     # one profile of the line comes 1.5 s after the end: the sweep is taken without it
+    assert held_back.success and "20 profiles of 41 points" in held_back.message, held_back.message
+    assert "late" not in held_back.message
+    _check_closed_form(held_back, 20, 1, 0.0)
+    wait_for(lambda: node.late == 1, 10.0, what="the held-back profile counted as late")
+
     stale = acquire()
+    assert stale.message.endswith("; 1 profile(s) of the previous sweep came after it was taken (late, not used)")
     assert not stale.success and "older than" in stale.message and "(limit 0.05 s)" in stale.message, stale.message
 
     stops = acquire()

@@ -19,8 +19,10 @@ of a ``default_length_mm`` sweep), lasting as many profile periods as the reques
 Refused (``success`` false, the message naming the problem; the sweep is not used): a profile in
 another frame or not in metres, a profile within the motion without a pose of the flange within
 ``max_pose_age_s`` (counted), a missing frame, a stream that stops mid-sweep, a robot that does not
-start or end the line in time. Profiles stamped out of order are dropped and counted, profiles outside
-the motion are not used; both counts are in the message.
+start or end the line in time. Profiles stamped out of order (older than one already received: late
+within the acquisition) are dropped and counted, profiles outside the motion are not used; both counts
+are in the message. A profile of a sweep's motion that comes after the sweep was taken is logged and
+counted in the next answer's message.
 """
 from __future__ import annotations
 
@@ -96,6 +98,8 @@ class StreamAcquisitionNode(GlsNode):
                                 sensor_frame=self.frames.sensor, gls_frame=self.frames.gls)
         self.statics: dict[str, TFMessage] = {}
         self.session: Optional[Session] = None
+        self.closed: Optional[tuple[int, int]] = None   # the motion of the last sweep taken (ns)
+        self.late = 0      # profiles of that motion that came after it was taken
         # the streams one callback at a time, each topic in arrival order: a profile's order and the newest
         # stamps mean what they say (a multi-threaded executor would otherwise run them side by side)
         group = MutuallyExclusiveCallbackGroup()
@@ -122,9 +126,13 @@ class StreamAcquisitionNode(GlsNode):
     def on_profile(self, message: PointCloud2) -> None:
         """Keep a profile of the running acquisition; one stamped before the newest is dropped and counted."""
         session = self.session
-        if session is None:
-            return
         stamp = stamp_ns(message.header.stamp)
+        if session is None:
+            if self.closed is not None and self.closed[0] <= stamp <= self.closed[1]:
+                self.late += 1      # of the sweep already taken: said in the next answer
+                self.get_logger().warning(f"a profile stamped {stamp} ns, within the last sweep's motion, came after "
+                                          "the sweep was taken: not used", throttle_duration_sec=1.0)
+            return
         if stamp <= session.newest_profile_ns:
             session.out_of_order += 1
             return
@@ -220,6 +228,13 @@ class StreamAcquisitionNode(GlsNode):
         if self.session is not None:
             response.success, response.message = False, "a sweep is already being acquired; request refused"
             return response
+        late, self.late = self.late, 0
+        response = await self._answer(request, response, standstill)
+        if late:
+            response.message += f"; {late} profile(s) of the previous sweep came after it was taken (late, not used)"
+        return response
+
+    async def _answer(self, request, response, standstill: bool):
         try:
             start, end, duration = self._line(request, standstill)
         except ValueError as error:
@@ -236,6 +251,8 @@ class StreamAcquisitionNode(GlsNode):
             self.line.publish(line_msg(self.frames.base, start, end, duration))
             await self.wait_for(self._complete, timeout_s, lambda: self._timeout_message(timeout_s))
             self.session = None     # closed: what comes from now on is not added while the sweep is assembled
+            if session.assembler.ends:
+                self.closed = (session.assembler.starts[-1], session.assembler.ends[-1])
             sweep = self._sweep(session)
         except (ServiceCallError, ValueError) as error:
             response.success, response.message = False, str(error)
