@@ -43,7 +43,8 @@ def _pose(block: Any, name: str) -> np.ndarray:
     for key in POSE_KEYS:
         value = block[key]
         if (not isinstance(value, list) or len(value) != 3
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)):
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                           for v in value)):
             raise ValueError(f"{name}.{key} must be a list of 3 finite numbers, got {value!r}")
         values[key] = np.array(value, dtype=float)
     if np.max(np.abs(values["translation_m"])) > MAX_TRANSLATION_M:

@@ -139,8 +139,8 @@ class Peer(Node):
 
         period_ns = 1e9 / self.rate_hz
         tf_period_ns = 1e9 / (5.0 if mode == "stale" else TF_RATE_HZ)
-        tf_stamps = [int(start_ns + round(k * tf_period_ns)) for k in range(-BEFORE * 50, int(duration_ns / tf_period_ns)
-                                                                           + 50)]
+        tf_samples = range(-BEFORE * 50, int(duration_ns / tf_period_ns) + 50)
+        tf_stamps = [int(start_ns + round(k * tf_period_ns)) for k in tf_samples]
         profile_stamps = [int(start_ns + round(k * period_ns)) for k in range(-BEFORE, round(duration_ns / period_ns)
                                                                              + 1 + AFTER)]
         if mode == "stops":

@@ -102,11 +102,13 @@ def line_msg(base_frame: str, start_flange_mm: np.ndarray, end_flange_mm: np.nda
 def line_from_msg(message: Path, base_frame: str) -> tuple[np.ndarray, np.ndarray, float]:
     """Start and end flange poses (4x4, mm) and duration (s) of a line command; ValueError naming a problem."""
     if message.header.frame_id != base_frame:
-        raise ValueError(f"a line must be given in the robot base frame {base_frame!r}, got {message.header.frame_id!r}")
+        raise ValueError(f"a line must be given in the robot base frame {base_frame!r}, "
+                         f"got {message.header.frame_id!r}")
     if len(message.poses) != 2:
         raise ValueError(f"a line has two poses (start, end), got {len(message.poses)}")
     start, end = (pose_from_msg(stamped.pose, f"line pose {number}") for number, stamped in enumerate(message.poses))
     duration_s = (stamp_ns(message.poses[1].header.stamp) - stamp_ns(message.poses[0].header.stamp)) / NS_PER_S
     if not duration_s > 0.0:
-        raise ValueError(f"a line's duration (second pose's stamp minus the first's) must be positive, got {duration_s:g} s")
+        raise ValueError("a line's duration (second pose's stamp minus the first's) must be positive, "
+                         f"got {duration_s:g} s")
     return start, end, duration_s

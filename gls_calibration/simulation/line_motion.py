@@ -107,7 +107,8 @@ class SimulatedLineMotion:
         expected = np.eye(4)
         expected[1, 3] = 0.5 * self.sim.config.sweep_length_mm
         if not np.allclose(start, expected, atol=POSE_TOLERANCE_MM):
-            raise ValueError(f"a stand-still is simulated at the marking pose, sensor at {expected[:3, 3].tolist()} mm, "
+            raise ValueError("a stand-still is simulated at the marking pose, sensor at "
+                             f"{expected[:3, 3].tolist()} mm, "
                              f"orientation 0; commanded at {start[:3, 3].tolist()} mm")
         profiles = int(round(command.duration_s * self.profile_rate_hz)) + 1
         self.standstills += 1
