@@ -54,6 +54,8 @@ Example
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+import hashlib
+import json
 import math
 from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence
@@ -217,9 +219,25 @@ class ChainMap:
         centres = self.correct(item.label, found.centres)
         return replace(found, centres=centres, centres_plane=pose.to_plane(centres))
 
+    @property
+    def identity(self) -> str:
+        """``sha256:`` and 16 hex digits of the map's content: what a reference check and a calibration
+        record to say which map their sweeps were corrected with."""
+        text = json.dumps(self.to_dict(), sort_keys=True)
+        return "sha256:" + hashlib.sha256(text.encode()).hexdigest()[:16]
+
     def to_dict(self) -> dict:
         return {"reference": self.reference, "sweeps_per_line": self.sweeps_per_line,
                 "residual_rms_mm": list(self.residual_rms_mm), "lines": [line.to_dict() for line in self.lines]}
+
+
+NO_CHAIN_MAP = "none"
+"""The identity recorded when no chain map corrected the sweeps."""
+
+
+def chain_map_identity(chain_map: Optional[ChainMap]) -> str:
+    """``chain_map.identity``, or :data:`NO_CHAIN_MAP` for None."""
+    return NO_CHAIN_MAP if chain_map is None else chain_map.identity
 
 
 def correct_measurements(chain_map: Optional[ChainMap], measurements: Sequence, passes: Sequence[SweepPass],

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, Optional
 
 import numpy as np
 
+from gls_calibration.chain_map import NO_CHAIN_MAP
 from gls_calibration.stated_accuracy import SELF_CONSISTENCY, ChainCheck, stated_accuracy
 from gls_calibration.validation import as_points, as_positive_number
 
@@ -167,6 +168,7 @@ class RunSummary:
     calibration_file: str
     iteration_rms_mm: tuple[float, ...]
     sweep_plan: str = "0+"
+    chain_map: str = NO_CHAIN_MAP               # identity of the chain map removed from every sweep
     cell_time_s: float = math.nan               # every plate: sweeps at the configured speed, moves, marking
     fiducial_sigma_median_mm: float = math.nan  # first plate: standard uncertainty per axis of a centre
     fiducial_sigma_max_mm: float = math.nan
@@ -223,7 +225,7 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
         duration_s=outcome.duration_s,
         calibration_file=outcome.candidate.path if outcome.candidate else "",
         iteration_rms_mm=tuple(_full(run.metrics, "rms_abs_mm") for run in outcome.runs),
-        sweep_plan=first.sweep_plan,
+        sweep_plan=first.sweep_plan, chain_map=first.chain_map,
         cell_time_s=float(sum(run.cell_time_s for run in outcome.runs + tuple(
             plate for plate in (validation, outcome.active_validation) if plate is not None))),
         fiducial_sigma_median_mm=_nan_stat(np.nanmedian, first.sigma_mm),
@@ -231,7 +233,7 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
         scanner_error_rms_mm=first.scanner_error_rms_mm, motion_error_rms_mm=first.motion_error_rms_mm,
         scanner_share=math.hypot(first.scanner_error_rms_mm, first.motion_error_rms_mm)
         / _full(first.metrics, "rms_abs_mm"),
-        **_stated(measured_after, chain_check, first.sweep_plan, placement),
+        **_stated(measured_after, chain_check, first.sweep_plan, placement, first.chain_map),
         **_kinds(outcome))
 
 
@@ -253,12 +255,14 @@ def _kinds(outcome: CalibrationOutcome) -> dict:
     return values
 
 
-def _stated(measured: Optional[DeviationMetrics], check: Optional[ChainCheck], plan: str, placement: str) -> dict:
+def _stated(measured: Optional[DeviationMetrics], check: Optional[ChainCheck], plan: str, placement: str,
+            chain_map: str) -> dict:
     """The stated-accuracy fields of the summary: only a validated run states a figure."""
     if measured is None or not math.isfinite(measured.full.rms_abs_mm):
         return {"stated_basis": SELF_CONSISTENCY,
                 "stated_explanation": "not validated: no figure of the calibration's accuracy"}
-    stated = stated_accuracy(float(measured.full.rms_abs_mm), check, plan=plan, placement=placement)
+    stated = stated_accuracy(float(measured.full.rms_abs_mm), check, plan=plan, placement=placement,
+                             chain_map=chain_map)
     return {"stated_rms_mm": stated.rms_mm, "stated_basis": stated.basis, "stated_explanation": stated.explanation,
             "reference_sigma_mm": tuple(check.sigma_mm) if check is not None and math.isfinite(stated.rms_mm) else ()}
 

@@ -17,7 +17,7 @@ from typing import Any, Callable, Optional, Protocol
 import numpy as np
 
 from gls_calibration import targets as grid
-from gls_calibration.chain_map import ChainMap, correct_measurements
+from gls_calibration.chain_map import NO_CHAIN_MAP, ChainMap, chain_map_identity, correct_measurements
 from gls_calibration.correction import CorrectedSetpoints
 from gls_calibration.fiducials import FiducialMeasurement
 from gls_calibration.outcome import CalibrationOutcome, Candidate, DeviationMetrics, deviation_metrics
@@ -188,6 +188,7 @@ class PlateRun:
     true_metrics: Optional[DeviationMetrics]  # over every target, from the ground truth
     sigma_mm: Optional[np.ndarray] = None  # (M,) standard uncertainty per axis of each measured centre
     sweep_plan: str = "0+"                 # the passes over the marked plate (``sweep_plan.parse_plan``)
+    chain_map: str = NO_CHAIN_MAP          # identity of the chain map removed from every sweep (``chain_map``)
     cell_time_s: float = math.nan          # sweeps at the configured speed, robot moves, marking
     scanner_error_rms_mm: float = math.nan  # RMS of the removed scanner-frame (lateral) error
     motion_error_rms_mm: float = math.nan   # RMS of the removed per-sweep motion error
@@ -414,6 +415,7 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
                     fiducials_found=min(combined.found_per_sweep), alignment=pairing.transform,
                     metrics=deviation_metrics(paired_xy, deviations), true_metrics=true_metrics,
                     sigma_mm=combined.sigma_mm[pairing.measured_index], sweep_plan=plan_label(plan),
+                    chain_map=chain_map_identity(settings.chain_map),
                     cell_time_s=settings.cell_time.plate_s(settings.plain_sweeps + len(plan), marking_s),
                     scanner_error_rms_mm=separation.scanner_rms_mm if separation else math.nan,
                     motion_error_rms_mm=separation.motion_rms_mm if separation else math.nan)

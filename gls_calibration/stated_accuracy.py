@@ -35,6 +35,8 @@ A reference check is a small YAML file (:func:`save_chain_check`, :func:`load_ch
       placement: pose                   # profiles placed by the robot's reported pose, or by time
       reference: "simulated reference plate, 13 x 11 rings at 10 mm, 3 positions"
       centres: 429                      # known centres compared
+      chain_map: none                   # the chain map its sweeps were corrected with (ChainMap.identity);
+                                        # optional, "none" when left out
 
 Example
 -------
@@ -52,6 +54,7 @@ from typing import Any, Mapping, Optional
 
 import yaml
 
+from gls_calibration.chain_map import NO_CHAIN_MAP
 from gls_calibration.config_files import read_config_file, require_exact_keys
 from gls_calibration.persistence import atomic_write_text
 from gls_calibration.sweep_plan import parse_plan, plan_label
@@ -70,6 +73,7 @@ class ChainCheck:
     placement: str
     reference: str
     centres: int
+    chain_map: str = NO_CHAIN_MAP     # ``ChainMap.identity`` of the map applied while measuring it
 
     def __post_init__(self) -> None:
         sigma = tuple(self.sigma_mm) if isinstance(self.sigma_mm, (list, tuple)) else ()
@@ -89,6 +93,9 @@ class ChainCheck:
             raise ValueError("reference_check.reference must name the plate with known centres it was measured on")
         if isinstance(self.centres, bool) or not isinstance(self.centres, int) or self.centres < 3:
             raise ValueError(f"reference_check.centres must be an integer of at least 3, got {self.centres!r}")
+        if not isinstance(self.chain_map, str) or not self.chain_map.strip():
+            raise ValueError(f"reference_check.chain_map must be {NO_CHAIN_MAP!r} or a chain map's identity "
+                             f"(sha256:...), got {self.chain_map!r}")
 
     @property
     def rms_2d_mm(self) -> float:
@@ -97,7 +104,7 @@ class ChainCheck:
 
     def to_dict(self) -> dict:
         return {"sigma_mm": list(self.sigma_mm), "plan": self.plan, "placement": self.placement,
-                "reference": self.reference, "centres": self.centres}
+                "reference": self.reference, "centres": self.centres, "chain_map": self.chain_map}
 
 
 def chain_check_from_mapping(document: Any) -> ChainCheck:
@@ -105,7 +112,8 @@ def chain_check_from_mapping(document: Any) -> ChainCheck:
     if not isinstance(document, Mapping) or not isinstance(document.get("reference_check"), Mapping):
         raise ValueError("a reference check file holds one mapping 'reference_check'")
     block = dict(document["reference_check"])
-    keys = ("sigma_mm", "plan", "placement", "reference", "centres")
+    block.setdefault("chain_map", NO_CHAIN_MAP)    # files written before chain maps existed
+    keys = ("sigma_mm", "plan", "placement", "reference", "centres", "chain_map")
     require_exact_keys(block, keys, "reference_check")
     return ChainCheck(**block)
 
@@ -130,7 +138,7 @@ class StatedAccuracy:
 
 
 def stated_accuracy(measured_rms_mm: float, check: Optional[ChainCheck], *, plan: str,
-                    placement: str) -> StatedAccuracy:
+                    placement: str, chain_map: str = NO_CHAIN_MAP) -> StatedAccuracy:
     """The stated accuracy of a calibration validated at ``measured_rms_mm`` (2-D RMS, the same chain).
 
     Parameters
@@ -142,6 +150,9 @@ def stated_accuracy(measured_rms_mm: float, check: Optional[ChainCheck], *, plan
     plan, placement : str
         The sweep plan and profile placement the calibration ran with; a check made otherwise does
         not describe this chain.
+    chain_map : str
+        Identity of the chain map the calibration's sweeps were corrected with (``NO_CHAIN_MAP``:
+        none); a check made with another map (or none) does not describe this chain either.
 
     Returns
     -------
@@ -166,6 +177,10 @@ def stated_accuracy(measured_rms_mm: float, check: Optional[ChainCheck], *, plan
         return StatedAccuracy(math.nan, SELF_CONSISTENCY,
                               f"the reference check was measured with plan {check.plan} placed by {check.placement}, "
                               f"the calibration with {plan} placed by {placement}: it does not describe this chain")
+    if check.chain_map != chain_map:
+        return StatedAccuracy(math.nan, SELF_CONSISTENCY,
+                              f"the reference check was measured with chain map {check.chain_map}, the calibration "
+                              f"with {chain_map}: it does not describe this chain")
     rms = measured_rms_mm + check.rms_2d_mm
     return StatedAccuracy(rms, REFERENCE_BASIS,
                           f"validation {measured_rms_mm:.4f} mm RMS (self-consistency) plus the chain's "

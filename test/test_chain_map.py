@@ -3,12 +3,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import numpy as np
 import pytest
 
-from gls_calibration.chain_map import (ChainMap, ChainMapFit, LineMap, ReferenceSweep, correct_measurements,
-                                       fit_chain_map, load_chain_map, save_chain_map, travel_axis)
+from gls_calibration.chain_map import (NO_CHAIN_MAP, ChainMap, ChainMapFit, LineMap, ReferenceSweep,
+                                       chain_map_identity, correct_measurements, fit_chain_map, load_chain_map,
+                                       save_chain_map, travel_axis)
 from gls_calibration.fiducials import FiducialMeasurement
 from gls_calibration.plate_pose import estimate_plate_pose
 from gls_calibration.sweep_plan import parse_plan
@@ -136,6 +138,11 @@ def test_round_trip_through_the_file(tmp_path):
     for line in LINES:
         assert np.allclose(loaded.error_mm(line, xy), chain_map.error_mm(line, xy), atol=1e-12)
     assert not list(tmp_path.glob(".chain_map.yaml.*"))    # no temporary file left
+    # the identity a check and a calibration record survives the file and changes with the content
+    assert loaded.identity == chain_map.identity and re.fullmatch(r"sha256:[0-9a-f]{16}", chain_map.identity)
+    other = dataclasses.replace(chain_map, reference="synthetic plate, S/N 2")
+    assert other.identity != chain_map.identity
+    assert chain_map_identity(None) == NO_CHAIN_MAP and chain_map_identity(chain_map) == chain_map.identity
 
 
 def _good_file() -> dict:

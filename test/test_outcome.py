@@ -65,6 +65,7 @@ class _Run:
         self.true_metrics = (None if true_rms is None
                              else deviation_metrics(targets, np.tile([0.0, true_rms], (9, 1)), (None, 150.0)))
         self.sweep_plan, self.cell_time_s = "0+,90+", 150.0
+        self.chain_map = "none"
         self.sigma_mm = np.array([0.002, 0.004, np.nan, 0.003])
         self.scanner_error_rms_mm, self.motion_error_rms_mm = 0.03 * rms, 0.04 * rms
 

@@ -1,10 +1,13 @@
 """What the cell may claim: the stated accuracy, its basis, and the reference check file it rests on."""
+import dataclasses
+import json
 import math
 
 import numpy as np
 import pytest
 import yaml
 
+from gls_calibration.chain_map import NO_CHAIN_MAP
 from gls_calibration.outcome import CalibrationOutcome, deviation_metrics, summarise
 from gls_calibration.run_report import accuracy_lines
 from gls_calibration.stated_accuracy import (REFERENCE_BASIS, SELF_CONSISTENCY, ChainCheck, load_chain_check,
@@ -34,6 +37,20 @@ def test_without_a_matching_check_nothing_is_stated(check, plan, placement, reas
     assert reason in stated.explanation
 
 
+def test_a_check_measured_with_another_chain_map_states_nothing():
+    mapped = dataclasses.replace(CHECK, chain_map="sha256:0123456789abcdef")
+    plan = "0+,0-,90+,90-"
+    # the check and the calibration must have corrected their sweeps with the same map (or none)
+    assert stated_accuracy(0.012, mapped, plan=plan, placement="pose",
+                           chain_map="sha256:0123456789abcdef").basis == REFERENCE_BASIS
+    for check, used in ((mapped, NO_CHAIN_MAP), (CHECK, "sha256:0123456789abcdef"),
+                        (mapped, "sha256:fedcba9876543210")):
+        stated = stated_accuracy(0.012, check, plan=plan, placement="pose", chain_map=used)
+        assert math.isnan(stated.rms_mm) and stated.basis == SELF_CONSISTENCY
+        assert stated.explanation == (f"the reference check was measured with chain map {check.chain_map}, the "
+                                      f"calibration with {used}: it does not describe this chain")
+
+
 @pytest.mark.parametrize("value", [-0.01, math.nan, math.inf, True])
 def test_a_bad_measured_figure_is_refused(value):
     with pytest.raises(ValueError, match="measured_rms_mm must be a non-negative finite number"):
@@ -46,6 +63,17 @@ def test_a_check_file_round_trips_and_a_plan_is_normalised(tmp_path):
     loaded = load_chain_check(path)
     assert loaded == ChainCheck((0.031, 0.048), "0+,90-", "time", "certified plate X-17", 429)
     assert list(tmp_path.iterdir()) == [path]         # written atomically: no temporary left behind
+    assert yaml.safe_load(path.read_text())["reference_check"]["chain_map"] == NO_CHAIN_MAP
+    mapped = ChainCheck((0.031, 0.048), "0+", "pose", "plate", 9, chain_map="sha256:0123456789abcdef")
+    save_chain_check(path, mapped)
+    assert load_chain_check(path) == mapped
+
+
+def test_a_check_file_without_chain_map_was_measured_without_one(tmp_path):
+    path = tmp_path / "check.yaml"
+    path.write_text("reference_check: {sigma_mm: [0.03, 0.04], plan: '0+', placement: pose, reference: p, "
+                    "centres: 9}\n")
+    assert load_chain_check(path).chain_map == NO_CHAIN_MAP
 
 
 @pytest.mark.parametrize("block, message", [
@@ -65,6 +93,8 @@ def test_a_check_file_round_trips_and_a_plan_is_normalised(tmp_path):
      "reference_check.centres must be an integer of at least 3"),
     ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "pose", "reference": "p"},
      "missing key\\(s\\) reference_check.centres"),
+    ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "pose", "reference": "p", "centres": 9, "chain_map": ""},
+     "reference_check.chain_map must be 'none' or a chain map's identity"),
     ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "pose", "reference": "p", "centres": 9, "k": 2},
      "unknown key\\(s\\) reference_check.k"),
 ])
@@ -94,6 +124,7 @@ class _Run:
         self.metrics = deviation_metrics(targets, np.tile([rms, 0.0], (9, 1)))
         self.true_metrics = None
         self.sweep_plan, self.cell_time_s = "0+,0-,90+,90-", 150.0
+        self.chain_map = NO_CHAIN_MAP
         self.sigma_mm = np.array([0.002])
         self.scanner_error_rms_mm = self.motion_error_rms_mm = 0.0
 
@@ -127,3 +158,19 @@ def test_gls_sim_cell_checks_the_robot_of_the_run_seed(tmp_path, seed):
     args = sim_cell.parse_args(["--seed", str(seed), "--out", str(tmp_path / "out")])
     assert args.sim.seed == seed
     assert args.sim.make_scanner().robot_seed == seed
+
+
+def test_gls_sim_cell_hands_its_chain_map_to_the_manager(tmp_path, capsys):
+    from gls_calibration.cli import sim_cell
+
+    args = sim_cell.parse_args(["--chain-map", "--out", str(tmp_path / "out")])
+    assert args.chain_map
+    args.chain_map_file = tmp_path / "out" / "chain_map.yaml"
+    ros_args = sim_cell.ros_arguments(args, tmp_path / "store", tmp_path / "reports")
+    assert f"chain_map_file:={json.dumps(str(args.chain_map_file.resolve()))}" in ros_args
+    for other in (["--record", str(tmp_path / "bag")], ["--reference-plate"], ["--placement", "time"]):
+        with pytest.raises(SystemExit) as stopped:
+            sim_cell.parse_args(["--chain-map", "--out", str(tmp_path / "out")] + other)
+        assert stopped.value.code == 2
+        assert ("--chain-map maps the reported pose along the ROS cell's lines: not with --record, "
+                "--reference-plate or --placement time") in capsys.readouterr().err

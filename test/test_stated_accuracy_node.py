@@ -5,8 +5,10 @@ A small cell (3x3 grid, one pass, one plain sweep) so that a calibration takes s
 import json
 import math
 
+import numpy as np
 import pytest
 
+from gls_calibration.chain_map import ChainMap, LineMap, load_chain_map, save_chain_map
 from gls_calibration.stated_accuracy import REFERENCE_BASIS, SELF_CONSISTENCY, ChainCheck, save_chain_check
 from gls_calibration_msgs.srv import Calibrate
 
@@ -52,3 +54,36 @@ def test_an_unreadable_check_refuses_the_run_before_anything_moves(start_cell, t
     assert math.isnan(answer.stated_rms_mm) and answer.stated_basis == SELF_CONSISTENCY
     assert not (cell.calibration_dir / "active.yaml").exists() and not list(cell.report_dir.glob("*.md"))
 
+
+
+def zero_chain_map_file(tmp_path):
+    """A chain map of line 0+ that is zero everywhere the sweeps reach: it changes no centre, only
+    which map the run and its check must share."""
+    path = tmp_path / "chain_map.yaml"
+    line = LineMap("0+", -400.0, 50.0, np.zeros(17), np.zeros(17))
+    save_chain_map(path, ChainMap((line,), reference="zero map", sweeps_per_line=1, residual_rms_mm=(0.0, 0.0)))
+    return path
+
+
+def test_a_chain_map_is_applied_and_a_check_made_without_it_states_nothing(start_cell, tmp_path):
+    map_file = zero_chain_map_file(tmp_path)
+    cell = start_cell(grid=3, parameters={**FAST, "reference_check_file": str(check_file(tmp_path)),
+                                          "chain_map_file": str(map_file)})
+    answer = cell.call(Calibrate, "calibrate", Calibrate.Request(force=True, validate=True), CALIBRATE_TIMEOUT_S)
+    assert answer.success, answer.message
+    identity = load_chain_map(map_file).identity
+    summary = json.loads((cell.report_dir / "summary.json").read_text())
+    assert summary["chain_map"] == identity
+    assert math.isnan(answer.stated_rms_mm) and answer.stated_basis == SELF_CONSISTENCY
+    assert summary["stated_explanation"] == (f"the reference check was measured with chain map none, the "
+                                             f"calibration with {identity}: it does not describe this chain")
+
+
+def test_an_unreadable_chain_map_refuses_the_run_before_anything_moves(start_cell, tmp_path):
+    broken = tmp_path / "broken_map.yaml"
+    broken.write_text("chain_map: {reference: x}\n")
+    cell = start_cell(grid=3, parameters={**FAST, "chain_map_file": str(broken)})
+    answer = cell.call(Calibrate, "calibrate", Calibrate.Request(force=True, validate=True), CALIBRATE_TIMEOUT_S)
+    assert not answer.success
+    assert answer.message.startswith("calibration failed: ") and str(broken) in answer.message
+    assert not (cell.calibration_dir / "active.yaml").exists() and not list(cell.report_dir.glob("*.md"))

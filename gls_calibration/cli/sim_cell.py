@@ -168,6 +168,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                              "written to DIR/reference_check.yaml; --serve uses one only when given)")
     checks.add_argument("--no-reference-check", action="store_true",
                         help="state no accuracy: the measured figures are self-consistency only")
+    parser.add_argument("--chain-map", action="store_true",
+                        help="measure the chain map of the calibration's lines first (the robot's repeating "
+                             "error, with the simulated certified plate; DIR/chain_map.yaml), remove it from "
+                             "every sweep of the marked plate, and measure the reference check with it")
     parser.add_argument("--record", type=Path, default=None, metavar="DIR",
                         help="run the calibration in-process on the direct simulated cell (no ROS graph) and "
                              "record every sweep (profiles, /tf, /tf_static, motion stamps) as a rosbag2 bag "
@@ -217,6 +221,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
             parse_plan(args.sweep_plan)
         except ValueError as error:
             parser.error(f"--sweep-plan: {error}")
+    if args.chain_map and (args.record is not None or args.reference_plate or args.placement != "pose"):
+        parser.error("--chain-map maps the reported pose along the ROS cell's lines: not with --record, "
+                     "--reference-plate or --placement time")
     if args.record is not None:
         if args.serve or args.reference_plate:
             parser.error("--record runs one calibration: not with --serve or --reference-plate")
@@ -281,6 +288,8 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
         overrides["marks_service"] = "sim/marked_paths"
     if args.reference_check is not None:
         overrides["reference_check_file"] = str(args.reference_check.resolve())
+    if getattr(args, "chain_map_file", None) is not None:
+        overrides["chain_map_file"] = str(args.chain_map_file.resolve())
     ros_args = ["--ros-args", "--log-level", "info" if args.verbose else "warn"]
     for path in (config_path("head.yaml"), config_path("gls.yaml"), sim_config):
         ros_args += ["--params-file", str(path)]
@@ -304,6 +313,11 @@ def main(argv: list[str] | None = None) -> int:
 
         shutil.rmtree(args.out / "calibrations", ignore_errors=True)    # a one-shot run is a new cell
         return run_recording(args)
+    try:
+        args.chain_map_file = measure_chain_map_file(args) if args.chain_map else None
+    except ValueError as error:
+        print(f"gls-sim-cell: the chain map could not be measured: {error}", file=sys.stderr)
+        return 1
     if args.reference_check is None and not (args.serve or args.no_reference_check):
         args.reference_check = measure_reference_check(args)
     # The store lives beside the report, so the summary names the calibration file where it stays.
@@ -419,18 +433,36 @@ def note_measurement(report_dir: Path, preset: str) -> None:
         atomic_write_text(report_path, "\n".join(lines[:1] + ["", note] + lines[1:]) + "\n")
 
 
+def measure_chain_map_file(args: argparse.Namespace) -> Path:
+    """Measure the chain map of the calibration's lines on the simulated robot (the certified plate
+    swept along them, as a real cell would): DIR/chain_map.yaml."""
+    from gls_calibration.chain_map import save_chain_map
+    from gls_calibration.simulation.reference_plate import FIELD_PLATE, measure_chain_map
+
+    print(f"chain map of the lines {args.reference_plan.label} (certified plate {FIELD_PLATE.label})",
+          file=sys.stderr, flush=True)
+    path = args.out / "chain_map.yaml"
+    save_chain_map(path, measure_chain_map(args.sim, args.reference_plan, seed=args.seed))
+    return path
+
+
 def measure_reference_check(args: argparse.Namespace) -> Path:
     """Measure the simulated reference plate with the calibration's plan, on the same robot, before
-    the calibration (as a real cell checks its chain with a certified plate): DIR/reference_check.yaml."""
+    the calibration (as a real cell checks its chain with a certified plate), with the run's chain map
+    applied when it has one: DIR/reference_check.yaml."""
+    from gls_calibration.chain_map import load_chain_map
     from gls_calibration.simulation.reference_plate import FIELD_PLATE, chain_check, reference_plate_check
 
+    chain_map = load_chain_map(args.chain_map_file) if getattr(args, "chain_map_file", None) else None
     print(f"reference check of the chain ({args.reference_plan.label}, placed by {args.reference_plan.placement}, "
-          f"certified plate {FIELD_PLATE.label})", file=sys.stderr, flush=True)
+          f"certified plate {FIELD_PLATE.label}{', chain map applied' if chain_map else ''})",
+          file=sys.stderr, flush=True)
     # Same robot (its repeating field comes from the cell's seed); the check's sweeps and plate draw
     # their own per-sweep errors and texture (reference_plate.measure_plate's seeds).
-    result = reference_plate_check(args.sim, args.reference_plan, seed=args.seed, design=FIELD_PLATE)
+    result = reference_plate_check(args.sim, args.reference_plan, seed=args.seed, design=FIELD_PLATE,
+                                   chain_map=chain_map)
     path = args.out / "reference_check.yaml"
-    save_chain_check(path, chain_check(result, args.reference_plan, args.sim, args.seed, FIELD_PLATE))
+    save_chain_check(path, chain_check(result, args.reference_plan, args.sim, args.seed, FIELD_PLATE, chain_map))
     return path
 
 

@@ -8,6 +8,7 @@ run has succeeded and the candidate is activated.
 """
 from __future__ import annotations
 
+from dataclasses import replace
 import json
 import math
 from pathlib import Path
@@ -35,6 +36,7 @@ from gls_calibration.outcome import RunSummary, summarise
 from gls_calibration.persistence import CalibrationFileError, CalibrationStore
 from gls_calibration.report import json_safe
 from gls_calibration.run_report import write_outcome_report
+from gls_calibration.chain_map import load_chain_map
 from gls_calibration.stated_accuracy import SELF_CONSISTENCY, load_chain_check
 from gls_calibration_msgs.action import Calibrate as CalibrateAction
 from gls_calibration_msgs.msg import CalibrationProgress
@@ -229,6 +231,7 @@ class CalibrationManager(GlsNode):
         self.service_timeout_s, self.resend_after_s = config.service_timeout_s, config.resend_after_s
         self.report_root, self.report_per_run = config.report_root, config.report_per_run
         self.reference_check_file = config.reference_check_file
+        self.chain_map_file = config.chain_map_file
         self.arrow_scale, self.colour_full_scale_mm = config.arrow_scale, config.colour_full_scale_mm
 
     def _apply_settable(self, requested: dict) -> Optional[str]:
@@ -362,6 +365,10 @@ class CalibrationManager(GlsNode):
         # A configured check that cannot be read refuses the run before anything moves: the operator
         # asked for an independent figure and would otherwise get none without noticing.
         chain_check = load_chain_check(self.reference_check_file) if self.reference_check_file else None
+        # likewise a configured chain map: the run applies it to every sweep of the marked plate
+        settings = self.settings
+        if self.chain_map_file:
+            settings = replace(settings, chain_map=load_chain_map(self.chain_map_file))
         active = self.store.active_path()
         existing_models = record_models(self.store.load(active)) if active else []
         report_dir = self.report_root
@@ -369,11 +376,11 @@ class CalibrationManager(GlsNode):
             report_dir = report_dir / time.strftime("calibration_%Y%m%dT%H%M%SZ", time.gmtime())
 
         def save(runs, models):
-            record = build_record(self.geometry, self.settings, runs, models, existing_models)
+            record = build_record(self.geometry, settings, runs, models, existing_models)
             return save_candidate(self.store, record, self.geometry)
 
         outcome = await procedure.calibrate(
-            self.cell, self.settings, iterations=request.iterations, validate=request.validate,
+            self.cell, settings, iterations=request.iterations, validate=request.validate,
             force=request.force, want_truth=bool(self.ground_truth_service),
             progress=progress, save_candidate=save, active_calibration=active is not None)
         stamp = self.get_clock().now().to_msg()
@@ -381,7 +388,7 @@ class CalibrationManager(GlsNode):
         self.markers_publisher.publish(rviz.calibration_markers(outcome.runs[0], outcome.validation, stamp,
                                                                 self.arrow_scale, self.colour_full_scale_mm))
         summary = summarise(outcome, chain_check,
-                            "pose" if self.settings.profiles_placed_by_pose else "time")
+                            "pose" if settings.profiles_placed_by_pose else "time")
         message = summary.message
         # Every file first, activation last: a failure before it leaves the old calibration in force.
         response.report_dir = str(write_outcome_report(report_dir, outcome, summary))

@@ -142,6 +142,10 @@ MANAGER_PARAMETERS: tuple[ManagerParameter, ...] = (
     ManagerParameter("report_dir", "reports", "folder for calibration reports", "text"),
     ManagerParameter("report_per_run", True, "a subfolder of report_dir per calibration (false: report_dir "
                      "itself)", "flag"),
+    ManagerParameter("chain_map_file", "", "chain map of the robot's programmed lines (chain_map's YAML, measured "
+                     "with this sweep plan along the same lines): removed from every sweep of the marked plate; "
+                     "read at every calibrate; a reference check must have been measured with the same map; "
+                     "empty: none", "text"),
     ManagerParameter("reference_check_file", "", "reference check of the measurement chain (stated_accuracy's "
                      "YAML: a plate with known centres measured with this plan); read at every calibrate; empty: "
                      "none, the cell then states no accuracy and labels its measured figures self-consistency",
@@ -169,6 +173,7 @@ class ManagerConfig:
     report_root: Path
     report_per_run: bool
     reference_check_file: str
+    chain_map_file: str
     arrow_scale: float
     colour_full_scale_mm: float
 
@@ -253,4 +258,5 @@ def manager_config(values: Mapping[str, Any]) -> ManagerConfig:
         ground_truth_service=str(values["ground_truth_service"]),
         calibration_dir=Path(values["calibration_dir"]), report_root=Path(values["report_dir"]),
         report_per_run=bool(values["report_per_run"]), reference_check_file=str(values["reference_check_file"]),
+        chain_map_file=str(values["chain_map_file"]),
         arrow_scale=number("rviz.arrow_scale"), colour_full_scale_mm=number("rviz.colour_full_scale_mm"))

@@ -34,7 +34,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from gls_calibration import targets
-from gls_calibration.chain_map import ChainMap, ChainMapFit, ReferenceSweep, fit_chain_map
+from gls_calibration.chain_map import ChainMap, ChainMapFit, ReferenceSweep, chain_map_identity, fit_chain_map
 from gls_calibration.config_files import config_path, read_config_file
 from gls_calibration.fiducials import measure_fiducials
 from gls_calibration.head_config import parameters_block
@@ -275,13 +275,14 @@ def measure_chain_map(config: SimConfig, plan: MeasurementPlan, seed: int = 1, r
 
 
 def chain_check(result: ReferencePlateResult, plan: MeasurementPlan, config: SimConfig, seed: int,
-                design: ReferencePlateDesign = PAPER_PLATE) -> ChainCheck:
-    """The reference check of ``plan`` (``result`` of :func:`reference_plate_check` on ``design``) as
-    the calibration manager reads it (``stated_accuracy``): what the cell may state its accuracy from."""
+                design: ReferencePlateDesign = PAPER_PLATE, chain_map: ChainMap | None = None) -> ChainCheck:
+    """The reference check of ``plan`` (``result`` of :func:`reference_plate_check` on ``design``, with
+    ``chain_map`` applied) as the calibration manager reads it (``stated_accuracy``): what the cell may
+    state its accuracy from."""
     return ChainCheck(sigma_mm=result.sigma_mm, plan=plan.label, placement=plan.placement,
                       reference=(f"simulated reference plate, {design.label}; preset "
                                  f"{config.measurement_preset}, cell seed {config.seed}, check seed {seed}"),
-                      centres=result.found)
+                      centres=result.found, chain_map=chain_map_identity(chain_map))
 
 
 def _aligned_residuals(measured: np.ndarray, known: np.ndarray) -> np.ndarray:
