@@ -49,7 +49,23 @@ $(STAMP)/msgs: $(STAMP)/requirements $(shell find msg_defs -type f)
 	cd /tmp && $(PY) -c "from gls_calibration_msgs.srv import Calibrate, CorrectSetpoints"
 	touch $@
 
-$(STAMP)/package: $(STAMP)/msgs setup.py setup.cfg package.xml
+# tf2_msgs/msg/TFMessage (the type of /tf and /tf_static) where no tf2_msgs is importable: the pip set-up
+# has none. Built the way msg_defs/ is; a tf2_msgs from elsewhere (a ROS installation) is left alone.
+# The stamp says which: "built" (ours, rebuilt when msg_defs_tf2/ changes) or "present" (not ours).
+$(STAMP)/tf2_msgs: $(STAMP)/requirements $(shell find msg_defs_tf2 -type f)
+	if { test -f $@ && grep -qx built $@; } || ! (cd /tmp && $(PY) -c "import tf2_msgs" 2>/dev/null); then \
+	  rm -rf build/msg_defs_tf2 && mkdir -p build && \
+	  { AMENT_PREFIX_PATH=$(VENV) CMAKE_PREFIX_PATH=$(VENV) cmake -S msg_defs_tf2 -B build/msg_defs_tf2 \
+	      -DCMAKE_INSTALL_PREFIX=$(VENV) -DPython3_EXECUTABLE=$(PY) -DBUILD_TESTING=OFF \
+	      -DCMAKE_BUILD_TYPE=Release > build/msg_defs_tf2.log 2>&1 \
+	    && cmake --build build/msg_defs_tf2 -j2 >> build/msg_defs_tf2.log 2>&1 \
+	    && cmake --install build/msg_defs_tf2 >> build/msg_defs_tf2.log 2>&1; } \
+	  || { tail -40 build/msg_defs_tf2.log; exit 1; }; \
+	  (cd /tmp && $(PY) -c "from tf2_msgs.msg import TFMessage"); \
+	  echo built > $@; \
+	else echo present > $@; fi
+
+$(STAMP)/package: $(STAMP)/msgs $(STAMP)/tf2_msgs setup.py setup.cfg package.xml
 	$(PY) -m pip install -q --no-deps --no-build-isolation -e . 2>&1 | $(QUIET_PIP)
 	touch $@
 

@@ -15,6 +15,7 @@ PACKAGE = "gls_calibration"
 
 NODES = {
     "gls-scan-acquisition": "scan_acquisition",
+    "gls-stream-acquisition": "stream_acquisition",
     "gls-plate-pose": "plate_pose",
     "gls-fiducial-measurement": "fiducial_measurement",
     "gls-rbf-trainer": "rbf_trainer",

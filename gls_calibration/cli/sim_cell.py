@@ -181,6 +181,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                              "in DIR (a new folder); replay with gls-measure --bag DIR")
     parser.add_argument("--record-storage", choices=("sqlite3", "mcap"), default="sqlite3",
                         help="storage of the recorded bag (default sqlite3)")
+    parser.add_argument("--streaming", action="store_true",
+                        help="the split cell: simulated robot (TF, motion contract), streaming line scanner and "
+                             "stream_acquisition instead of sim_scanner and scan_acquisition")
     parser.add_argument("--namespace", default=None,
                         help="namespace of the cell's nodes (default: 'gls' with --serve; otherwise a private "
                              "one, so that concurrent one-shot cells on the same ROS domain never meet)")
@@ -233,6 +236,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
             parser.error(f"--record {args.record}: exists already; a bag is written only into a new folder")
         if not args.record.parent.is_dir():
             parser.error(f"--record {args.record}: no such folder {args.record.parent}")
+    if args.streaming and (args.record is not None or args.reference_plate or args.placement != "pose"):
+        parser.error("--streaming places profiles through TF: not with --record, --reference-plate or --placement time")
     if args.measurement is not None and args.measurement not in PRESETS:
         parser.error(f"--measurement: unknown measurement preset {args.measurement!r}; known: {', '.join(PRESETS)}")
     try:
@@ -282,6 +287,8 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
     }
     if args.sweep_plan is not None:
         overrides["sweep.plan"] = args.sweep_plan
+    if args.streaming:
+        overrides["marks_service"] = "sim/marked_paths"
     if args.reference_check is not None:
         overrides["reference_check_file"] = str(args.reference_check.resolve())
     if getattr(args, "chain_map_file", None) is not None:
@@ -336,12 +343,18 @@ def main(argv: list[str] | None = None) -> int:
     status = 1
     try:
         try:
-            for node_type in NODE_TYPES:
-                nodes.append(node_type(context=context, namespace=namespace))
+            if args.streaming:
+                from gls_calibration.cli.sim_streaming import streaming_nodes
+
+                built = streaming_nodes(context, namespace)
+            else:
+                built = (node_type(context=context, namespace=namespace) for node_type in NODE_TYPES)
+            for node in built:
+                nodes.append(node)
                 # rcl drops some -p rules without a word (another type than the file's, []): refuse them
-                problem = unapplied_rule_problem(nodes[-1], cell_arguments)
+                problem = unapplied_rule_problem(node, cell_arguments)
                 if problem:
-                    raise ValueError(f"{nodes[-1].get_name()}: {problem}")
+                    raise ValueError(f"{node.get_name()}: {problem}")
         except (ValueError, TypeError, ParameterException) as error:
             # a parameter a node refuses at start (e.g. grid.size_mm:=abc): said, nothing runs
             print(f"gls-sim-cell: {error}", file=sys.stderr)
