@@ -23,6 +23,8 @@ from gls_calibration.calibration_record import record_identity
 from gls_calibration.config_files import config_path
 from gls_calibration.nodes.conversions import (array_to_pointcloud2, cloud_from_msg, cloud_to_msg, pointcloud2_to_array,
                                          time_to_msg, xyzi_array)
+from gls_calibration.bag_io import BagLayout
+from gls_calibration.cell_frames import load_cell_frames
 from gls_calibration.nodes import rviz
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.persistence import CalibrationStore
@@ -243,3 +245,11 @@ def test_the_rviz_config_shows_the_calibration_topics_transient_local():
         assert displays[display_class]["Topic"]["Durability Policy"] == "Transient Local"
     assert set(displays["rviz_default_plugins/MarkerArray"]["Namespaces"]) == {
         "fiducials", "deviation_before", "validation_fiducials", "deviation_after"}
+    # the streaming cell: the profiles as the driver streams them, placed through TF, which connects
+    # their frame to the fixed one: sensor -> flange (/tf_static), flange -> base (the robot's /tf),
+    # base -> gls (/tf_static), all named by the cell frames file
+    assert "rviz_default_plugins/TF" in displays
+    assert displays["rviz_default_plugins/PointCloud2"]["Topic"]["Value"] == BagLayout().scan_topic
+    frames = load_cell_frames()
+    assert frames.gls == rviz.FRAME_ID
+    assert len({frames.sensor, frames.flange, frames.base, frames.gls}) == 4   # one tree, rooted at the base
