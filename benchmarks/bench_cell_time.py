@@ -24,13 +24,13 @@ import statistics
 import tempfile
 from pathlib import Path
 
-from gls_calibration import procedure
-from gls_calibration.calibration_record import build_record, save_candidate
-from gls_calibration.persistence import CalibrationStore
+from gls_calibration.calibration import procedure
+from gls_calibration.calibration.record import build_record, save_candidate
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.registration.sweep_plan import parse_plan
 from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.reference_plate import calibration_plan, measure_chain_map
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
-from gls_calibration.sweep_plan import parse_plan
 
 PLANS = ((4, "0+,0-,90+,90-"), (1, "0+,0-,90+,90-"), (2, "0+,90+"), (1, "0+,90+"), (1, "0+"))
 """(plain sweeps, passes over the marked plate); the first is config/gls.yaml's."""

@@ -24,8 +24,8 @@ import time
 import numpy as np
 import rclpy
 
-from gls_calibration.nodes.base import CLIENT_QOS
-from gls_calibration.nodes.conversions import flag_array, float64_sequence
+from gls_calibration.ros.base import CLIENT_QOS
+from gls_calibration.ros.conversions import flag_array, float64_sequence
 from gls_calibration_msgs.srv import CorrectSetpoints
 
 from correction_peer import call, correction_peer

@@ -21,8 +21,8 @@ import time
 import numpy as np
 
 from gls_calibration.discrepancy import explain
-from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.optics import PhysicalHead
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.geometry.optics import PhysicalHead
 
 REPEATS = 5
 CLI_REPEATS = 3

@@ -13,7 +13,7 @@ existed, for the "no loss" comparison); ``--along-prior MM`` sets the separation
 (the robot's along-track accuracy; default: the code's default).
 
 ``--chain-map`` runs every calibration twice on the same cell: without and with a chain map
-(``chain_map.py``), measured before the calibration on the certified plate over the whole field
+(``registration/chain_map.py``), measured before the calibration on the certified plate over the whole field
 (``reference_plate.FIELD_PLATE``) along the calibration's lines, ``--map-repeats`` sweeps per line
 (default 2), and prints the figures side by side with the map's cell time.
 
@@ -32,12 +32,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gls_calibration import procedure
-from gls_calibration.calibration_record import build_record, save_candidate
-from gls_calibration.persistence import CalibrationStore
-from gls_calibration.separation import SeparationSettings
+from gls_calibration.calibration import procedure
+from gls_calibration.calibration.record import build_record, save_candidate
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.registration.chain_map import ChainMap
+from gls_calibration.registration.separation import SeparationSettings
 from gls_calibration.simulation.direct_cell import DirectCell
-from gls_calibration.chain_map import ChainMap
 from gls_calibration.simulation.reference_plate import FIELD_PLATE, calibration_plan, measure_chain_map
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 

@@ -27,12 +27,12 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from rendering import BASE_SCAN, GRID_PITCH_MM, plate_to_scanner, render_plate_scan  # noqa: E402
 
-from gls_calibration.fiducials import measure_fiducials  # noqa: E402
-from gls_calibration.plate_pose import estimate_plate_pose  # noqa: E402
-from gls_calibration.procedure import true_fiducial_centres  # noqa: E402
-from gls_calibration.registration import RigidTransform, fit_rigid  # noqa: E402
+from gls_calibration.calibration.procedure import true_fiducial_centres  # noqa: E402
+from gls_calibration.fiducials.measure import measure_fiducials  # noqa: E402
+from gls_calibration.fiducials.targets import rings_polylines  # noqa: E402
+from gls_calibration.registration.rigid import RigidTransform, fit_rigid  # noqa: E402
+from gls_calibration.scan.plate_pose import estimate_plate_pose  # noqa: E402
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config  # noqa: E402
-from gls_calibration.targets import rings_polylines  # noqa: E402
 
 SIM_CONFIG = Path(__file__).resolve().parents[1] / "config" / "sim.yaml"
 

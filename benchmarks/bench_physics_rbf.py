@@ -30,17 +30,17 @@ import time
 
 import numpy as np
 
-from gls_calibration import rbf
-from gls_calibration.calibration_record import calibrated_region
-from gls_calibration.correction import Correction
-from gls_calibration.deviation_models import model_from_dict
-from gls_calibration.persistence import CalibrationStore
-from gls_calibration.physical_model import train_physics_then_rbf
-from gls_calibration.procedure import run_plate
+from gls_calibration.calibration.procedure import run_plate
+from gls_calibration.calibration.record import calibrated_region
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.correction.setpoints import Correction
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.models import rbf
+from gls_calibration.models.deviation_models import model_from_dict
+from gls_calibration.models.physical_model import train_physics_then_rbf
+from gls_calibration.models.training import TrainingOptions, train_correction
 from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
-from gls_calibration.targets import grid_targets
-from gls_calibration.training import TrainingOptions, train_correction
 
 GRIDS = (7, 11, 19)
 SIZE_MM = 190.0

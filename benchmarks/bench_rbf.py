@@ -14,8 +14,8 @@ import tracemalloc
 
 import numpy as np
 
-from gls_calibration.rbf import OLSRBFNetwork, select_model
-from gls_calibration.targets import grid_targets
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.models.rbf import OLSRBFNetwork, select_model
 from timing import median_seconds
 
 

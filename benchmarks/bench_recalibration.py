@@ -24,10 +24,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from gls_calibration import procedure
-from gls_calibration.calibration_record import build_record, record_models, save_candidate
-from gls_calibration.outcome import summarise
-from gls_calibration.persistence import CalibrationStore
+from gls_calibration.calibration import procedure
+from gls_calibration.calibration.outcome import summarise
+from gls_calibration.calibration.record import build_record, record_models, save_candidate
+from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.reference_plate import calibration_plan
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config

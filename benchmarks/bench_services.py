@@ -28,10 +28,11 @@ import time
 import numpy as np
 import rclpy
 
-from gls_calibration.calibration_record import correction_from_record
-from gls_calibration.nodes.conversions import float64_sequence
-from gls_calibration.nodes.base import NodeThreads
-from gls_calibration.persistence import CalibrationStore, head_geometry, load_record
+from gls_calibration.calibration.record import correction_from_record
+from gls_calibration.calibration.record_file import head_geometry, load_record
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.ros.base import NodeThreads
+from gls_calibration.ros.conversions import float64_sequence
 from gls_calibration_msgs.srv import AcquireSweep, CorrectSetpoints
 
 from correction_peer import call
@@ -40,9 +41,9 @@ from correction_peer import call
 # from the request without computing anything.
 ECHO_NODE = """
 import numpy as np
-from gls_calibration.nodes.conversions import setpoints_to_response
-from gls_calibration.correction import CorrectedSetpoints
-from gls_calibration.nodes.base import GlsNode, run_node
+from gls_calibration.correction.setpoints import CorrectedSetpoints
+from gls_calibration.ros.base import GlsNode, run_node
+from gls_calibration.ros.conversions import setpoints_to_response
 from gls_calibration_msgs.srv import CorrectSetpoints
 
 class Echo(GlsNode):

@@ -36,18 +36,17 @@ import time
 
 import numpy as np
 
-from gls_calibration.calibration_record import calibrated_region
-from gls_calibration.config_files import config_path
-from gls_calibration.correction import Correction
-from gls_calibration.fiducials import measure_fiducials
-from gls_calibration.plate_pose import estimate_plate_pose, mean_plate_pose
-from gls_calibration.procedure import (ProcedureSettings, plane_height, pose_in_frame, true_fiducial_centres,
-                                       validation_grid)
-from gls_calibration.rbf import OLSRBFNetwork
-from gls_calibration.outcome import deviation_metrics
-from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
+from gls_calibration.calibration.outcome import deviation_metrics
+from gls_calibration.calibration.procedure import ProcedureSettings, plane_height, pose_in_frame, true_fiducial_centres, validation_grid
+from gls_calibration.calibration.record import calibrated_region
+from gls_calibration.common.config_files import config_path
+from gls_calibration.correction.setpoints import Correction
+from gls_calibration.fiducials.measure import measure_fiducials
+from gls_calibration.fiducials.targets import rings_polylines
+from gls_calibration.models.rbf import OLSRBFNetwork
+from gls_calibration.registration.rigid import RigidTransform, align_rigid_2d, pair_with_targets
+from gls_calibration.scan.plate_pose import estimate_plate_pose, mean_plate_pose
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
-from gls_calibration.targets import rings_polylines
 
 FIGURES = ("pre_rms_mm", "pre_max_mm", "true_post_rms_mm", "true_post_max_mm", "true_post_rms_150_mm")
 PRESET_FIGURES = ("post_rms_mm", "post_max_mm", "true_post_rms_mm", "true_post_max_mm", "stated_rms_mm",

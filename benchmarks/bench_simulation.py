@@ -9,7 +9,7 @@ import tracemalloc
 
 import numpy as np
 
-from gls_calibration.optics import PhysicalHead
+from gls_calibration.geometry.optics import PhysicalHead
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 from timing import median_seconds
 

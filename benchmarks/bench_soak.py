@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from gls_calibration.nodes.conversions import float64_sequence
+from gls_calibration.ros.conversions import float64_sequence
 from gls_calibration_msgs.srv import CorrectSetpoints
 
 from correction_peer import call, correction_peer, rss_bytes

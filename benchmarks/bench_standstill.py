@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from gls_calibration import procedure
-from gls_calibration.calibration_record import build_record, save_candidate
-from gls_calibration.persistence import CalibrationStore
+from gls_calibration.calibration import procedure
+from gls_calibration.calibration.record import build_record, save_candidate
+from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.reference_plate import calibration_plan
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config

@@ -21,8 +21,8 @@ from pathlib import Path
 from bench_honest_robot import calibrate_once
 from gls_calibration.simulation.reference_plate import (FIELD_PLATE, calibration_plan, chain_check,
                                                         reference_plate_check)
+from gls_calibration.calibration import stated_accuracy
 from gls_calibration.simulation.world import load_sim_config
-from gls_calibration.stated_accuracy import stated_accuracy
 
 
 def main() -> None:

@@ -22,9 +22,10 @@ import time
 import numpy as np
 import rclpy
 
-from gls_calibration.nodes.base import NodeThreads
-from gls_calibration.nodes.conversions import float64_sequence
-from gls_calibration.persistence import CalibrationStore, load_record
+from gls_calibration.calibration.record_file import load_record
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.ros.base import NodeThreads
+from gls_calibration.ros.conversions import float64_sequence
 from gls_calibration_msgs.srv import CorrectSetpoints
 
 from bench_services import default_main_job_calibration
@@ -35,9 +36,9 @@ from correction_peer import call, stop_process
 STAMPED_ECHO = """
 import sys, time
 import numpy as np
-from gls_calibration.correction import CorrectedSetpoints
-from gls_calibration.nodes.base import GlsNode, run_node
-from gls_calibration.nodes.conversions import setpoints_to_response
+from gls_calibration.correction.setpoints import CorrectedSetpoints
+from gls_calibration.ros.base import GlsNode, run_node
+from gls_calibration.ros.conversions import setpoints_to_response
 from gls_calibration_msgs.srv import CorrectSetpoints
 SLEEP_S = float(sys.argv[1]) / 1000.0
 

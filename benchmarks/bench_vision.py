@@ -25,8 +25,8 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from rendering import render_condition, vision_conditions  # noqa: E402
 
-from gls_calibration.fiducials import measure_fiducials  # noqa: E402
-from gls_calibration.plate_pose import estimate_plate_pose  # noqa: E402
+from gls_calibration.fiducials.measure import measure_fiducials  # noqa: E402
+from gls_calibration.scan.plate_pose import estimate_plate_pose  # noqa: E402
 
 
 def evaluate(measurement, truth: np.ndarray) -> dict:

@@ -27,8 +27,8 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from plate_renderers import CONDITIONS, RENDERERS, render  # noqa: E402
 
-from gls_calibration.fiducials import measure_fiducials  # noqa: E402
-from gls_calibration.plate_pose import estimate_plate_pose  # noqa: E402
+from gls_calibration.fiducials.measure import measure_fiducials  # noqa: E402
+from gls_calibration.scan.plate_pose import estimate_plate_pose  # noqa: E402
 
 MATCH_MM = 1.0
 LIMIT_MM = 0.030

@@ -14,14 +14,15 @@ from typing import Iterator
 import numpy as np
 import rclpy
 
-from gls_calibration.calibration_record import calibrated_region, correction_from_record
-from gls_calibration.correction import Correction
-from gls_calibration.kinematics import HeadGeometry
-from gls_calibration.nodes.base import NodeThreads, use_fast_liveliness
-from gls_calibration.persistence import CalibrationStore, new_record
-from gls_calibration.procedure import ProcedureSettings
-from gls_calibration.rbf import OLSRBFNetwork
-from gls_calibration.targets import grid_targets
+from gls_calibration.calibration.procedure import ProcedureSettings
+from gls_calibration.calibration.record import calibrated_region, correction_from_record
+from gls_calibration.calibration.record_file import new_record
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.correction.setpoints import Correction
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.geometry.kinematics import HeadGeometry
+from gls_calibration.models.rbf import OLSRBFNetwork
+from gls_calibration.ros.base import NodeThreads, use_fast_liveliness
 
 
 def synthetic_calibration(directory: Path) -> None:

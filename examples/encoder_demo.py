@@ -16,9 +16,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from user_effects import encoder_nonlinearity_x  # noqa: E402
 
-from gls_calibration.effect_table import EffectContext  # noqa: E402
-from gls_calibration.kinematics import HeadGeometry, inverse  # noqa: E402
-from gls_calibration.optics import PhysicalHead  # noqa: E402
+from gls_calibration.geometry.effect_table import EffectContext  # noqa: E402
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse  # noqa: E402
+from gls_calibration.geometry.optics import PhysicalHead  # noqa: E402
 
 
 def main(path: str) -> None:

@@ -1,8 +1,8 @@
 """A user effect for ``gls-discrepancy --effects user_effects:encoder_nonlinearity_x``.
 
 The signature every user effect follows: a function without arguments returning a
-:class:`gls_calibration.effect_table.UserEffect`, i.e. an
-:class:`~gls_calibration.effect_table.EffectSpec` (name, parameters with unit, typical magnitude and
+:class:`gls_calibration.geometry.effect_table.UserEffect`, i.e. an
+:class:`~gls_calibration.geometry.effect_table.EffectSpec` (name, parameters with unit, typical magnitude and
 plausible range, one sentence of physics) and ``deviation(context, values) -> (N, 2) mm``: how far
 the landing point moves in the plane for the parameter values, zero for zero values. ``context``
 carries the nominal geometry, the commanded targets (N, 2, mm), the commanded mirror angles
@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from gls_calibration.effect_table import EffectContext, EffectSpec, ParameterSpec, UserEffect
-from gls_calibration.optics import PhysicalHead
+from gls_calibration.geometry.effect_table import EffectContext, EffectSpec, ParameterSpec, UserEffect
+from gls_calibration.geometry.optics import PhysicalHead
 
 #: Period of the X encoder's error in mechanical angle (rad): about 40 mm on the plate at 490 mm.
 PERIOD_RAD = 0.04

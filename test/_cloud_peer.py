@@ -20,7 +20,7 @@ from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from gls_calibration.nodes.conversions import array_to_pointcloud2, xyzi_array
+from gls_calibration.ros.conversions import array_to_pointcloud2, xyzi_array
 
 NAMESPACE = "gls"
 CLOUD_TOPIC = "scan/points"

@@ -15,11 +15,10 @@ import numpy as np
 import pytest
 from std_srvs.srv import Trigger
 
-from gls_calibration.persistence import CalibrationStore
-from gls_calibration.plate_marks import existing_marks
-from gls_calibration.training import TrainedModel
-from gls_calibration.procedure import (CalibrationError, ProcedureSettings, acceptance_problem, centre_uncertainty_mm,
-                                       check_clean_plate, check_model_explains)
+from gls_calibration.calibration.procedure import CalibrationError, ProcedureSettings, acceptance_problem, centre_uncertainty_mm, check_clean_plate, check_model_explains
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.models.training import TrainedModel
+from gls_calibration.scan.plate_marks import existing_marks
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 from gls_calibration_msgs.srv import Calibrate, CorrectSetpoints
 

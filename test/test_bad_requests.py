@@ -17,8 +17,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2, PointField
 
-from gls_calibration import kinematics
-from gls_calibration.nodes.conversions import array_to_pointcloud2, cloud_to_msg, plate_pose_to_msg, xyzi_array
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.geometry import kinematics
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
@@ -27,8 +27,8 @@ from gls_calibration.nodes.rbf_trainer import RbfTrainerNode
 from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import SimScannerNode
-from gls_calibration.persistence import CalibrationStore
-from gls_calibration.plate_pose import estimate_plate_pose
+from gls_calibration.ros.conversions import array_to_pointcloud2, cloud_to_msg, plate_pose_to_msg, xyzi_array
+from gls_calibration.scan.plate_pose import estimate_plate_pose
 from gls_calibration_msgs.msg import PlatePose, SweepDone
 from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints, EstimatePlatePose,
                                       ExplainDeviations, LandingPositions, LoadCalibration, MarkPolylines,
@@ -117,7 +117,7 @@ def test_correct_setpoints_in_chunks_equals_one_piece(ros_context, add_node, cli
     y = np.cos(x / 30.0) * 80.0
     answer = client(CorrectSetpoints, "correct_setpoints")(CorrectSetpoints.Request(x=x, y=y))
     assert answer.success, answer.message
-    from gls_calibration.calibration_record import correction_from_record
+    from gls_calibration.calibration.record import correction_from_record
     expected = correction_from_record(CalibrationStore(store_dir).load_active(), GEOMETRY).correct(x, y)
     np.testing.assert_array_equal(np.asarray(answer.alpha_x), expected.alpha_x)
     np.testing.assert_array_equal(np.asarray(answer.y), expected.y)

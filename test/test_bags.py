@@ -12,19 +12,19 @@ import pytest
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
-from gls_calibration import procedure
-from gls_calibration.bag_io import BagLayout, BagRecorder, ReplayLimits, read_sweeps
-from gls_calibration.calibration_record import build_record, save_candidate
+from gls_calibration.calibration import procedure
+from gls_calibration.calibration.record import build_record, save_candidate
+from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.cli.measure import csv_text, measure_cloud
 from gls_calibration.cli.measure import main as measure_main
-from gls_calibration.fiducials import measure_fiducials
-from gls_calibration.persistence import CalibrationStore
-from gls_calibration.plate_pose import estimate_plate_pose, mean_plate_pose, pose_at_height
+from gls_calibration.fiducials.measure import measure_fiducials
+from gls_calibration.fiducials.targets import RING_RADII_MM
+from gls_calibration.registration.sweep_plan import parse_plan
+from gls_calibration.scan.bag_io import BagLayout, BagRecorder, ReplayLimits, read_sweeps
+from gls_calibration.scan.plate_pose import estimate_plate_pose, mean_plate_pose, pose_at_height
 from gls_calibration.simulation.recording_cell import SIM_FLANGE_TO_SENSOR, RecordingCell, base_to_gls
 from gls_calibration.simulation.scanner import pose_matrix
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
-from gls_calibration.targets import RING_RADII_MM
-from gls_calibration.sweep_plan import parse_plan
 
 GRID = 3
 GRID_SIZE_MM = 80.0
@@ -294,7 +294,7 @@ def test_gls_train_bag_reproduces_the_recorded_calibration(recorded, tmp_path, c
 
 
 def test_the_tf_buffer_interpolates_and_names_what_is_missing():
-    from gls_calibration.tf_buffer import TfBuffer
+    from gls_calibration.scan.tf_buffer import TfBuffer
 
     buffer = TfBuffer()
     buffer.set_transform("base", "flange", 0, pose_matrix([0.0, 0.0, 0.0], [0.0, 0.0, 0.0]))

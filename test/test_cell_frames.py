@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import yaml
 
-from gls_calibration.cell_frames import cell_frames_from_dict, load_cell_frames
-from gls_calibration.config_files import config_path
+from gls_calibration.common.config_files import config_path
+from gls_calibration.scan.cell_frames import cell_frames_from_dict, load_cell_frames
 from gls_calibration.simulation.recording_cell import SIM_FLANGE_TO_SENSOR, base_to_gls
 from gls_calibration.simulation.world import load_sim_config
 

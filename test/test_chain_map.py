@@ -8,12 +8,10 @@ import re
 import numpy as np
 import pytest
 
-from gls_calibration.chain_map import (NO_CHAIN_MAP, ChainMap, ChainMapFit, LineMap, ReferenceSweep,
-                                       chain_map_identity, correct_measurements, fit_chain_map, load_chain_map,
-                                       save_chain_map, travel_axis)
-from gls_calibration.fiducials import FiducialMeasurement
-from gls_calibration.plate_pose import estimate_plate_pose
-from gls_calibration.sweep_plan import parse_plan
+from gls_calibration.fiducials.measure import FiducialMeasurement
+from gls_calibration.registration.chain_map import NO_CHAIN_MAP, ChainMap, ChainMapFit, LineMap, ReferenceSweep, chain_map_identity, correct_measurements, fit_chain_map, load_chain_map, save_chain_map, travel_axis
+from gls_calibration.registration.sweep_plan import parse_plan
+from gls_calibration.scan.plate_pose import estimate_plate_pose
 
 LINES = ("0+", "0-", "90+", "90-")
 
@@ -237,8 +235,8 @@ def test_bad_fit_inputs_are_refused():
 
 def test_procedure_settings_carry_the_map_into_the_combination():
     """combined_centres_gls removes the map from every sweep before combining (the hook)."""
-    from gls_calibration.procedure import ProcedureSettings, combined_centres_gls
-    from gls_calibration.sweep_plan import combine_sweeps
+    from gls_calibration.calibration.procedure import ProcedureSettings, combined_centres_gls
+    from gls_calibration.registration.sweep_plan import combine_sweeps
 
     chain_map = fit_chain_map(synthetic_sweeps(noise_mm=0.002, repeats=1), "synthetic plate")
     axis = (np.arange(5) - 2) * 30.0

@@ -6,14 +6,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from gls_calibration import run_report
 from gls_calibration.cli import measure
 from gls_calibration.cli.discrepancy import main as discrepancy_main
 from gls_calibration.discrepancy import explain, selection, verdict_lines
 from gls_calibration.discrepancy.noise_floor import average_repeats
-from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.optics import PhysicalHead
-from gls_calibration.report import ReportData, write_report
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.geometry.optics import PhysicalHead
+from gls_calibration.report import run_report
+from gls_calibration.report.files import ReportData, write_report
 from test_cli_discrepancy import TARGETS, measured_rows
 import test_cli_measure
 from test_cli_measure import _save_npz
@@ -99,7 +99,7 @@ def test_grid_smaller_than_the_plate_warns_and_never_counts_negative_missing(tmp
 def test_report_files_section_lists_extra_files(tmp_path):
     targets = TARGETS[:20].astype(float)
     deviations = np.full_like(targets, 0.01)
-    from gls_calibration.outcome import deviation_metrics
+    from gls_calibration.calibration.outcome import deviation_metrics
     write_report(tmp_path / "r", ReportData(targets_xy=targets, deviations_before=deviations,
                                             metrics_before=deviation_metrics(targets, deviations).to_dict(),
                                             extra_files=("- `training.csv`: training data.",)))

@@ -10,8 +10,8 @@ import pytest
 
 from gls_calibration.cli import calibrate, export, sim_cell, train
 from gls_calibration.cli.correct import main as correct_main
-from gls_calibration.config_files import config_path
-from gls_calibration.training import TrainingOptions
+from gls_calibration.common.config_files import config_path
+from gls_calibration.models.training import TrainingOptions
 import test_offline_tools
 
 calibration_file = test_offline_tools.calibration_file      # fixture: a TPS calibration over 190 mm
@@ -311,9 +311,9 @@ def start_trainer(config: Path):
 
 
 def test_the_trainer_node_declares_the_table_of_its_parameters(ros_context):
+    from gls_calibration.common.parameter_specs import FLOAT_LIMITS, INTEGER_LIMITS
+    from gls_calibration.models.training import TRAINER_PARAMETERS
     from gls_calibration.nodes.rbf_trainer import RbfTrainerNode
-    from gls_calibration.parameter_specs import FLOAT_LIMITS, INTEGER_LIMITS
-    from gls_calibration.training import TRAINER_PARAMETERS
     node = RbfTrainerNode(context=ros_context)
     try:
         declared = {name for name in node._parameters

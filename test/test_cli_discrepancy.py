@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from gls_calibration.cli.discrepancy import main
-from gls_calibration.head_config import default_head_config_path, head_config_from_dict, load_head_config
-from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.optics import PhysicalHead
+from gls_calibration.geometry.head_config import default_head_config_path, head_config_from_dict, load_head_config
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.geometry.optics import PhysicalHead
 
 AXIS = np.linspace(-95.0, 95.0, 11)
 TARGETS = np.column_stack([np.meshgrid(AXIS, AXIS)[0].ravel(), np.meshgrid(AXIS, AXIS)[1].ravel()])

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from gls_calibration import discrepancy
+from gls_calibration.calibration.outcome import deviation_metrics
 from gls_calibration.cli import discrepancy as cli
 from gls_calibration.cli.discrepancy import main
 from gls_calibration.discrepancy import run_verdict_lines
-from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.optics import PhysicalHead
-from gls_calibration.outcome import deviation_metrics
-from gls_calibration.report import ReportData, write_report
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.geometry.optics import PhysicalHead
+from gls_calibration.report.files import ReportData, write_report
 
 AXIS = np.linspace(-95.0, 95.0, 15)
 TARGETS = np.column_stack([np.meshgrid(AXIS, AXIS)[0].ravel(), np.meshgrid(AXIS, AXIS)[1].ravel()])
@@ -89,7 +89,7 @@ def test_user_effect_from_the_command_line(tmp_path, monkeypatch):
     module = _load(tmp_path / "my_effects.py")
     effect = module.encoder_nonlinearity_x()
     joints = inverse(HeadGeometry(), TARGETS[:, 0], TARGETS[:, 1])
-    from gls_calibration.effect_table import EffectContext
+    from gls_calibration.geometry.effect_table import EffectContext
     extra = effect.deviation(EffectContext(HeadGeometry(), TARGETS, joints.alpha_x, joints.alpha_y, None),
                              np.array([1.5e-4]))
     measured = landed({}, seed=3) + extra

@@ -12,7 +12,7 @@ import pytest
 
 from gls_calibration.cli.client import ProgressBar
 from gls_calibration.cli.correct import main as correct_main, read_targets
-from gls_calibration.persistence import atomic_write_text
+from gls_calibration.common.files import atomic_write_text
 from gls_calibration_msgs.msg import CalibrationProgress
 
 

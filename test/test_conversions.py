@@ -10,9 +10,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.time import Time as RclpyTime
 from sensor_msgs.msg import PointCloud2, PointField
 
-from gls_calibration.nodes.conversions import (
-    array_to_pointcloud2, pointcloud2_to_array, unstructured_xyz, xyz_intensity_arrays, xyzi_array,
-    xyzi_dtype)
+from gls_calibration.ros.conversions import array_to_pointcloud2, pointcloud2_to_array, unstructured_xyz, xyz_intensity_arrays, xyzi_array, xyzi_dtype
 
 # A scanner-like layout with every awkward feature: a float64 field, small integer fields, a
 # count-3 sub-array, holes between fields and trailing padding (point_step 48 > 41 bytes used).
@@ -288,9 +286,9 @@ def test_helpers_reject_bad_input(call, message):
 
 
 def test_fiducial_uncertainties_and_rejections_survive_the_service_response():
-    from gls_calibration.nodes.conversions import fiducials_from_response, fiducials_to_response
-    from gls_calibration.fiducials import FiducialMeasurement
-    from gls_calibration.plate_pose import estimate_plate_pose
+    from gls_calibration.fiducials.measure import FiducialMeasurement
+    from gls_calibration.ros.conversions import fiducials_from_response, fiducials_to_response
+    from gls_calibration.scan.plate_pose import estimate_plate_pose
     from gls_calibration_msgs.srv import MeasureFiducials
 
     plane = np.column_stack([np.random.default_rng(3).uniform(-5, 5, (2000, 2)), np.zeros(2000)])

@@ -4,10 +4,10 @@ import re
 import numpy as np
 import pytest
 
-from gls_calibration.correction import CalibratedRegion, Correction, taper_weight
-from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.rbf import OLSRBFNetwork, ThinPlateSplineModel
-from gls_calibration.targets import grid_targets
+from gls_calibration.correction.setpoints import CalibratedRegion, Correction, taper_weight
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.models.rbf import OLSRBFNetwork, ThinPlateSplineModel
 
 GEOMETRY = HeadGeometry()
 GRID = grid_targets()
@@ -160,7 +160,7 @@ def test_sharing_a_request_runs_blas_on_one_thread(first_model, monkeypatch):
     # Each worker's matrix products under a threaded BLAS would start BLAS threads of their own on the
     # CPUs the workers already use (a process started without OPENBLAS_NUM_THREADS=1).
     from threadpoolctl import threadpool_info, threadpool_limits
-    import gls_calibration.correction as correction_module
+    import gls_calibration.correction.setpoints as correction_module
 
     def blas_threads() -> list[int]:
         return [info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"]

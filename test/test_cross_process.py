@@ -18,10 +18,10 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from visualization_msgs.msg import MarkerArray
 
-from gls_calibration import kinematics
+from gls_calibration.calibration.record import record_identity
+from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.cli.client import RESEND_AFTER_S
-from gls_calibration.calibration_record import record_identity
-from gls_calibration.persistence import CalibrationStore
+from gls_calibration.geometry import kinematics
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import Calibrate, CorrectSetpoints
 

@@ -8,8 +8,8 @@ import pytest
 from gls_calibration.discrepancy import (
     align_rigid_2d, estimate_noise_floor, explain, fit_effects, observability_report, physical_prediction,
     structure_test)
-from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.optics import EFFECTS, PhysicalHead
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.geometry.optics import EFFECTS, PhysicalHead
 
 GEOMETRY = HeadGeometry()
 AXIS = np.linspace(-95.0, 95.0, 19)

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from gls_calibration.discrepancy import average_repeats, explain
-from gls_calibration.effect_table import EFFECT_TABLE, EffectSpec, ParameterSpec, UserEffect
-from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.optics import PhysicalHead
+from gls_calibration.geometry.effect_table import EFFECT_TABLE, EffectSpec, ParameterSpec, UserEffect
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.geometry.optics import PhysicalHead
 
 GEOMETRY = HeadGeometry()
 AXIS = np.linspace(-95.0, 95.0, 19)
@@ -55,7 +55,7 @@ def found(result, name):
 
 def encoder_field(amplitude_rad):
     joints = inverse(GEOMETRY, TARGETS[:, 0], TARGETS[:, 1])
-    from gls_calibration.effect_table import EffectContext
+    from gls_calibration.geometry.effect_table import EffectContext
     context = EffectContext(GEOMETRY, TARGETS, joints.alpha_x, joints.alpha_y, None)
     return ENCODER.deviation(context, np.array([amplitude_rad]))
 

@@ -12,9 +12,9 @@ import pytest
 from gls_calibration.cli.discrepancy import main
 from gls_calibration.discrepancy import SEPARABLE_AT, explain, fit_effects, separability
 from gls_calibration.discrepancy.fitting import Predictor
-from gls_calibration.effect_table import EFFECT_TABLE
-from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.optics import HeadEffects, PhysicalHead
+from gls_calibration.geometry.effect_table import EFFECT_TABLE
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.geometry.optics import HeadEffects, PhysicalHead
 
 GEOMETRY = HeadGeometry()
 AXIS = np.linspace(-95.0, 95.0, 19)

@@ -9,13 +9,14 @@ import pytest
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from gls_calibration.calibration_record import calibrated_region
-from gls_calibration.kinematics import HeadGeometry, inverse
+from gls_calibration.calibration.procedure import ProcedureSettings
+from gls_calibration.calibration.record import calibrated_region
+from gls_calibration.calibration.record_file import new_record
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.geometry.optics import PhysicalHead
 from gls_calibration.nodes.calibration_manager import CalibrationManager
-from gls_calibration.optics import PhysicalHead
-from gls_calibration.persistence import CalibrationStore, new_record
-from gls_calibration.procedure import ProcedureSettings
-from gls_calibration.targets import grid_targets
 from gls_calibration_msgs.srv import ExplainDeviations
 from ros_helpers import call_service
 

@@ -6,12 +6,12 @@ import math
 import numpy as np
 import pytest
 
-from gls_calibration import kinematics
-from gls_calibration.nodes.conversions import xyzi_array
-from gls_calibration.correction import Correction
-from gls_calibration.nodes.deadlines import Deadlines
-from gls_calibration.procedure import ProcedureSettings
-from gls_calibration.sweep import SweepCollector, profile_problem
+from gls_calibration.calibration.procedure import ProcedureSettings
+from gls_calibration.correction.setpoints import Correction
+from gls_calibration.geometry import kinematics
+from gls_calibration.ros.conversions import xyzi_array
+from gls_calibration.ros.deadlines import Deadlines
+from gls_calibration.scan.sweep import SweepCollector, profile_problem
 
 GEOMETRY = kinematics.HeadGeometry()
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from gls_calibration.fiducials import measure_fiducials
-from gls_calibration.plate_pose import estimate_plate_pose
+from gls_calibration.fiducials.measure import measure_fiducials
+from gls_calibration.scan.plate_pose import estimate_plate_pose
 from rendering import BASE_SCAN, grid_truth, plate_to_scanner, render_condition, render_plate_scan
 
 PER_SIDE = 5

@@ -30,8 +30,8 @@ def test_ring_radii_set_once_reach_the_measurement(start_cell, who):
 
 def test_a_sweep_too_short_for_the_grid_and_its_rings_is_refused_with_the_sizes():
     """A ring cut by the end of a sweep is found or lost by chance: the settings refuse such a sweep."""
-    from gls_calibration.procedure import ProcedureSettings
-    from gls_calibration.sweep_plan import CellTimeModel
+    from gls_calibration.calibration.procedure import ProcedureSettings
+    from gls_calibration.registration.sweep_plan import CellTimeModel
     with pytest.raises(ValueError) as error:
         ProcedureSettings(ring_radii_mm=tuple(RADII))
     assert str(error.value) == ("sweep length 200 mm cannot cover the grid: its 190 mm, the outer ring (3.2 mm) "

@@ -22,10 +22,10 @@ from pathlib import Path
 import pytest
 from std_srvs.srv import Trigger
 
+from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.plate_pose import PlatePoseNode
 from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
-from gls_calibration.persistence import CalibrationStore
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import (Calibrate, CorrectSetpoints, GetMarkedPaths, MeasureFiducials, StartSweep,
                                       TrainCorrection)

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from gls_calibration.kinematics import HeadGeometry, forward, inverse
+from gls_calibration.geometry.kinematics import HeadGeometry, forward, inverse
 
 GEOMETRY = HeadGeometry()
 

@@ -14,7 +14,7 @@ from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
 from gls_calibration.nodes.calibration_manager import CalibrationManager
-from gls_calibration.nodes.manager_parameters import MANAGER_PARAMETERS, SETTABLE, manager_config
+from gls_calibration.ros.manager_parameters import MANAGER_PARAMETERS, SETTABLE, manager_config
 from gls_calibration_msgs.srv import Calibrate
 
 from ros_helpers import call_service, wait_for

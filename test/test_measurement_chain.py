@@ -7,19 +7,19 @@ import numpy as np
 import pytest
 import yaml
 
-from gls_calibration import targets
-from gls_calibration.config_files import config_path
-from gls_calibration.fiducials import measure_fiducials
-from gls_calibration.kinematics import HeadGeometry
-from gls_calibration.plate_pose import estimate_plate_pose
-from gls_calibration.procedure import ProcedureSettings
+from gls_calibration.calibration.procedure import ProcedureSettings
+from gls_calibration.common.config_files import config_path
+from gls_calibration.fiducials import targets
+from gls_calibration.fiducials.measure import measure_fiducials
+from gls_calibration.geometry.kinematics import HeadGeometry
+from gls_calibration.scan.plate_pose import estimate_plate_pose
 from gls_calibration.simulation.head import TruthHead
 from gls_calibration.simulation.measurement import (PRESET_CHAINS, MeasurementChain, lateral_linearity_shape,
                                                     measurement_from_mapping, smooth_process)
+from gls_calibration.registration.sweep_plan import parse_plan, plan_label
 from gls_calibration.simulation.plate import Plate, PlateSettings
 from gls_calibration.simulation.scanner import LaserLineScanner, ScannerSettings
 from gls_calibration.simulation.world import load_sim_config, sim_config_from_dict
-from gls_calibration.sweep_plan import parse_plan, plan_label
 
 QUIET = ScannerSettings(line_length_mm=60.0, z_noise_mm=0.0, linearity_mm=0.0, speckle=0.0, dropout_fraction=0.0,
                         path_repeatability_mm=0.0)

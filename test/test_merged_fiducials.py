@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from gls_calibration.merged_fiducials import SIGNATURE_DOF, merged
+from gls_calibration.fiducials.merged_pairs import SIGNATURE_DOF, merged
 
 SECTORS = 24
 

@@ -24,18 +24,19 @@ from rclpy.time import Time
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import PointCloud2
 
-from gls_calibration import kinematics
-from gls_calibration.config_files import config_path
-from gls_calibration.nodes import conversions
-from gls_calibration.nodes.conversions import cloud_from_msg, cloud_to_msg, pointcloud2_to_array, xyzi_array
-from gls_calibration.correction import CalibratedRegion, Correction
+from gls_calibration.calibration.record import correction_from_record
+from gls_calibration.calibration.record_file import FIDUCIAL_KEYS, new_record
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.common.config_files import config_path
+from gls_calibration.correction.setpoints import CalibratedRegion, Correction
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.geometry import kinematics
+from gls_calibration.models.rbf import OLSRBFNetwork
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
-from gls_calibration.calibration_record import correction_from_record
-from gls_calibration.persistence import FIDUCIAL_KEYS, CalibrationStore, new_record
-from gls_calibration.rbf import OLSRBFNetwork
-from gls_calibration.targets import grid_targets
+from gls_calibration.ros import conversions
+from gls_calibration.ros.conversions import cloud_from_msg, cloud_to_msg, pointcloud2_to_array, xyzi_array
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, Calibrate, CorrectSetpoints, LoadCalibration, StartSweep
 

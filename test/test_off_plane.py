@@ -9,10 +9,10 @@ right along the ray through Q' and only approximately right at Q's own (x, y).
 import numpy as np
 import pytest
 
-from gls_calibration.correction import CalibratedRegion, Correction
-from gls_calibration.kinematics import HeadGeometry, forward, inverse
-from gls_calibration.rbf import ThinPlateSplineModel
-from gls_calibration.targets import grid_targets
+from gls_calibration.correction.setpoints import CalibratedRegion, Correction
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.geometry.kinematics import HeadGeometry, forward, inverse
+from gls_calibration.models.rbf import ThinPlateSplineModel
 
 GEOMETRY = HeadGeometry()
 

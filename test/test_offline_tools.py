@@ -7,14 +7,15 @@ import numpy as np
 import pytest
 import yaml
 
-from gls_calibration.calibration_record import correction_from_record
+from gls_calibration.calibration.record import correction_from_record
+from gls_calibration.calibration.record_file import head_geometry, load_record, new_record
+from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.cli.correct import main as correct_main
 from gls_calibration.cli.export import bilinear, main as export_main
-from gls_calibration.correction import CalibratedRegion
-from gls_calibration.kinematics import HeadGeometry
-from gls_calibration.persistence import CalibrationStore, head_geometry, load_record, new_record
-from gls_calibration.rbf import ThinPlateSplineModel
-from gls_calibration.targets import grid_targets
+from gls_calibration.correction.setpoints import CalibratedRegion
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.geometry.kinematics import HeadGeometry
+from gls_calibration.models.rbf import ThinPlateSplineModel
 
 
 @pytest.fixture(scope="module")

@@ -4,9 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from gls_calibration.outcome import (CalibrationOutcome, DeviationMetrics, FieldMetrics, deviation_metrics,
-                                     summarise)
-from gls_calibration.targets import grid_targets
+from gls_calibration.calibration.outcome import CalibrationOutcome, DeviationMetrics, FieldMetrics, deviation_metrics, summarise
+from gls_calibration.fiducials.targets import grid_targets
 
 
 def test_metrics_of_a_constant_field_and_sub_field_counts():

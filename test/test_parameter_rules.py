@@ -9,8 +9,9 @@ import sys
 
 import pytest
 
-from gls_calibration.config_files import config_path
-from gls_calibration.nodes.parameter_rules import parameter_rules, rule_applied
+from gls_calibration.common.config_files import config_path
+from gls_calibration.ros import parameter_rules
+from gls_calibration.ros.parameter_rules import rule_applied
 
 START_LIMIT_S = 60.0     # a node that starts instead of refusing is stopped here and the test fails
 
@@ -58,7 +59,7 @@ def test_a_node_refuses_a_rule_that_rcl_dropped_with_exit_2(tmp_path, module, pa
 
 def test_a_node_takes_rules_of_the_right_type_over_the_parameter_files(tmp_path):
     from gls_calibration.nodes.calibration_manager import CalibrationManager
-    from gls_calibration.nodes.parameter_rules import unapplied_rule_problem
+    from gls_calibration.ros.parameter_rules import unapplied_rule_problem
     import rclpy
     from rclpy.context import Context
     rules = ["-p", f"calibration_dir:={tmp_path}", "-p", "grid.size_mm:=150.0", "-p", "grid.ring_radii_mm:=[2.0, 2.2]",

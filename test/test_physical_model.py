@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 import yaml
 
-from gls_calibration import rbf
-from gls_calibration.correction import CalibratedRegion, Correction
-from gls_calibration.deviation_models import model_from_dict
+from gls_calibration.correction.setpoints import CalibratedRegion, Correction
 from gls_calibration.discrepancy import align_rigid_2d
-from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.optics import PhysicalHead
-from gls_calibration.physical_model import PhysicalDeviationModel, SumModel, train_physics_then_rbf
-from gls_calibration.targets import grid_targets
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.geometry.optics import PhysicalHead
+from gls_calibration.models import rbf
+from gls_calibration.models.deviation_models import model_from_dict
+from gls_calibration.models.physical_model import PhysicalDeviationModel, SumModel, train_physics_then_rbf
 
 GEOMETRY = HeadGeometry()
 # Two hidden effects of the paper-like size: X gain error and the plate tilt (keystone).

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from gls_calibration.plate_pose import MIN_PLATE_POINTS, PlatePose, estimate_plate_pose, mean_plate_pose
+from gls_calibration.scan.plate_pose import MIN_PLATE_POINTS, PlatePose, estimate_plate_pose, mean_plate_pose
 from rendering import plate_frame, render_plate_scan
 
 TILT = (0.015, -0.025)

@@ -13,13 +13,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from gls_calibration import procedure
-from gls_calibration.calibration_record import build_record, save_candidate
-from gls_calibration.persistence import CalibrationStore
+from gls_calibration.calibration import procedure
+from gls_calibration.calibration.record import build_record, save_candidate
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.registration.sweep_plan import CellTimeModel
 from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
-from gls_calibration.sweep_plan import CellTimeModel
-from gls_calibration.targets import grid_targets
 
 FAST = dict(grid_per_side=5, grid_size_mm=90.0, plain_sweeps=1, plain_sweep_step_mm=2.0)
 

@@ -4,10 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from gls_calibration import rbf
-from gls_calibration.deviation_models import load_model_yaml, model_from_dict, save_model_yaml
-from gls_calibration.rbf import CrossValidation, OLSRBFNetwork, ThinPlateSplineModel, cross_validate, select_model
-from gls_calibration.targets import grid_targets
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.models import rbf
+from gls_calibration.models.deviation_models import load_model_yaml, model_from_dict, save_model_yaml
+from gls_calibration.models.rbf import CrossValidation, OLSRBFNetwork, ThinPlateSplineModel, cross_validate, select_model
 
 GRID = grid_targets()
 
@@ -157,7 +157,7 @@ def test_thin_plate_spline_blocks_agree_with_the_kernel_formula_at_and_between_c
     # r^2 positive); at a centre itself phi(0) = 0 must still hold. Without the offset, round-off
     # makes r^2 zero or negative at the centres: those rows must be recomputed, not returned as NaN.
     if offset != "default":
-        monkeypatch.setattr("gls_calibration.rbf._OFFSET_PER_SQUARED_MM", offset)
+        monkeypatch.setattr("gls_calibration.models.rbf._OFFSET_PER_SQUARED_MM", offset)
     X, Y = noisy_samples(14)
     spline = ThinPlateSplineModel(X, Y)
     query = np.vstack([X, np.random.default_rng(15).uniform(-120.0, 120.0, (2000, 2))])

@@ -16,12 +16,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from gls_calibration import procedure
-from gls_calibration.outcome import INDEPENDENT, Candidate, deviation_metrics, summarise
-from gls_calibration.plate_pose import PlatePose
-from gls_calibration.registration import RigidTransform
-from gls_calibration.run_report import figure_kind_lines
-from gls_calibration.stated_accuracy import SELF_CONSISTENCY
+from gls_calibration.calibration import procedure
+from gls_calibration.calibration.outcome import INDEPENDENT, Candidate, deviation_metrics, summarise
+from gls_calibration.calibration.stated_accuracy import SELF_CONSISTENCY
+from gls_calibration.registration.rigid import RigidTransform
+from gls_calibration.report.run_report import figure_kind_lines
+from gls_calibration.scan.plate_pose import PlatePose
 
 SETTINGS = procedure.ProcedureSettings(grid_per_side=5, grid_size_mm=90.0)
 TRAINING = procedure.grid.grid_targets(5, 90.0)

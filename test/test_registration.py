@@ -5,9 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gls_calibration.registration import (RigidTransform, deviations, fit_rigid,
-                                          pair_with_targets)
-from gls_calibration.targets import grid_targets
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.registration.rigid import RigidTransform, deviations, fit_rigid, pair_with_targets
 
 PITCH = 190.0 / 18
 

@@ -9,7 +9,7 @@ from matplotlib.image import imread
 import numpy as np
 import pytest
 
-from gls_calibration.report import ReportData, format_mm, summary_json, table1_markdown, write_report
+from gls_calibration.report.files import ReportData, format_mm, summary_json, table1_markdown, write_report
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

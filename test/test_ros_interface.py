@@ -18,16 +18,15 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2, PointField
 
-from gls_calibration import kinematics
-from gls_calibration.calibration_record import record_identity
-from gls_calibration.config_files import config_path
-from gls_calibration.nodes.conversions import (array_to_pointcloud2, cloud_from_msg, cloud_to_msg, pointcloud2_to_array,
-                                         time_to_msg, xyzi_array)
-from gls_calibration.bag_io import BagLayout
-from gls_calibration.cell_frames import load_cell_frames
-from gls_calibration.nodes import rviz
+from gls_calibration.calibration.record import record_identity
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.common.config_files import config_path
+from gls_calibration.geometry import kinematics
 from gls_calibration.nodes.correction import CorrectionNode
-from gls_calibration.persistence import CalibrationStore
+from gls_calibration.ros import rviz
+from gls_calibration.ros.conversions import array_to_pointcloud2, cloud_from_msg, cloud_to_msg, pointcloud2_to_array, time_to_msg, xyzi_array
+from gls_calibration.scan.bag_io import BagLayout
+from gls_calibration.scan.cell_frames import load_cell_frames
 from gls_calibration_msgs.action import Calibrate as CalibrateAction
 from gls_calibration_msgs.srv import AcquireSweep, CorrectSetpoints, LoadCalibration
 

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from gls_calibration.separation import TIME_PLACED, SeparationSettings, separate
+from gls_calibration.registration.separation import TIME_PLACED, SeparationSettings, separate
 
 LINE_HALF_MM = 105.0
 

@@ -21,7 +21,7 @@ import threading
 import pytest
 from rclpy.node import Node
 
-from gls_calibration.nodes.base import GlsNode, NodeThreads
+from gls_calibration.ros.base import GlsNode, NodeThreads
 
 from gls_calibration_msgs.srv import Calibrate
 

@@ -8,10 +8,10 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from gls_calibration.nodes import conversions
 from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import LISTENER_WAIT_S, SimScannerNode
+from gls_calibration.ros import conversions
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, StartSweep
 

@@ -5,8 +5,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.optics import PhysicalHead
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.geometry.optics import PhysicalHead
 from gls_calibration.simulation.head import TruthHead
 from gls_calibration.simulation.plate import Plate, PlateSettings
 from gls_calibration.simulation.scanner import LaserLineScanner, ScannerSettings, pose_matrix
@@ -311,9 +311,9 @@ def measured_against_truth(per_side: int, size_mm: float) -> tuple[float, int]:
     """
     from scipy.spatial import cKDTree
 
-    from gls_calibration.fiducials import measure_fiducials
-    from gls_calibration.plate_pose import estimate_plate_pose
-    from gls_calibration.registration import fit_rigid
+    from gls_calibration.fiducials.measure import measure_fiducials
+    from gls_calibration.registration.rigid import fit_rigid
+    from gls_calibration.scan.plate_pose import estimate_plate_pose
 
     config = load_sim_config(preset="ideal")
     span = size_mm + 20.0

@@ -12,10 +12,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from gls_calibration import procedure
-from gls_calibration.plate_pose import MIN_HEIGHT_POINTS, estimate_plate_pose, pose_at_height
+from gls_calibration.calibration import procedure
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.scan.plate_pose import MIN_HEIGHT_POINTS, estimate_plate_pose, pose_at_height
 from gls_calibration.simulation.world import SimulatedCell
-from gls_calibration.targets import grid_targets
 
 from test_procedure import FAST, new_cell, small_config
 

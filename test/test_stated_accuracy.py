@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import yaml
 
-from gls_calibration.chain_map import NO_CHAIN_MAP
-from gls_calibration.outcome import CalibrationOutcome, deviation_metrics, summarise
-from gls_calibration.run_report import accuracy_lines
-from gls_calibration.stated_accuracy import (REFERENCE_BASIS, SELF_CONSISTENCY, ChainCheck, load_chain_check,
-                                             save_chain_check, stated_accuracy)
-from gls_calibration.targets import grid_targets
+from gls_calibration.calibration import stated_accuracy
+from gls_calibration.calibration.outcome import CalibrationOutcome, deviation_metrics, summarise
+from gls_calibration.calibration.stated_accuracy import REFERENCE_BASIS, SELF_CONSISTENCY, ChainCheck, load_chain_check, save_chain_check
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.registration.chain_map import NO_CHAIN_MAP
+from gls_calibration.report.run_report import accuracy_lines
 
 CHECK = ChainCheck(sigma_mm=(0.03, 0.04), plan="0+,0-,90+,90-", placement="pose", reference="plate A", centres=143)
 

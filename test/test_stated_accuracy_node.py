@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from gls_calibration.chain_map import ChainMap, LineMap, load_chain_map, save_chain_map
-from gls_calibration.stated_accuracy import REFERENCE_BASIS, SELF_CONSISTENCY, ChainCheck, save_chain_check
+from gls_calibration.calibration.stated_accuracy import REFERENCE_BASIS, SELF_CONSISTENCY, ChainCheck, save_chain_check
+from gls_calibration.registration.chain_map import ChainMap, LineMap, load_chain_map, save_chain_map
 from gls_calibration_msgs.srv import Calibrate
 
 CALIBRATE_TIMEOUT_S = 300.0

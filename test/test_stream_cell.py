@@ -14,12 +14,12 @@ import rclpy
 from rclpy.parameter import Parameter
 from std_srvs.srv import SetBool
 
-from gls_calibration.bag_io import BagRecorder
-from gls_calibration.nodes import conversions
+from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.nodes.sim_line_scanner import SimLineScannerNode
 from gls_calibration.nodes.sim_robot import SimRobotNode
 from gls_calibration.nodes.stream_acquisition import StreamAcquisitionNode
-from gls_calibration.persistence import CalibrationStore
+from gls_calibration.ros import conversions
+from gls_calibration.scan.bag_io import BagRecorder
 from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.recording_cell import SIM_FLANGE_TO_SENSOR, RecordingCell, base_to_gls
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 
-from gls_calibration.nodes import conversions
 from gls_calibration.nodes.stream_acquisition import StreamAcquisitionNode
+from gls_calibration.ros import conversions
 from gls_calibration_msgs.srv import AcquireSweep
 
 from ros_helpers import call_service, default_sigint, stop_process, wait_for

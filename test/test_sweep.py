@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gls_calibration.sweep import PoseTrack, SweepCollector, SweepMotion, XYZI_FIELDS, nominal_start_pose
+from gls_calibration.scan.sweep import PoseTrack, SweepCollector, SweepMotion, XYZI_FIELDS, nominal_start_pose
 
 SPEED = 15.0
 STEP = 0.5
@@ -103,7 +103,7 @@ def test_the_pose_track_refuses_bad_poses_and_keeps_its_bound():
 def test_junk_profiles_are_kept_apart_by_layout_and_time_window_and_wide_ones_dropped():
     # Issue 31 item 8: well-formed junk joined the sweep (2 006 rows instead of 2 001), its stamps
     # switched placement to time, and five over-wide profiles failed the whole sweep.
-    from gls_calibration.sweep import profile_problem, stamp_window_s
+    from gls_calibration.scan.sweep import profile_problem, stamp_window_s
     count = 40
     collector = SweepCollector(1000, 20)
     x = np.linspace(-50, 50, 11)
@@ -135,7 +135,7 @@ def test_junk_profiles_are_kept_apart_by_layout_and_time_window_and_wide_ones_dr
 
 
 def test_profile_rules_drop_what_the_sensor_did_not_declare_and_refuse_bad_limits():
-    from gls_calibration.sweep import ProfileRules
+    from gls_calibration.scan.sweep import ProfileRules
     rules = ProfileRules()
     float32 = {name: "float32" for name in ("x", "y", "z", "intensity")}
     assert rules.format_problem(float32 | {"ring": "uint16"}, False) == ""     # other fields are free
@@ -153,7 +153,7 @@ def test_profile_rules_drop_what_the_sensor_did_not_declare_and_refuse_bad_limit
 
 
 def test_an_announced_count_is_checked_against_length_and_step_within_the_slack():
-    from gls_calibration.sweep import ProfileRules
+    from gls_calibration.scan.sweep import ProfileRules
     rules = ProfileRules()
     assert rules.announcement_problem(2001, 200.0, 0.1) == ""          # floor(200 / 0.1) + 1
     assert rules.announcement_problem(2000, 200.0, 0.1) == ""          # a driver that rounds the other way

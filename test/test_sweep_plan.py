@@ -5,12 +5,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from gls_calibration import procedure
-from gls_calibration.persistence import CalibrationStore
+from gls_calibration.calibration import procedure
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.registration.sweep_plan import CellTimeModel, SweepPass, parse_plan, plan_label
 from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
-from gls_calibration.sweep_plan import CellTimeModel, SweepPass, parse_plan, plan_label
-from gls_calibration.targets import grid_targets
 
 
 def test_a_plan_reads_and_writes_back():

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from gls_calibration.targets import grid_targets, ring_polyline, ring_segment_count, rings_polylines
+from gls_calibration.fiducials.targets import grid_targets, ring_polyline, ring_segment_count, rings_polylines
 
 
 def test_default_grid_is_19_by_19_over_190_mm_row_major():

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from gls_calibration.time_budget import StageClock, thread_cpu_s
+from gls_calibration.common.time_budget import StageClock, thread_cpu_s
 
 
 def stamped(stages_and_times):

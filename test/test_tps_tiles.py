@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from gls_calibration import tps_tiles
-from gls_calibration.rbf import TILED_MIN_ROWS, ThinPlateSplineModel
-from gls_calibration.targets import grid_targets
+from gls_calibration.fiducials.targets import grid_targets
+from gls_calibration.models import tps_tiles
+from gls_calibration.models.rbf import TILED_MIN_ROWS, ThinPlateSplineModel
 
 GRID = grid_targets()
 
@@ -79,8 +79,8 @@ def test_centres_that_span_no_area_get_no_evaluator(centres):
 
 
 def test_a_correction_prepares_its_splines_tiles_before_the_first_large_request():
-    from gls_calibration.correction import CalibratedRegion, Correction
-    from gls_calibration.kinematics import HeadGeometry
+    from gls_calibration.correction.setpoints import CalibratedRegion, Correction
+    from gls_calibration.geometry.kinematics import HeadGeometry
 
     spline = ThinPlateSplineModel(GRID, wavy_field(GRID))
     correction = Correction(HeadGeometry(), [spline], CalibratedRegion.from_points(GRID))

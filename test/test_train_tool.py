@@ -7,11 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from gls_calibration import procedure
-from gls_calibration.calibration_record import build_record, correction_from_record, save_candidate
+from gls_calibration.calibration import procedure
+from gls_calibration.calibration.record import build_record, correction_from_record, save_candidate
+from gls_calibration.calibration.record_file import head_geometry, load_record
+from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.cli.train import main as train_main
-from gls_calibration.persistence import CalibrationStore, head_geometry, load_record
-from gls_calibration.run_report import training_csv_text
+from gls_calibration.report.run_report import training_csv_text
 from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 

@@ -18,10 +18,10 @@ from sensor_msgs.msg import PointCloud2
 
 from rclpy.parameter import Parameter
 
-from gls_calibration import kinematics
 from gls_calibration.cli.client import RESEND_AFTER_S
-from gls_calibration.nodes.conversions import pointcloud2_to_array
+from gls_calibration.geometry import kinematics
 from gls_calibration.nodes.correction import CorrectionNode
+from gls_calibration.ros.conversions import pointcloud2_to_array
 from gls_calibration_msgs.srv import CorrectSetpoints
 
 from _cloud_peer import CLOUD_QOS, CLOUD_SHAPE, CLOUD_TOPIC, NAMESPACE, publish_cloud, transport_cloud
@@ -165,7 +165,7 @@ def test_correction_process_exits_cleanly_on_sigint(ros_context, add_node, tmp_p
 # test or an operator may send it), then says it was built.
 SIGINT_WHILE_BUILT = """
 import os, signal, sys
-from gls_calibration.nodes.base import GlsNode, run_node
+from gls_calibration.ros.base import GlsNode, run_node
 from std_srvs.srv import Trigger
 
 class Interrupted(GlsNode):

@@ -16,7 +16,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from gls_calibration.persistence import atomic_write_text, require_regular_output
+from gls_calibration.common.files import atomic_write_text, require_regular_output
 
 OUTPUT_COLUMNS = ("x", "y", "z", "k_x", "k_y", "alpha_x_rad", "alpha_y_rad", "focus_shift_mm",
                   "inside_calibrated_field", "within_limits")
@@ -55,8 +55,8 @@ def corrected_csv_text(x, y, z, k_x, k_y, alpha_x, alpha_y, focus_shift, inside,
 
 def correct_offline(calibration: Path, x, y, z):
     """(k_x, k_y, alpha_x, alpha_y, focus_shift, inside, within, note) from a calibration file."""
-    from gls_calibration.calibration_record import correction_from_record
-    from gls_calibration.persistence import head_geometry, load_record
+    from gls_calibration.calibration.record import correction_from_record
+    from gls_calibration.calibration.record_file import head_geometry, load_record
     record = load_record(calibration)
     try:
         correction = correction_from_record(record, head_geometry(record))
@@ -80,8 +80,8 @@ def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: S
     ``correct_setpoints`` would hold up other clients' single targets. RuntimeError when it gives no
     usable answer."""
     from gls_calibration.cli.client import RESEND_AFTER_S, call_and_wait, client_node
-    from gls_calibration.nodes.base import CLIENT_QOS
-    from gls_calibration.nodes.conversions import float64_sequence, setpoints_from_response
+    from gls_calibration.ros.base import CLIENT_QOS
+    from gls_calibration.ros.conversions import float64_sequence, setpoints_from_response
     from gls_calibration_msgs.srv import CorrectSetpoints
     with client_node("gls_correct_client", namespace, ros_arguments) as (node, executor):
         print(f"gls-correct: service {node.resolve_service_name(SERVICE)}", file=sys.stderr)

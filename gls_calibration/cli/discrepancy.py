@@ -14,10 +14,10 @@ FILE.csv is either
   position being ``target - d`` (the first plate is marked through the nominal model).
 
 Rows with NaN or empty values are dropped with a warning. MODEL.yaml is a head configuration (see
-:mod:`gls_calibration.head_config`; default ``config/head.yaml``). The noise floor comes from the
+:mod:`gls_calibration.geometry.head_config`; default ``config/head.yaml``). The noise floor comes from the
 repeats, else the ``sigma`` column, else ``--sigma``, else (with a warning in the report) from the
 residual itself. ``--effects`` adds a user effect (a function returning a
-:class:`gls_calibration.effect_table.UserEffect`; the module is imported from the working directory
+:class:`gls_calibration.geometry.effect_table.UserEffect`; the module is imported from the working directory
 or ``PYTHONPATH``).
 
 Writes DIR/discrepancy.json, DIR/report.md, DIR/residual_field.png (before, after, and the map of
@@ -361,7 +361,7 @@ def _report_markdown(result: DiscrepancyResult, measured: Path, model: Path | No
 
 def _effect_spec(result: DiscrepancyResult, name: str):
     """The table entry (library or user effect) that defines ``name``'s parameters."""
-    from gls_calibration.effect_table import EFFECT_TABLE
+    from gls_calibration.geometry.effect_table import EFFECT_TABLE
 
     for effect in result.user_effects:
         if effect.name == name:
@@ -372,7 +372,7 @@ def _effect_spec(result: DiscrepancyResult, name: str):
 def _write_outputs(result: DiscrepancyResult, out: Path, measured: Path, model: Path | None,
                    data: Measurements) -> None:
     """Render everything in a temporary directory beside ``out``, then move it in atomically."""
-    from gls_calibration.persistence import nan_to_none, to_plain
+    from gls_calibration.common.files import nan_to_none, to_plain
 
     out = out.resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -416,7 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="stated per-axis standard uncertainty of a measured position (mm); used when the CSV "
                              "has no repeats and no sigma column")
     parser.add_argument("--effects", action="append", default=[], metavar="MODULE:FUNCTION",
-                        help="add a user effect: FUNCTION() returns a gls_calibration.effect_table.UserEffect "
+                        help="add a user effect: FUNCTION() returns a gls_calibration.geometry.effect_table.UserEffect "
                              "(repeatable)")
     parser.add_argument("--criterion", choices=("bic", "aic"), default="bic", help="information criterion (default bic)")
     parser.add_argument("--max-steps", type=int, default=6, help="most effects to add (default 6)")
@@ -436,7 +436,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.sigma is not None and not (math.isfinite(args.sigma) and args.sigma > 0.0):
             raise InputError(f"--sigma must be a finite number > 0 (mm), got {args.sigma}")
         data = read_measurements(args.measured)
-        from gls_calibration.head_config import default_head_config_path, load_head_config
+        from gls_calibration.geometry.head_config import default_head_config_path, load_head_config
         model_path = args.model
         if model_path is None:
             default = default_head_config_path()
@@ -452,7 +452,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{PROGRAM}: warning: dropped {len(data.dropped_lines)} row(s) with NaN or empty values "
                   f"(line(s) {shown})", file=sys.stderr)
         from gls_calibration.discrepancy import explain
-        from gls_calibration.effect_table import load_user_effect
+        from gls_calibration.geometry.effect_table import load_user_effect
         sys.path.insert(0, os.getcwd())   # user effects live in the working directory unless on PYTHONPATH
         try:
             user_effects = tuple(load_user_effect(reference) for reference in args.effects)

@@ -28,10 +28,11 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from gls_calibration.calibration_record import correction_from_record
-from gls_calibration.correction import Correction
-from gls_calibration.kinematics import forward
-from gls_calibration.persistence import atomic_write_bytes, head_geometry, load_record
+from gls_calibration.calibration.record import correction_from_record
+from gls_calibration.calibration.record_file import head_geometry, load_record
+from gls_calibration.common.files import atomic_write_bytes
+from gls_calibration.correction.setpoints import Correction
+from gls_calibration.geometry.kinematics import forward
 
 TABLE_COLUMNS = ("x", "y", "z", "k_x", "k_y", "alpha_x_rad", "alpha_y_rad", "focus_shift_mm",
                  "inside_calibrated_field", "within_limits")

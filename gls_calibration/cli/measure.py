@@ -17,7 +17,7 @@ it, the unit in which the plate's extent holds the grid (``--size`` plus its rin
 exceeding it more than ``MAX_EXTENT_RATIO`` times (``cloud_units``). Outputs are in mm either way.
 Without ``--pixel`` the raster pixel of an unorganized cloud comes from its own point spacing.
 
-With ``--bag BAG`` (a rosbag2 recording, see :mod:`gls_calibration.bag_io`) every sweep is assembled
+With ``--bag BAG`` (a rosbag2 recording, see :mod:`gls_calibration.scan.bag_io`) every sweep is assembled
 in the base frame and measured the same way, into ``DIR/sweep_NN/`` (NN the motion's number in the
 bag; stand-stills, one line of profiles each, are skipped), with ``DIR/sweeps.json``.
 
@@ -37,11 +37,11 @@ import time
 import cv2
 import numpy as np
 
-from gls_calibration.bag_io import BagLayout, read_sweeps
-from gls_calibration.fiducials import STATUS_OK, FiducialMeasurement, measure_fiducials
-from gls_calibration.persistence import atomic_write_bytes, atomic_write_text
-from gls_calibration.plate_pose import PlatePose, estimate_plate_pose
-from gls_calibration.targets import RING_RADII_MM
+from gls_calibration.common.files import atomic_write_bytes, atomic_write_text
+from gls_calibration.fiducials.measure import STATUS_OK, FiducialMeasurement, measure_fiducials
+from gls_calibration.fiducials.targets import RING_RADII_MM
+from gls_calibration.scan.bag_io import BagLayout, read_sweeps
+from gls_calibration.scan.plate_pose import PlatePose, estimate_plate_pose
 
 CSV_HEADER = "x,y,z,sigma_x_um,sigma_y_um,coverage,status"
 NPZ_ARRAYS = ("x", "y", "z", "intensity")

@@ -28,18 +28,12 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
-from gls_calibration.config_files import config_path, read_config_file
-from gls_calibration.procedure import ITERATIONS_LIMIT
-from gls_calibration.simulation.measurement import PRESETS
-from gls_calibration.simulation.world import load_sim_config
-from gls_calibration.stated_accuracy import load_chain_check, save_chain_check
-from gls_calibration.sweep_plan import parse_plan
-from gls_calibration.nodes.base import (NodeThreads, StopSignals, discard, exit_now_if_stuck,
-                                       use_fast_liveliness)
-from gls_calibration.persistence import atomic_write_text
+from gls_calibration.calibration.procedure import ITERATIONS_LIMIT
+from gls_calibration.calibration.stated_accuracy import load_chain_check, save_chain_check
+from gls_calibration.cli import timeout_seconds
+from gls_calibration.common.config_files import config_path, read_config_file
+from gls_calibration.common.files import atomic_write_text
 from gls_calibration.nodes.calibration_manager import CalibrationManager
-from gls_calibration.nodes.manager_parameters import MANAGER_PARAMETERS, value_problem
-from gls_calibration.nodes.parameter_rules import unapplied_rule_problem
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
 from gls_calibration.nodes.plate_pose import PlatePoseNode
@@ -47,7 +41,12 @@ from gls_calibration.nodes.rbf_trainer import RbfTrainerNode
 from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import SimScannerNode
-from gls_calibration.cli import timeout_seconds
+from gls_calibration.registration.sweep_plan import parse_plan
+from gls_calibration.ros.base import NodeThreads, StopSignals, discard, exit_now_if_stuck, use_fast_liveliness
+from gls_calibration.ros.manager_parameters import MANAGER_PARAMETERS, value_problem
+from gls_calibration.ros.parameter_rules import unapplied_rule_problem
+from gls_calibration.simulation.measurement import PRESETS
+from gls_calibration.simulation.world import load_sim_config
 from gls_calibration.cli.client import (ProgressBar, call_and_wait, ros_rules, split_ros_arguments,
                                         summary_table)
 from gls_calibration_msgs.msg import CalibrationProgress
@@ -64,7 +63,7 @@ GRID_MAX = 101            # the manager's range of ``grid.per_side`` (3 to 101)
 def max_iterations() -> int:
     """Most iterations the cell's manager accepts: ``max_iterations`` of config/gls.yaml, the file it
     is given (``procedure.ProcedureSettings``' default when the file does not say)."""
-    from gls_calibration.procedure import ProcedureSettings
+    from gls_calibration.calibration.procedure import ProcedureSettings
 
     def parse(document) -> object:
         try:
@@ -471,7 +470,7 @@ def note_measurement(report_dir: Path, preset: str) -> None:
 def measure_chain_map_file(args: argparse.Namespace) -> Path:
     """Measure the chain map of the calibration's lines on the simulated robot (the certified plate
     swept along them, as a real cell would): DIR/chain_map.yaml."""
-    from gls_calibration.chain_map import save_chain_map
+    from gls_calibration.registration.chain_map import save_chain_map
     from gls_calibration.simulation.reference_plate import FIELD_PLATE, measure_chain_map
 
     print(f"chain map of the lines {args.reference_plan.label} (certified plate {FIELD_PLATE.label})",
@@ -485,7 +484,7 @@ def measure_reference_check(args: argparse.Namespace) -> Path:
     """Measure the simulated reference plate with the calibration's plan, on the same robot, before
     the calibration (as a real cell checks its chain with a certified plate), with the run's chain map
     applied when it has one: DIR/reference_check.yaml."""
-    from gls_calibration.chain_map import load_chain_map
+    from gls_calibration.registration.chain_map import load_chain_map
     from gls_calibration.simulation.reference_plate import FIELD_PLATE, chain_check, reference_plate_check
 
     chain_map = load_chain_map(args.chain_map_file) if getattr(args, "chain_map_file", None) else None

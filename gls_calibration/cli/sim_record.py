@@ -4,7 +4,7 @@ Runs in-process on the direct cell (:class:`~gls_calibration.simulation.recordin
 no ROS graph): the same procedure, core steps and simulated cell as the node graph, with the command
 line's seed, grid, iterations, measurement preset and sweep plan, and the grid size, sweeps and
 stand-still height of ``config/gls.yaml``. Every sweep is written to DIR as a real cell's drivers would stream it (see
-:mod:`gls_calibration.bag_io`); replay it with ``gls-measure --bag DIR``.
+:mod:`gls_calibration.scan.bag_io`); replay it with ``gls-measure --bag DIR``.
 """
 from __future__ import annotations
 
@@ -13,12 +13,12 @@ import asyncio
 from dataclasses import replace
 import sys
 
-from gls_calibration.bag_io import BagRecorder
-from gls_calibration.calibration_record import build_record, save_candidate
-from gls_calibration.config_files import config_path, read_config_file
-from gls_calibration.head_config import parameters_block
-from gls_calibration.persistence import CalibrationStore
-from gls_calibration.procedure import CalibrationError, ProcedureSettings, calibrate
+from gls_calibration.calibration.procedure import CalibrationError, ProcedureSettings, calibrate
+from gls_calibration.calibration.record import build_record, save_candidate
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.common.config_files import config_path, read_config_file
+from gls_calibration.geometry.head_config import parameters_block
+from gls_calibration.scan.bag_io import BagRecorder
 from gls_calibration.simulation.recording_cell import SIM_FLANGE_TO_SENSOR, RecordingCell, base_to_gls
 from gls_calibration.simulation.world import SimulatedCell
 

@@ -4,7 +4,7 @@ Input: a CSV ``x_cmd,y_cmd,x_meas,y_meas`` (mm): targets commanded through the n
 plane z = 0 of the gls frame (or ``--plane-z``, or the mean of an optional ``z_cmd`` column, as the
 main job's ``training.csv`` has it), and where they were measured, in any frame a rigid motion away
 (the measurement is aligned onto the targets first, as the calibrate flow does).
-The model is trained exactly as the calibrate flow trains it (:func:`gls_calibration.training.
+The model is trained exactly as the calibrate flow trains it (:func:`gls_calibration.models.training.
 train_correction`, grid search from ``config/gls.yaml``), at the measured points on ``Q - P``. The
 calibrated region is the box of the commanded targets. Writes ``--out`` (the calibration YAML) and
 ``<out>.report.md`` beside it. Exit 0, or 2 with a message and nothing written on bad input.
@@ -19,13 +19,13 @@ from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from gls_calibration.config_files import config_path, read_config_file
-from gls_calibration.correction import CalibratedRegion, check_calibration_plane
-from gls_calibration.head_config import default_head_config_path, load_head_config
-from gls_calibration.persistence import atomic_write_text, dump_record, new_record, require_regular_output
-from gls_calibration.registration import align_rigid_2d
-from gls_calibration.training import (GRID_SEARCH_PARAMETERS, TRAINER_PARAMETERS, TrainingOptions, train_correction,
-                                      training_options_from)
+from gls_calibration.calibration.record_file import dump_record, new_record
+from gls_calibration.common.config_files import config_path, read_config_file
+from gls_calibration.common.files import atomic_write_text, require_regular_output
+from gls_calibration.correction.setpoints import CalibratedRegion, check_calibration_plane
+from gls_calibration.geometry.head_config import default_head_config_path, load_head_config
+from gls_calibration.models.training import GRID_SEARCH_PARAMETERS, TRAINER_PARAMETERS, TrainingOptions, train_correction, training_options_from
+from gls_calibration.registration.rigid import align_rigid_2d
 
 COLUMNS = ("x_cmd", "y_cmd", "x_meas", "y_meas")
 TAPER_MM = 10.0

@@ -1,7 +1,7 @@
 """``gls-train --bag BAG --out calibration.yaml``: the whole calibrate flow run again offline from a bag.
 
 The bag's motions, in order, feed ``procedure.calibrate`` through a
-:class:`~gls_calibration.replay_cell.ReplayCell`: per plate the plain sweeps, the stand-still profiles
+:class:`~gls_calibration.calibration.replay_cell.ReplayCell`: per plate the plain sweeps, the stand-still profiles
 (unless ``--no-standstill-height``), then the passes of the sweep plan; the last plate is the validation plate with ``--validate``. The number of plates follows from
 the bag (it must hold whole plates). Grid, plan, plain sweeps and stand-still height default to ``config/gls.yaml`` (what
 ``gls-sim-cell --record`` records with); the galvo head's mounting comes from the bag's ``/tf_static``
@@ -20,15 +20,16 @@ import tempfile
 
 import numpy as np
 
-from gls_calibration.bag_io import BagLayout, read_recording
-from gls_calibration.calibration_record import build_record, save_candidate
-from gls_calibration.head_config import load_head_config
-from gls_calibration.outcome import summarise
-from gls_calibration.persistence import CalibrationStore, atomic_write_text, require_regular_output
-from gls_calibration.procedure import CalibrationError, ProcedureSettings, calibrate
-from gls_calibration.registration import RigidTransform
-from gls_calibration.replay_cell import ReplayCell
-from gls_calibration.run_report import write_outcome_report
+from gls_calibration.calibration.outcome import summarise
+from gls_calibration.calibration.procedure import CalibrationError, ProcedureSettings, calibrate
+from gls_calibration.calibration.record import build_record, save_candidate
+from gls_calibration.calibration.replay_cell import ReplayCell
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.common.files import atomic_write_text, require_regular_output
+from gls_calibration.geometry.head_config import load_head_config
+from gls_calibration.registration.rigid import RigidTransform
+from gls_calibration.report.run_report import write_outcome_report
+from gls_calibration.scan.bag_io import BagLayout, read_recording
 
 
 def plates_in(motion_count: int, settings: ProcedureSettings) -> int:
@@ -49,8 +50,8 @@ def recording_settings(grid: int | None, size_mm: float | None, sweep_plan: str 
     """Grid, plan, plain sweeps and stand-still height as given, else as ``config/gls.yaml`` has them;
     ValueError naming a bad one."""
     from gls_calibration.cli.sim_record import grid_per_side, grid_size_mm, standstill_height
+    from gls_calibration.registration.sweep_plan import parse_plan
     from gls_calibration.simulation.reference_plate import calibration_plan
-    from gls_calibration.sweep_plan import parse_plan
 
     plan = calibration_plan()
     return ProcedureSettings(grid_per_side=grid if grid is not None else grid_per_side(),

@@ -5,7 +5,7 @@ a rigid motion away from gls, mm), the workflow
 
 1. predicts the landing points with the current model: the controller commands through the NOMINAL
    kinematics (``alpha = kinematics.inverse(geometry, Q)``), the head lands them as the extended
-   model :class:`gls_calibration.optics.PhysicalHead` (nominal geometry plus the effects known so far)
+   model :class:`gls_calibration.geometry.optics.PhysicalHead` (nominal geometry plus the effects known so far)
    says, plus the deviation of any user effect; only the in-plane x, y of the landing point are used;
 2. aligns the measurement rigidly to the prediction (2-D Kabsch, closed form, no scale) and takes the
    residual field ``aligned M - prediction``. Rotation and translation of the measured frame are not
@@ -45,8 +45,8 @@ Files: :mod:`.results` (types), :mod:`.residual_statistics` (roughness, structur
 fits, plausibility, correlation with the rigid motion), :mod:`.selection` (:func:`explain`),
 :mod:`.verdict`, :mod:`.run_verdict` (the lines of a calibration run's report), :mod:`.observability`.
 The effects, their units, typical sizes and plausible ranges come from
-:data:`gls_calibration.effect_table.EFFECT_TABLE`; the rigid alignment is
-:func:`gls_calibration.registration.align_rigid_2d`.
+:data:`gls_calibration.geometry.effect_table.EFFECT_TABLE`; the rigid alignment is
+:func:`gls_calibration.registration.rigid.align_rigid_2d`.
 
 RMS figures are of the 2-D residual vector, ``sqrt(mean(dx^2 + dy^2))``; the noise floor is on the
 same footing (``sqrt(2)`` times the per-axis sigma), so a residual that is pure noise has RMS close to
@@ -55,8 +55,8 @@ the noise floor.
 from __future__ import annotations
 
 from gls_calibration.discrepancy.fitting import fit_effects, physical_prediction
-from gls_calibration.discrepancy.observability import ObservabilityReport, observability_report
 from gls_calibration.discrepancy.noise_floor import NOISE_SOURCES, average_repeats
+from gls_calibration.discrepancy.observability import ObservabilityReport, observability_report
 from gls_calibration.discrepancy.residual_statistics import (
     MIN_POINTS, estimate_noise_floor, locate_residual, structure_test)
 from gls_calibration.discrepancy.results import (
@@ -66,7 +66,7 @@ from gls_calibration.discrepancy.run_verdict import run_verdict_lines
 from gls_calibration.discrepancy.selection import CRITERIA, RIGID_NOTE, explain
 from gls_calibration.discrepancy.separability import SEPARABLE_AT, Separability, separability
 from gls_calibration.discrepancy.verdict import naming_phrase, verdict_lines
-from gls_calibration.registration import RigidAlignment2D, align_rigid_2d
+from gls_calibration.registration.rigid import RigidAlignment2D, align_rigid_2d
 
 __all__ = [
     "CRITERIA", "MIN_POINTS", "NOISE_SOURCES", "RIGID_NOTE", "SEPARABLE_AT", "CandidateScore", "DiscrepancyResult",

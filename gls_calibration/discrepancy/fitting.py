@@ -1,11 +1,11 @@
 """Effect fitting: the model's landing for the commanded targets, and least-squares fits of named effects.
 
 The controller commands through the NOMINAL kinematics (``alpha = kinematics.inverse(geometry, Q)``);
-the head lands them as :class:`gls_calibration.optics.PhysicalHead` with the effects of the model
+the head lands them as :class:`gls_calibration.geometry.optics.PhysicalHead` with the effects of the model
 says. The measurement is aligned rigidly onto the prediction inside every residual evaluation
-(:func:`gls_calibration.registration.align_rigid_2d`), so no effect can absorb or be blamed for a
+(:func:`gls_calibration.registration.rigid.align_rigid_2d`), so no effect can absorb or be blamed for a
 rotation or translation of the measured frame. Unknowns are measured in their typical size
-(:data:`gls_calibration.effect_table.EFFECT_TABLE`), so one finite-difference step suits them all.
+(:data:`gls_calibration.geometry.effect_table.EFFECT_TABLE`), so one finite-difference step suits them all.
 """
 from __future__ import annotations
 
@@ -15,19 +15,19 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy import optimize
 
+from gls_calibration.common.validation import as_finite_array, as_points
 from gls_calibration.discrepancy.residual_statistics import MIN_POINTS, estimate_noise_floor
 from gls_calibration.discrepancy.results import DiscrepancyResult, EffectsFit
-from gls_calibration.effect_table import EFFECT_TABLE, EffectContext, EffectSpec, UserEffect
-from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.optics import HeadEffects, PhysicalHead
-from gls_calibration.registration import RigidAlignment2D, align_rigid_2d
-from gls_calibration.validation import as_finite_array, as_points
+from gls_calibration.geometry.effect_table import EFFECT_TABLE, EffectContext, EffectSpec, UserEffect
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.geometry.optics import HeadEffects, PhysicalHead
+from gls_calibration.registration.rigid import RigidAlignment2D, align_rigid_2d
 
 
 class Predictor:
     """Landing (N, 2) of the commanded targets for given effects; commands go through the nominal model.
 
-    Library effects go through the ray trace; user effects (:class:`gls_calibration.effect_table.UserEffect`)
+    Library effects go through the ray trace; user effects (:class:`gls_calibration.geometry.effect_table.UserEffect`)
     add their in-plane deviation to its landing.
     """
 

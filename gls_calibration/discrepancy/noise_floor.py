@@ -18,9 +18,9 @@ import math
 
 import numpy as np
 
+from gls_calibration.common.validation import as_finite_array
 from gls_calibration.discrepancy.results import FloorEvidence, NoiseFloor
-from gls_calibration.registration import align_rigid_2d
-from gls_calibration.validation import as_finite_array
+from gls_calibration.registration.rigid import align_rigid_2d
 
 NOISE_SOURCES = ("repeats", "per_point", "stated", "residual")
 #: The residual estimate and the independent floor disagree when their ratio leaves [1/x, x].

@@ -9,10 +9,10 @@ from scipy.linalg import subspace_angles
 
 from gls_calibration.discrepancy.fitting import Predictor, typical_scales
 from gls_calibration.discrepancy.residual_statistics import rms
-from gls_calibration.effect_table import EFFECT_TABLE, EFFECTS
-from gls_calibration.kinematics import HeadGeometry
-from gls_calibration.optics import HeadEffects
-from gls_calibration.registration import align_rigid_2d
+from gls_calibration.geometry.effect_table import EFFECT_TABLE, EFFECTS
+from gls_calibration.geometry.kinematics import HeadGeometry
+from gls_calibration.geometry.optics import HeadEffects
+from gls_calibration.registration.rigid import align_rigid_2d
 
 
 @dataclass(frozen=True, eq=False)

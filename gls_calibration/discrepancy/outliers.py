@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from gls_calibration.common.robust import robust_sigma
 from gls_calibration.discrepancy.residual_statistics import _smooth_basis, _smooth_degree
-from gls_calibration.robust import robust_sigma
 
 #: Robust sigmas a gross outlier departs by (a 2-D Gaussian exceeds 5 sigma with p = 4e-6).
 THRESHOLD = 5.0

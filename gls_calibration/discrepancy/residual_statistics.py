@@ -11,8 +11,8 @@ import math
 import numpy as np
 from scipy.special import betainc
 
+from gls_calibration.common.validation import as_finite_array, as_points
 from gls_calibration.discrepancy.results import FloorEvidence, NoiseFloor, ResidualLocation, StructureTest
-from gls_calibration.validation import as_finite_array, as_points
 
 #: The fewest points the workflow accepts.
 MIN_POINTS = 10

@@ -6,11 +6,11 @@ from typing import Mapping
 
 import numpy as np
 
-from gls_calibration.effect_table import UserEffect
-from gls_calibration.kinematics import HeadGeometry
-from gls_calibration.optics import HeadEffects
-from gls_calibration.persistence import to_plain
-from gls_calibration.registration import RigidAlignment2D
+from gls_calibration.common.files import to_plain
+from gls_calibration.geometry.effect_table import UserEffect
+from gls_calibration.geometry.kinematics import HeadGeometry
+from gls_calibration.geometry.optics import HeadEffects
+from gls_calibration.registration.rigid import RigidAlignment2D
 
 
 @dataclass(frozen=True)

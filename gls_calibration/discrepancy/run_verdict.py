@@ -6,7 +6,7 @@ import numpy as np
 from gls_calibration.discrepancy.residual_statistics import MIN_POINTS
 from gls_calibration.discrepancy.selection import explain
 from gls_calibration.discrepancy.verdict import verdict_lines
-from gls_calibration.kinematics import HeadGeometry
+from gls_calibration.geometry.kinematics import HeadGeometry
 
 
 def run_verdict_lines(targets_xy, deviations_xy, geometry: HeadGeometry | None = None,

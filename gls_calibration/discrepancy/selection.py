@@ -24,10 +24,10 @@ from gls_calibration.discrepancy.residual_statistics import (
     estimate_noise_floor, locate_residual, rms, structure_test)
 from gls_calibration.discrepancy.results import (
     CandidateScore, DiscrepancyResult, EffectsFit, EffectStep, Implausible, NoiseFloor, Outlier, StructureTest)
-from gls_calibration.effect_table import EFFECTS, UserEffect, check_user_effect
-from gls_calibration.kinematics import HeadGeometry
-from gls_calibration.optics import HeadEffects
-from gls_calibration.registration import align_rigid_2d
+from gls_calibration.geometry.effect_table import EFFECTS, UserEffect, check_user_effect
+from gls_calibration.geometry.kinematics import HeadGeometry
+from gls_calibration.geometry.optics import HeadEffects
+from gls_calibration.registration.rigid import align_rigid_2d
 
 CRITERIA = ("bic", "aic")
 RIGID_PARAMETERS = 3     # rotation and translation of the measured frame
@@ -265,7 +265,7 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
     (stated) or one per point; with repeats it is ignored. Without repeats or ``sigma_mm`` the floor
     is estimated from the residual and the result says so. ``known_effects`` are already in the
     model and stay fixed unless named again (then refitted). ``user_effects`` join the candidates.
-    ``candidates`` defaults to every effect of :data:`gls_calibration.effect_table.EFFECT_TABLE` and
+    ``candidates`` defaults to every effect of :data:`gls_calibration.geometry.effect_table.EFFECT_TABLE` and
     the user effects. Gross outliers are excluded from every fit and listed (``reject_outliers``).
     See :mod:`gls_calibration.discrepancy` for the method and thresholds.
     """

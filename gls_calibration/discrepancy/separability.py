@@ -25,7 +25,7 @@ import numpy as np
 
 from gls_calibration.discrepancy.fitting import Predictor, typical_scales
 from gls_calibration.discrepancy.results import EffectsFit
-from gls_calibration.optics import HeadEffects
+from gls_calibration.geometry.optics import HeadEffects
 
 #: A fitted effect is separable when its projected size is at least this many standard errors
 #: (two-sided p ~ 6e-5 for one parameter: a dozen candidates over a few steps stay below 1e-3 in all).

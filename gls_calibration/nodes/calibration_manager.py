@@ -2,7 +2,7 @@
 simple clients) and ``explain_deviations``, publishes progress.
 
 It implements the procedure's ``Cell`` with service calls to the scanner, the galvo and the
-processing nodes; the flow itself is ``gls_calibration.procedure``. A run's candidate calibration
+processing nodes; the flow itself is ``gls_calibration.calibration.procedure``. A run's candidate calibration
 is evaluated here, in-process: the correction node keeps serving the active calibration until the
 run has succeeded and the candidate is activated.
 """
@@ -22,22 +22,23 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from gls_calibration import discrepancy, kinematics, procedure
-from gls_calibration.nodes import conversions, rviz
-from gls_calibration.calibration_record import (build_record, correction_from_record, record_fiducials,
-                                                record_models, save_candidate)
-from gls_calibration.correction import Correction
-from gls_calibration.nodes.base import SERVER_WAIT_S, GlsNode, ServiceCallError, answers_errors, run_node
-from gls_calibration.nodes.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
-from gls_calibration.nodes.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
-from gls_calibration.nodes.manager_parameters import (MANAGER_PARAMETERS, SETTABLE,
-                                                      ManagerConfig, ManagerParameter, manager_config)
-from gls_calibration.outcome import RunSummary, summarise
-from gls_calibration.persistence import CalibrationFileError, CalibrationStore
-from gls_calibration.report import json_safe
-from gls_calibration.run_report import write_outcome_report
-from gls_calibration.chain_map import load_chain_map
-from gls_calibration.stated_accuracy import SELF_CONSISTENCY, load_chain_check
+from gls_calibration import discrepancy
+from gls_calibration.calibration import procedure
+from gls_calibration.calibration.outcome import RunSummary, summarise
+from gls_calibration.calibration.record import build_record, correction_from_record, record_fiducials, record_models, save_candidate
+from gls_calibration.calibration.record_file import CalibrationFileError
+from gls_calibration.calibration.stated_accuracy import SELF_CONSISTENCY, load_chain_check
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.correction.setpoints import Correction
+from gls_calibration.geometry import kinematics
+from gls_calibration.registration.chain_map import load_chain_map
+from gls_calibration.report.files import json_safe
+from gls_calibration.report.run_report import write_outcome_report
+from gls_calibration.ros import conversions, rviz
+from gls_calibration.ros.base import SERVER_WAIT_S, GlsNode, ServiceCallError, answers_errors, run_node
+from gls_calibration.ros.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
+from gls_calibration.ros.manager_parameters import MANAGER_PARAMETERS, SETTABLE, ManagerConfig, ManagerParameter, manager_config
+from gls_calibration.ros.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
 from gls_calibration_msgs.action import Calibrate as CalibrateAction
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints, EstimatePlatePose,

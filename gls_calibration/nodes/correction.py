@@ -17,14 +17,15 @@ from typing import Any, Optional
 
 import numpy as np
 
-from gls_calibration.nodes import conversions
-from gls_calibration.calibration_record import correction_from_record, record_identity
-from gls_calibration.correction import Correction
-from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
-from gls_calibration.nodes.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
-from gls_calibration.nodes.head_parameters import HEAD_PARAMETERS, declare_head_geometry, head_geometry_from
-from gls_calibration.persistence import CalibrationFileError, CalibrationStore
-from gls_calibration.validation import as_coordinate_arrays
+from gls_calibration.calibration.record import correction_from_record, record_identity
+from gls_calibration.calibration.record_file import CalibrationFileError
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.common.validation import as_coordinate_arrays
+from gls_calibration.correction.setpoints import Correction
+from gls_calibration.ros import conversions
+from gls_calibration.ros.base import GlsNode, answers_errors, run_node
+from gls_calibration.ros.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
+from gls_calibration.ros.head_parameters import HEAD_PARAMETERS, declare_head_geometry, head_geometry_from
 from gls_calibration_msgs.srv import CorrectSetpoints, LoadCalibration
 
 NOMINAL_ID = "nominal"

@@ -1,10 +1,10 @@
 """fiducial_measurement: serves ``fiducials/measure``, ring fiducial centres in a marked-plate scan."""
 from __future__ import annotations
 
-from gls_calibration.nodes import conversions
-from gls_calibration.fiducials import measure_fiducials
-from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
-from gls_calibration.targets import RING_RADII_MM
+from gls_calibration.fiducials.measure import measure_fiducials
+from gls_calibration.fiducials.targets import RING_RADII_MM
+from gls_calibration.ros import conversions
+from gls_calibration.ros.base import GlsNode, answers_errors, run_node
 from gls_calibration_msgs.srv import MeasureFiducials
 
 

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import math
 
-from gls_calibration.nodes import conversions
-from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
-from gls_calibration.plate_pose import estimate_plate_pose
+from gls_calibration.ros import conversions
+from gls_calibration.ros.base import GlsNode, answers_errors, run_node
+from gls_calibration.scan.plate_pose import estimate_plate_pose
 from gls_calibration_msgs.srv import EstimatePlatePose
 
 

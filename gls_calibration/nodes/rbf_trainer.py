@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 import yaml
 
-from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
-from gls_calibration.nodes.head_parameters import declare_head_geometry
-from gls_calibration.training import TRAINER_PARAMETERS, train_correction, training_options_from
+from gls_calibration.models.training import TRAINER_PARAMETERS, train_correction, training_options_from
+from gls_calibration.ros.base import GlsNode, answers_errors, run_node
+from gls_calibration.ros.head_parameters import declare_head_geometry
 from gls_calibration_msgs.srv import TrainCorrection
 
 

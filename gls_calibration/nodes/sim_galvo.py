@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 from std_srvs.srv import Trigger
 
-from gls_calibration.nodes import conversions
-from gls_calibration.nodes.base import GlsNode, answers_errors, run_node
-from gls_calibration.nodes.request_ids import AnsweredRequests
-from gls_calibration.nodes.sim_parameters import declare_sim_config
+from gls_calibration.ros import conversions
+from gls_calibration.ros.base import GlsNode, answers_errors, run_node
+from gls_calibration.ros.request_ids import AnsweredRequests
+from gls_calibration.ros.sim_parameters import declare_sim_config
 from gls_calibration.simulation.head import TruthHead
 from gls_calibration_msgs.msg import MarkedPaths
 from gls_calibration_msgs.srv import GetMarkedPaths, LandingPositions, MarkPolylines

@@ -17,10 +17,10 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import SetBool
 
-from gls_calibration.nodes import conversions
-from gls_calibration.nodes.base import GlsNode
 from gls_calibration.nodes.sim_robot import SimRobotNode
-from gls_calibration.nodes.stream_topics import LAYOUT, stream_qos, time_msg
+from gls_calibration.ros import conversions
+from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros.stream_topics import LAYOUT, stream_qos, time_msg
 from gls_calibration.simulation.line_motion import MotionRun
 
 

@@ -1,6 +1,6 @@
 """sim_robot: the simulated robot of the streaming cell; runs commanded straight flange lines.
 
-Takes a line on ``/motion/line`` (``nav_msgs/Path``, see :mod:`gls_calibration.nodes.stream_topics`),
+Takes a line on ``/motion/line`` (``nav_msgs/Path``, see :mod:`gls_calibration.ros.stream_topics`),
 publishes ``/motion/start``, the flange pose it REPORTS (encoders) on ``/tf`` (robot base -> flange)
 every ``1 / tf_rate_hz`` s from just before the start to just after the end, then ``/motion/end``.
 The fixed frames of ``cell_frames`` go out once on ``/tf_static`` (transient local). The simulated
@@ -21,13 +21,12 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
-from gls_calibration.cell_frames import load_cell_frames
-from gls_calibration.nodes import conversions
-from gls_calibration.nodes.base import GlsNode, ServiceCallError
 from gls_calibration.nodes.sim_scanner import MARKS_RESEND_AFTER_S
-from gls_calibration.nodes.sim_parameters import declare_sim_config
-from gls_calibration.nodes.stream_topics import (LAYOUT, LINE_TOPIC, line_from_msg, static_qos, stream_qos, time_msg,
-                                                 transform_msg)
+from gls_calibration.ros import conversions
+from gls_calibration.ros.base import GlsNode, ServiceCallError
+from gls_calibration.ros.sim_parameters import declare_sim_config
+from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC, line_from_msg, static_qos, stream_qos, time_msg, transform_msg
+from gls_calibration.scan.cell_frames import load_cell_frames
 from gls_calibration.simulation.line_motion import LineCommand, MotionRun, SimulatedLineMotion
 from gls_calibration.simulation.world import SimulatedCell
 from gls_calibration_msgs.srv import GetMarkedPaths

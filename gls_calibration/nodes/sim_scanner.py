@@ -30,10 +30,10 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.duration import Duration
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from gls_calibration.nodes import conversions
-from gls_calibration.nodes.base import GlsNode, ServiceCallError, answers_errors, run_node
-from gls_calibration.nodes.request_ids import AnsweredRequests
-from gls_calibration.nodes.sim_parameters import declare_sim_config
+from gls_calibration.ros import conversions
+from gls_calibration.ros.base import GlsNode, ServiceCallError, answers_errors, run_node
+from gls_calibration.ros.request_ids import AnsweredRequests
+from gls_calibration.ros.sim_parameters import declare_sim_config
 from gls_calibration.simulation.scanner import ORIENTATIONS_DEG, Profile
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import GetMarkedPaths, StartSweep

@@ -2,8 +2,8 @@
 give: a scanner streaming profiles, the robot's flange pose on TF and the motion contract.
 
 For each request it commands the robot's straight line on ``/motion/line`` (see
-:mod:`gls_calibration.nodes.stream_topics`), collects the profile stream, ``/tf``, ``/tf_static`` and
-the motion's start and end stamps into a :class:`~gls_calibration.bag_io.StreamAssembler` (the code
+:mod:`gls_calibration.ros.stream_topics`), collects the profile stream, ``/tf``, ``/tf_static`` and
+the motion's start and end stamps into a :class:`~gls_calibration.scan.bag_io.StreamAssembler` (the code
 bag replay runs), and answers with the sweep: the profiles stamped within the motion, each placed
 through robot base -> flange -> sensor at its stamp, as one organized cloud in the robot base frame
 (metres, like ``scan_acquisition``'s; the manager is unchanged). The frames come from the cell frames
@@ -38,13 +38,13 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
-from gls_calibration.bag_io import BagLayout, ReplayLimits, StreamAssembler
-from gls_calibration.cell_frames import load_cell_frames
-from gls_calibration.nodes import conversions
-from gls_calibration.nodes.base import GlsNode, ServiceCallError, run_node
 from gls_calibration.nodes.scan_acquisition import request_problem
-from gls_calibration.nodes.stream_topics import LAYOUT, LINE_TOPIC, line_msg, static_qos, stamp_ns, stream_qos, time_msg
-from gls_calibration.sweep import nominal_start_pose
+from gls_calibration.ros import conversions
+from gls_calibration.ros.base import GlsNode, ServiceCallError, run_node
+from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC, line_msg, static_qos, stamp_ns, stream_qos, time_msg
+from gls_calibration.scan.bag_io import BagLayout, ReplayLimits, StreamAssembler
+from gls_calibration.scan.cell_frames import load_cell_frames
+from gls_calibration.scan.sweep import nominal_start_pose
 from gls_calibration_msgs.srv import AcquireSweep
 
 ROBOT_WAIT_S = 5.0     # how long to wait for the robot's command subscription to match before commanding

@@ -13,16 +13,17 @@ from typing import Optional
 
 import numpy as np
 
-from gls_calibration.calibration_record import correction_from_record
-from gls_calibration.correction import CorrectedSetpoints, Correction
-from gls_calibration.fiducials import FiducialMeasurement, measure_fiducials
-from gls_calibration.persistence import CalibrationFileError, CalibrationStore
-from gls_calibration.plate_pose import PlatePose, estimate_plate_pose
-from gls_calibration.procedure import CalibrationError, ProcedureSettings
-from gls_calibration.registration import RigidTransform
+from gls_calibration.calibration.procedure import CalibrationError, ProcedureSettings
+from gls_calibration.calibration.record import correction_from_record
+from gls_calibration.calibration.record_file import CalibrationFileError
+from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.correction.setpoints import CorrectedSetpoints, Correction
+from gls_calibration.fiducials.measure import FiducialMeasurement, measure_fiducials
+from gls_calibration.fiducials.targets import RING_RADII_MM
+from gls_calibration.models.training import TrainedModel, TrainingOptions, train_correction
+from gls_calibration.registration.rigid import RigidTransform
+from gls_calibration.scan.plate_pose import PlatePose, estimate_plate_pose
 from gls_calibration.simulation.world import SimulatedCell
-from gls_calibration.targets import RING_RADII_MM
-from gls_calibration.training import TrainedModel, TrainingOptions, train_correction
 
 Cloud = tuple[np.ndarray, np.ndarray]   # organized xyz (H, W, 3) and intensity (H, W), scanner base frame, mm
 

@@ -22,10 +22,10 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from gls_calibration.kinematics import HeadGeometry, forward
-from gls_calibration.optics import HeadEffects, PhysicalHead, plate_frame
+from gls_calibration.common.validation import as_finite_array
+from gls_calibration.geometry.kinematics import HeadGeometry, forward
+from gls_calibration.geometry.optics import HeadEffects, PhysicalHead, plate_frame
 from gls_calibration.simulation.plate import Plate
-from gls_calibration.validation import as_finite_array
 
 
 @dataclass(frozen=True)

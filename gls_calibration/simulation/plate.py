@@ -2,7 +2,7 @@
 
 Plate coordinates ``(u, v)`` (mm) lie in the plate plane about the plate origin (the field centre);
 the pose is the same physical thing as the ``plate_tilt`` and ``working_distance`` effects of the
-truth head (:func:`gls_calibration.optics.plate_frame`), so marks land exactly on this plane.
+truth head (:func:`gls_calibration.geometry.optics.plate_frame`), so marks land exactly on this plane.
 
 Marks are kept as vector polylines and rendered on demand: each darkens the steel with a Gaussian
 line profile across the path, ``reflectivity * (1 - depth * exp(-dist^2 / (2 sigma^2)))`` with
@@ -30,9 +30,9 @@ import numpy as np
 from scipy.ndimage import binary_dilation, gaussian_filter, map_coordinates
 from scipy.spatial import cKDTree
 
-from gls_calibration.optics import plate_frame
+from gls_calibration.common.validation import as_finite_array, as_points, as_positive_number
+from gls_calibration.geometry.optics import plate_frame
 from gls_calibration.simulation.measurement import MeasurementChain, smooth_process
-from gls_calibration.validation import as_finite_array, as_points, as_positive_number
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 _PLATE_IDS = itertools.count(1)

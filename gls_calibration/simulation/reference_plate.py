@@ -20,7 +20,7 @@ paired with the known centres as the calibration pairs its targets; the plate pl
 plain sweeps averaged as the calibration does.
 
 :func:`measure_chain_map` sweeps the same kind of plate along the calibration's lines on the same
-simulated robot and fits the lines' repeating error (``chain_map.py``); a check made with that map
+simulated robot and fits the lines' repeating error (``registration/chain_map.py``); a check made with that map
 applied (``chain_map`` of :func:`reference_plate_check`) is what a calibration run with the map may
 state its accuracy from.
 """
@@ -33,17 +33,17 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from gls_calibration import targets
-from gls_calibration.chain_map import ChainMap, ChainMapFit, ReferenceSweep, chain_map_identity, fit_chain_map
-from gls_calibration.config_files import config_path, read_config_file
-from gls_calibration.fiducials import measure_fiducials
-from gls_calibration.head_config import parameters_block
-from gls_calibration.plate_pose import PlatePose, estimate_plate_pose, mean_plate_pose
-from gls_calibration.procedure import ProcedureSettings, combined_centres_gls
-from gls_calibration.registration import RigidTransform, align_rigid_2d, pair_with_targets
-from gls_calibration.stated_accuracy import ChainCheck
-from gls_calibration.sweep_plan import SweepPass, parse_plan, plan_label
-from gls_calibration.validation import as_integer_at_least, as_positive_number
+from gls_calibration.calibration.procedure import ProcedureSettings, combined_centres_gls
+from gls_calibration.calibration.stated_accuracy import ChainCheck
+from gls_calibration.common.config_files import config_path, read_config_file
+from gls_calibration.common.validation import as_integer_at_least, as_positive_number
+from gls_calibration.fiducials import targets
+from gls_calibration.fiducials.measure import measure_fiducials
+from gls_calibration.geometry.head_config import parameters_block
+from gls_calibration.registration.chain_map import ChainMap, ChainMapFit, ReferenceSweep, chain_map_identity, fit_chain_map
+from gls_calibration.registration.rigid import RigidTransform, align_rigid_2d, pair_with_targets
+from gls_calibration.registration.sweep_plan import SweepPass, parse_plan, plan_label
+from gls_calibration.scan.plate_pose import PlatePose, estimate_plate_pose, mean_plate_pose
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.simulation.world import SimConfig
 

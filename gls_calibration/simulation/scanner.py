@@ -49,9 +49,9 @@ from scipy.ndimage import gaussian_filter, gaussian_filter1d
 
 from gls_calibration.simulation.measurement import (MeasurementChain, lateral_linearity_shape, smooth_field,
                                                    smooth_process)
-from gls_calibration.optics import plate_frame
+from gls_calibration.common.validation import as_finite_array, as_non_negative_number, as_positive_number
+from gls_calibration.geometry.optics import plate_frame
 from gls_calibration.simulation.plate import Plate
-from gls_calibration.validation import as_finite_array, as_non_negative_number, as_positive_number
 
 PROFILE_DTYPE = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32), ("intensity", np.float32)])
 _CHUNK_ROWS = 128

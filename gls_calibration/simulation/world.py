@@ -26,10 +26,10 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from gls_calibration.config_files import config_path, read_config_file
-from gls_calibration.head_config import effects_from_mapping, head_config_from_dict, parameters_block
-from gls_calibration.kinematics import HeadGeometry, inverse
-from gls_calibration.optics import HeadEffects
+from gls_calibration.common.config_files import config_path, read_config_file
+from gls_calibration.geometry.head_config import effects_from_mapping, head_config_from_dict, parameters_block
+from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.geometry.optics import HeadEffects
 from gls_calibration.simulation.head import TruthHead
 from gls_calibration.simulation.measurement import PRESET_CHAINS, MeasurementChain, measurement_from_mapping
 from gls_calibration.simulation.plate import Plate, PlateSettings

@@ -1,0 +1,1 @@
+"""Stage 6, the calibrate flow: procedure, outcome, stated accuracy, the calibration record, its file and the store."""

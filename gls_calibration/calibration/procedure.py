@@ -1,0 +1,486 @@
+"""The calibrate flow: plate run(s), deviations, training, validation; pure and awaitable.
+
+The procedure does not know ROS. It awaits a ``Cell``: an object whose coroutine methods reach the
+scanner, the galvo and the processing nodes (the calibration manager implements them with service
+calls; ``simulation.direct_cell.DirectCell`` calls the simulated cell and the core directly).
+Everything it decides -- where to mark, how to pair, what to train, when to stop -- lives here, so
+the node stays thin.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+from pathlib import Path
+import time
+from typing import Any, Callable, Optional, Protocol
+
+import numpy as np
+
+from gls_calibration.calibration.outcome import CalibrationOutcome, Candidate, DeviationMetrics, PlateRun, deviation_metrics
+from gls_calibration.common.time_budget import StageClock
+from gls_calibration.common.validation import as_positive_number
+from gls_calibration.correction.setpoints import CorrectedSetpoints
+from gls_calibration.fiducials import targets as grid
+from gls_calibration.fiducials.measure import FiducialMeasurement
+from gls_calibration.models.training import TrainedModel
+from gls_calibration.registration.chain_map import NO_CHAIN_MAP, ChainMap, chain_map_identity, correct_measurements
+from gls_calibration.registration.rigid import RigidTransform, align_rigid_2d, pair_with_targets
+from gls_calibration.registration.separation import SeparationSettings
+from gls_calibration.registration.sweep_plan import CellTimeModel, CombinedSweeps, SweepPass, combine_sweeps, plan_label
+from gls_calibration.scan.plate_marks import existing_marks
+from gls_calibration.scan.plate_pose import PlatePose, mean_plate_pose, pose_at_height
+
+
+class CalibrationError(RuntimeError):
+    """The calibration cannot go on; the message says why. Nothing has been replaced."""
+
+
+class Cell(Protocol):
+    """What the procedure needs from the cell: the contract a cell integrator implements.
+
+    Every method is a coroutine; a failure raises ``CalibrationError`` with a message saying what
+    went wrong (the procedure lets it through, and the caller keeps the active calibration).
+    Lengths in mm, angles in rad. Frames: ``scanner`` is the line scanner's frame in which clouds
+    and plate poses are expressed; ``gls`` is the galvo head's frame (z towards the head) in which
+    targets and corrections are expressed. A cloud is whatever ``acquire_sweep`` returns; the
+    procedure only hands it back to ``estimate_plate_pose`` and ``measure_fiducials``, so a cell can
+    keep it in its own form (the manager keeps the PointCloud2 message and forwards it untouched).
+    """
+
+    async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Any:
+        """Sweep the scanner over the plate with ``step_mm`` between profiles, along the sensor's +y
+        (``direction`` 1) or -y (-1), the sensor turned by ``orientation_deg`` (0 or 90) about its
+        viewing axis; the cloud in the scanner (base) frame, whatever the direction and orientation,
+        placed by the robot's reported pose where the cell has one (see ``scan/sweep.py``)."""
+
+    async def acquire_standstill(self, profiles: int) -> Any:
+        """``profiles`` profiles taken with the robot standing still in the pose the marks are made
+        from (no travel), as a cloud in the scanner (base) frame like ``acquire_sweep``'s: the plate
+        height at marking (``settings.standstill_height``). Needs its own random draws on a simulated
+        cell, never those of the sweeps."""
+
+    async def estimate_plate_pose(self, cloud: Any) -> PlatePose:
+        """The plate plane fitted to ``cloud`` (scanner frame, normal towards the head)."""
+
+    async def measure_fiducials(self, cloud: Any, pose: PlatePose, expected_count: int) -> FiducialMeasurement:
+        """Centres (scanner frame, mm) of the ring fiducials found in ``cloud`` on the plate ``pose``;
+        ``expected_count`` fiducials were marked (a hint, not a promise)."""
+
+    async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> CorrectedSetpoints:
+        """Setpoints that land on the targets (x, y, z) (gls frame, mm) through the calibration loaded
+        in the cell (the nominal model when none is); ``within_limits`` flags the reachable ones."""
+
+    async def mark(self, alpha_x: np.ndarray, alpha_y: np.ndarray, focus_shift: np.ndarray,
+                   polyline_starts: np.ndarray) -> float:
+        """Mark polylines: mirror angles (rad) and focus shift (mm) per point, ``polyline_starts`` the
+        index of each polyline's first point (starts with 0). Returns the marking time in seconds."""
+
+    async def train(self, landed_xy: np.ndarray, corrections: np.ndarray) -> TrainedModel:
+        """A model of the correction to add at a target, trained on the landed points P (N, 2) and the
+        corrections K(Q) - K(P) (N, 2) (gls frame, mm); see ``training.train_correction``."""
+
+    async def load_calibration(self, path: str) -> None:
+        """Make the cell correct through the calibration file ``path`` (a saved candidate) from now on."""
+
+    async def reload_active(self) -> None:
+        """Make the cell correct through the store's active calibration again (the nominal model when
+        there is none): what a failed run calls to drop a candidate it loaded."""
+
+    async def exchange_plate(self) -> None:
+        """Put a clean plate in the cell (second iteration, validation); CalibrationError when the cell
+        cannot."""
+
+    async def true_marks(self) -> Optional[list[np.ndarray]]:
+        """Simulation only: the polylines really marked on the current plate ((M, 3) each, gls frame,
+        mm), in marking order; None on a real cell."""
+
+    def points_and_intensities(self, cloud: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The points (..., 3) (mm, any frame a rigid motion from the plate's) and the intensity (...)
+        of every point of a cloud from ``acquire_sweep`` (NaN: no return), for the check that the
+        plain plate carries no old marks. Not a coroutine: the cloud is here."""
+
+
+ITERATIONS_LIMIT = 10    # most iterations max_iterations (and default_iterations) may allow: the manager's range
+# Room a sweep needs at each end beyond the outermost ring: the marked line's width and blooming, and
+# the grid's offset from the sweep's centre (about 1 mm in the simulated cell). A ring cut by the end
+# of a sweep is found or lost by chance (seen: 8 of 9 found with 3.2 mm rings in a 200 mm sweep).
+SWEEP_END_MARGIN_MM = 2.0
+
+
+@dataclass(frozen=True)
+class ProcedureSettings:
+    """Settings of one calibration (mm unless named otherwise)."""
+
+    grid_per_side: int = 19
+    grid_size_mm: float = 190.0
+    ring_radii_mm: tuple[float, float] = grid.RING_RADII_MM
+    plain_sweep_step_mm: float = 1.0
+    plain_sweeps: int = 4               # averaged: the plate height error of one sweep sets the field's scale
+    standstill_height: bool = True      # the plate height from profiles taken standing at the marking pose
+    standstill_profiles: int = 20       # ... this many (the height of one is already ~2000 points)
+    marked_sweep_step_mm: float = 0.1
+    scanner_to_gls: RigidTransform = field(default_factory=lambda: RigidTransform(np.eye(3), np.zeros(3)))
+    tolerance_rms_mm: float = 0.05
+    min_found_fraction: float = 0.9
+    default_iterations: int = 1
+    max_iterations: int = 3             # each iteration marks and measures a fresh plate
+    validation_offset_half_pitch: bool = True
+    mark_check_sigmas: float = 6.0      # plain-plate points this far outside the texture look like marks...
+    max_outlying_points: int = 10       # ...and more of them than this mean the plate is not clean;
+    mark_cluster_sigmas: float = 4.0    # or points this far outside it...
+    max_cluster_points: int = 8         # ...more than this many within one fiducial's extent (see plate_marks)
+    measurement_uncertainty_mm: float = 0.005   # of one fiducial centre, at least (3-4 um RMS measured against the truth)
+    max_cv_factor: float = 20.0         # a CV RMS above this many uncertainties...
+    max_cv_fraction: float = 0.5        # ...and above this fraction of the deviations' RMS: the model explains little
+
+    # the marked plate is swept once per pass; several passes (reversed, sensor turned) let the
+    # separation remove what is fixed to the scanner frame or to one sweep's motion
+    sweep_plan: tuple[SweepPass, ...] = (SweepPass(),)
+    profiles_placed_by_pose: bool = True    # the cell places profiles by the robot's reported pose
+    cell_time: CellTimeModel = CellTimeModel()
+    separation: Optional[SeparationSettings] = None   # None: the default for the placement (sweep_plan.combine_sweeps)
+    chain_map: Optional[ChainMap] = None   # the lines' repeating robot error, removed from every sweep (None: off)
+
+    def __post_init__(self) -> None:
+        radii = np.asarray(self.ring_radii_mm, dtype=float)
+        if radii.ndim != 1 or radii.size == 0 or not np.all(np.isfinite(radii)) or np.any(radii <= 0.0) \
+                or np.any(np.diff(radii) <= 0.0):
+            raise ValueError(f"ring_radii_mm must be one or more positive finite radii in increasing order, "
+                             f"got {list(self.ring_radii_mm)}")
+        for name in ("mark_check_sigmas", "mark_cluster_sigmas", "measurement_uncertainty_mm", "max_cv_factor",
+                     "max_cv_fraction"):
+            as_positive_number(getattr(self, name), name)
+        if isinstance(self.standstill_profiles, bool) or not isinstance(self.standstill_profiles, int) \
+                or self.standstill_profiles < 1:
+            raise ValueError(f"standstill_profiles must be a positive integer, got {self.standstill_profiles!r}")
+        for name in ("max_outlying_points", "max_cluster_points"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must not be negative, got {getattr(self, name)}")
+        covered_mm = self.grid_size_mm + 2.0 * (float(radii[-1]) + SWEEP_END_MARGIN_MM)
+        if self.cell_time.sweep_length_mm < covered_mm:
+            raise ValueError(f"sweep length {self.cell_time.sweep_length_mm:g} mm cannot cover the grid: its "
+                             f"{self.grid_size_mm:g} mm, the outer ring ({float(radii[-1]):g} mm) and "
+                             f"{SWEEP_END_MARGIN_MM:g} mm at each end need {covered_mm:g} mm")
+        if not 1 <= self.default_iterations <= self.max_iterations:
+            raise ValueError(f"default_iterations must be between 1 and max_iterations ({self.max_iterations}), "
+                             f"got {self.default_iterations}")
+
+    def iterations_problem(self, iterations: int) -> str:
+        """Why a requested iteration count (0: the default) is refused; empty string when it is fine."""
+        if iterations == 0 or 1 <= iterations <= self.max_iterations:
+            return ""
+        return f"iterations must be 0 (the default, {self.default_iterations}) or 1 to {self.max_iterations}, got {iterations}"
+
+
+def plane_height(pose: PlatePose, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """z of the plate plane above (x, y) in the frame of ``pose``."""
+    nx, ny, nz = pose.normal
+    if abs(nz) < 1e-6:
+        raise CalibrationError("the plate plane is parallel to the beam axis; check the scanner mounting")
+    cx, cy, cz = pose.centre
+    return cz - (nx * (x - cx) + ny * (y - cy)) / nz
+
+
+def pose_in_frame(pose: PlatePose, transform: RigidTransform) -> PlatePose:
+    """The plate pose expressed in the frame ``transform`` maps into."""
+    rotation = transform.rotation @ pose.rotation
+    return PlatePose(normal=rotation[:, 2].copy(), centre=transform.apply(pose.centre[None, :])[0],
+                     rotation=rotation, flatness_rms_mm=pose.flatness_rms_mm,
+                     inlier_count=pose.inlier_count, inlier_fraction=pose.inlier_fraction)
+
+
+def true_fiducial_centres(ring_marks: list[np.ndarray], rings_per_fiducial: int) -> np.ndarray:
+    """Centres (N, 3) of marked fiducials from their landed closed ring polylines, in marking order.
+
+    A ring is commanded as points evenly spread in angle; the head's distortion is smooth on the
+    scale of a ring, so the mean of the landed points (the repeated closing point left out) is
+    where the ring's centre really is.
+    """
+    if len(ring_marks) % rings_per_fiducial:
+        raise ValueError(f"{len(ring_marks)} ring marks do not make whole fiducials of {rings_per_fiducial} rings")
+    means = np.array([np.asarray(ring, dtype=float)[:-1].mean(axis=0) for ring in ring_marks])
+    return means.reshape(-1, rings_per_fiducial, means.shape[1]).mean(axis=1)
+
+
+Progress = Callable[[str, float, str], None]
+
+
+def check_clean_plate(points: np.ndarray, intensity: np.ndarray, settings: ProcedureSettings) -> None:
+    """CalibrationError when the plain-plate sweep (points (..., 3) mm, intensity (...)) shows marks
+    beyond the plate's texture: many points far outside it, or a fiducial-sized cluster of them."""
+    evidence = existing_marks(intensity, settings.mark_check_sigmas, points=points,
+                              cluster_sigmas=settings.mark_cluster_sigmas,
+                              cluster_radius_mm=2.0 * max(settings.ring_radii_mm) + 0.5)
+    if evidence.marked(settings.max_outlying_points, settings.max_cluster_points):
+        raise CalibrationError(
+            f"the plate already carries marks: {evidence.outlying_points} of {evidence.finite_points} points of "
+            f"the plain-plate sweep lie beyond {evidence.sigmas:g} sigma of its texture (at most "
+            f"{settings.max_outlying_points} allowed), {evidence.largest_cluster} beyond "
+            f"{evidence.cluster_sigmas:g} sigma within {evidence.cluster_radius_mm:g} mm of one another (at most "
+            f"{settings.max_cluster_points} allowed); exchange the plate, or give a plate region that avoids "
+            "the old marks (force marks over them anyway)")
+
+
+def centre_uncertainty_mm(run: PlateRun, settings: ProcedureSettings) -> float:
+    """Standard uncertainty (mm, per axis) of one measured centre of ``run``: the RMS of the
+    per-centre figures the measurement stated, never below ``settings.measurement_uncertainty_mm``.
+
+    The floor stands for what the fits cannot see (robot path, plate height, timing); a plate that
+    measures worse (speckle, faint marks) raises the figure above it.
+    """
+    floor = settings.measurement_uncertainty_mm
+    sigma = None if run.sigma_mm is None else np.asarray(run.sigma_mm, dtype=float)
+    if sigma is None or sigma.size == 0 or not np.all(np.isfinite(sigma)):
+        return floor
+    return max(floor, float(np.sqrt(np.mean(sigma ** 2))))
+
+
+def check_model_explains(model: "TrainedModel", deviation_rms_mm: float, uncertainty_mm: float,
+                         settings: ProcedureSettings) -> None:
+    """CalibrationError when the model cannot explain the measurement: its cross-validated error is
+    far above the measurement's uncertainty (``uncertainty_mm``, :func:`centre_uncertainty_mm`)
+    and a large part of the deviations it was trained on.
+
+    Both, because a sparse grid (3x3) leaves a CV error of ~0.6 mm on a 1.5 mm field and still
+    helps, while new marks measured among old ones (the issue's case) leave 0.25 mm of 0.34 mm.
+    """
+    limit = max(settings.max_cv_factor * uncertainty_mm, settings.max_cv_fraction * deviation_rms_mm)
+    if not model.cv_rms_mm <= limit:
+        raise CalibrationError(
+            f"the model cannot explain the measurement: CV RMS {model.cv_rms_mm:.4f} mm is over "
+            f"{settings.max_cv_factor:g} x the per-fiducial uncertainty ({uncertainty_mm:.4f} mm) "
+            f"and over {settings.max_cv_fraction:g} x the deviations' RMS ({deviation_rms_mm:.4f} mm); old marks "
+            "or ambiguous pairings? Nothing activated")
+
+
+def acceptance_problem(before_rms_mm: float, after_rms_mm: float, uncertainty_mm: float,
+                       against: str = "this run's first plate") -> str:
+    """Why a validated candidate must not replace the calibration in use (empty string: accept it).
+
+    ``before_rms_mm``: the calibration in use, measured on ``against``; ``after``: the validation
+    plate, marked through the candidate; both measured the same way, with a per-centre uncertainty of
+    ``uncertainty_mm`` (the larger of the two plates').
+    """
+    if after_rms_mm + uncertainty_mm < before_rms_mm:
+        return ""
+    return (f"candidate rejected: validation {after_rms_mm:.4f} mm RMS is not better than the calibration in use "
+            f"({before_rms_mm:.4f} mm RMS on {against}) by more than the measurement uncertainty "
+            f"{uncertainty_mm:.4f} mm")
+
+
+def combined_centres_gls(measurements: list[FiducialMeasurement], settings: ProcedureSettings, targets: np.ndarray,
+                         pose_scanner: PlatePose) -> tuple[np.ndarray, CombinedSweeps]:
+    """The centres (K, 3, gls frame) of the marked plate from every sweep of ``settings.sweep_plan``
+    (``sweep_plan.combine_sweeps``, placement as the settings say), put on the plate plane
+    ``pose_scanner``; and the combination. ``measurements`` are in the plan's order; with a
+    ``settings.chain_map`` each sweep's centres lose their line's repeating error first."""
+    try:
+        measurements = correct_measurements(settings.chain_map, measurements, settings.sweep_plan, pose_scanner)
+        combined = combine_sweeps(measurements, settings.sweep_plan, targets, settings.scanner_to_gls,
+                                  settings.profiles_placed_by_pose, settings.separation)
+    except ValueError as error:
+        raise CalibrationError(f"the sweeps of the marked plate cannot be combined: {error}") from None
+    centres = np.column_stack([combined.centres_xy, plane_height(pose_scanner, *combined.centres_xy.T)])
+    return settings.scanner_to_gls.apply(centres), combined
+
+
+async def plate_height_at_marking(cell: Cell, settings: ProcedureSettings, pose_scanner: PlatePose) -> PlatePose:
+    """``pose_scanner`` (from the sweeps) moved to the plate height measured standing still at the
+    marking pose.
+
+    Each sweep's path is off by the robot's repeatability; the mean of a few sweeps still leaves the
+    height wrong by ~0.015 mm, and a height error dz scales the marked field by dz/d (a radial pattern
+    that differs from plate to plate). Standing still, no path error enters, and the scanner sees the
+    plate where the head held by the same robot marks it.
+    """
+    cloud = await cell.acquire_standstill(settings.standstill_profiles)
+    points, _ = cell.points_and_intensities(cloud)
+    try:
+        return pose_at_height(pose_scanner, points)
+    except ValueError as error:
+        raise CalibrationError(f"the plate height at the marking pose cannot be measured: {error}") from None
+
+
+async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray, progress: Progress,
+                    span: tuple[float, float], want_truth: bool, allow_marked: bool = False) -> PlateRun:
+    """Scan the plain plate, mark ``grid_xy`` through the active correction, scan, measure, pair.
+
+    The plain plate must be clean (see ``plate_marks``) unless ``allow_marked``: measuring new
+    marks among old ones pairs the wrong rings.
+    """
+    start, width = span
+
+    def report(stage: str, part: float, text: str) -> None:
+        progress(stage, start + width * part, text)
+
+    poses = []
+    for repeat in range(settings.plain_sweeps):
+        report("sweep_plain", 0.1 * repeat / settings.plain_sweeps,
+               f"scanning the plain plate ({repeat + 1} of {settings.plain_sweeps})")
+        cloud = await cell.acquire_sweep(settings.plain_sweep_step_mm)
+        if repeat == 0 and not allow_marked:
+            check_clean_plate(*cell.points_and_intensities(cloud), settings)
+        poses.append(await cell.estimate_plate_pose(cloud))
+    pose_scanner = mean_plate_pose(poses)
+    if settings.standstill_height:
+        # part of scanning the plain plate: "plate_pose" follows once the pose is final
+        report("sweep_plain", 0.1, f"profiling the plain plate standing at the marking pose "
+               f"({settings.standstill_profiles} profiles)")
+        pose_scanner = await plate_height_at_marking(cell, settings, pose_scanner)
+    pose_gls = pose_in_frame(pose_scanner, settings.scanner_to_gls)
+    report("plate_pose", 0.15, f"plate flatness {pose_scanner.flatness_rms_mm:.4f} mm RMS")
+
+    targets = np.column_stack([grid_xy, plane_height(pose_gls, grid_xy[:, 0], grid_xy[:, 1])])
+    rings = grid.rings_polylines(grid_xy, settings.ring_radii_mm)
+    starts = np.cumsum([0] + [len(ring) for ring in rings[:-1]]).astype(np.uint32)
+    ring_xy = np.vstack(rings)
+    ring_z = plane_height(pose_gls, ring_xy[:, 0], ring_xy[:, 1])
+    setpoints = await cell.correct(ring_xy[:, 0], ring_xy[:, 1], ring_z)
+    if not np.all(setpoints.within_limits):
+        count = int(np.count_nonzero(~setpoints.within_limits))
+        raise CalibrationError(f"{count} ring point(s) lie beyond the mirror limits or the focus range; "
+                               "reduce the grid size or check the plate pose")
+    report("marking", 0.2, f"marking {len(grid_xy)} fiducials")
+    marking_s = await cell.mark(setpoints.alpha_x, setpoints.alpha_y, setpoints.focus_shift, starts)
+
+    plan = settings.sweep_plan
+    needed = math.ceil(settings.min_found_fraction * len(grid_xy))
+    measurements = []
+    for number, item in enumerate(plan):
+        report("sweep_marked", 0.45 + 0.4 * number / len(plan),
+               f"scanning the marked plate ({number + 1} of {len(plan)}: {item.label})")
+        cloud = await cell.acquire_sweep(settings.marked_sweep_step_mm, item.direction, item.orientation_deg)
+        report("measurement", 0.45 + 0.4 * (number + 0.5) / len(plan),
+               f"measuring the fiducials of sweep {number + 1} of {len(plan)}")
+        found = await cell.measure_fiducials(cloud, pose_scanner, len(grid_xy))
+        if len(found.centres) < needed:
+            which = f" (sweep {item.label} of {plan_label(plan)})" if len(plan) > 1 else ""
+            raise CalibrationError(f"found {len(found.centres)} of {len(grid_xy)} fiducials; at least {needed} "
+                                   f"({settings.min_found_fraction:.0%}) are needed{which}")
+        measurements.append(found)
+    report("measurement", 0.85, "combining the sweeps")
+    centres_gls, combined = combined_centres_gls(measurements, settings, targets, pose_scanner)
+    pairing = pair_with_targets(centres_gls, targets)
+    if len(pairing.target_index) < needed:
+        raise CalibrationError(f"paired {len(pairing.target_index)} of {len(grid_xy)} fiducials with their "
+                               f"targets; at least {needed} are needed")
+    measured = pairing.transform.apply(centres_gls[pairing.measured_index])
+    paired_xy = grid_xy[pairing.target_index]
+    deviations = paired_xy - measured[:, :2]
+    # Commanding K(Q) landed at P, so K(Q) is the command that lands on P: the correction model is
+    # trained at P with K(Q) - K(P) (Q - P with no calibration active). Trained at Q instead, it
+    # would leave a second-order error of about grad(delta) . delta (~0.02 mm on a 2 mm field).
+    commanded = await cell.correct(paired_xy[:, 0], paired_xy[:, 1], targets[pairing.target_index, 2])
+    at_measured = await cell.correct(measured[:, 0], measured[:, 1], measured[:, 2])
+    corrections = (np.column_stack([commanded.x, commanded.y])
+                   - np.column_stack([at_measured.x, at_measured.y]))
+
+    true_deviations = true_metrics = None
+    if want_truth:
+        marks = await cell.true_marks()
+        if marks is not None:
+            true_centres = true_fiducial_centres(marks[-len(rings):], len(settings.ring_radii_mm))
+            # The calibration cannot see a rigid motion of the whole field, so the truth is
+            # compared after the same kind of alignment as the measurement.
+            every_true_deviation = grid_xy - align_rigid_2d(true_centres[:, :2], grid_xy)[1]
+            true_metrics = deviation_metrics(grid_xy, every_true_deviation)
+            true_deviations = every_true_deviation[pairing.target_index]
+    report("deviations", 1.0, f"{len(deviations)} fiducials paired")
+    separation = combined.separation
+    return PlateRun(targets=targets, paired_targets_xy=paired_xy, deviations=deviations,
+                    measured_gls=measured, corrections=corrections, true_deviations=true_deviations,
+                    plate_pose_gls=pose_gls,
+                    fiducials_found=min(combined.found_per_sweep), alignment=pairing.transform,
+                    metrics=deviation_metrics(paired_xy, deviations), true_metrics=true_metrics,
+                    sigma_mm=combined.sigma_mm[pairing.measured_index], sweep_plan=plan_label(plan),
+                    chain_map=chain_map_identity(settings.chain_map),
+                    cell_time_s=settings.cell_time.plate_s(settings.plain_sweeps + len(plan), marking_s),
+                    scanner_error_rms_mm=separation.scanner_rms_mm if separation else math.nan,
+                    motion_error_rms_mm=separation.motion_rms_mm if separation else math.nan)
+
+
+def validation_grid(settings: ProcedureSettings) -> np.ndarray:
+    """Fiducials between the training ones (half a pitch off), so validation is not on training points."""
+    training = grid.grid_targets(settings.grid_per_side, settings.grid_size_mm)
+    if not settings.validation_offset_half_pitch:
+        return training
+    pitch = settings.grid_size_mm / (settings.grid_per_side - 1)
+    return grid.grid_targets(settings.grid_per_side - 1, settings.grid_size_mm - pitch)
+
+
+async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int, validate: bool, force: bool,
+                    want_truth: bool, progress: Progress,
+                    save_candidate: Callable[[list[PlateRun], list[TrainedModel]], Candidate],
+                    active_calibration: bool = False) -> CalibrationOutcome:
+    """Run the calibrate flow. ``save_candidate`` stores a calibration without activating it.
+
+    The cell is switched to the candidate for later iterations and validation; the caller activates
+    it only when this returns without a ``rejection``, so a failure (``CalibrationError``) keeps the
+    active one. The plain plate must be clean, the model must explain the measurement, and with
+    validation the candidate must beat the calibration in use (``acceptance_problem``); ``force``
+    allows a marked plate and training within the tolerance.
+
+    ``active_calibration``: the cell corrects through a trained calibration (not the nominal model)
+    when the run starts. Its figure on the first plate is then self-consistency (the chain re-measures
+    the positions that calibration was trained on, with the same repeating errors); so with
+    validation it is marked on a further plate at the validation positions too, and the candidate is
+    judged against that (``CalibrationOutcome.active_validation``).
+    """
+    began = time.monotonic()
+    clock = StageClock()
+    progress = clock.wrap(progress)
+    iterations = iterations or settings.default_iterations
+    training_grid = grid.grid_targets(settings.grid_per_side, settings.grid_size_mm)
+    compare_active = validate and active_calibration
+    passes = iterations + (1 if validate else 0) + (1 if compare_active else 0)
+    span = 1.0 / passes
+    runs: list[PlateRun] = []
+    models: list[TrainedModel] = []
+    candidate: Optional[Candidate] = None
+    for iteration in range(iterations):
+        if iteration > 0:
+            await cell.exchange_plate()
+        run = await run_plate(cell, settings, training_grid, progress, (iteration * span, span * 0.9),
+                              want_truth, allow_marked=force)
+        runs.append(run)
+        rms = run.metrics.full.rms_abs_mm
+        if iteration == 0 and rms <= settings.tolerance_rms_mm and not force:
+            return CalibrationOutcome(f"deviation RMS {rms:.4f} mm is within the tolerance of "
+                                      f"{settings.tolerance_rms_mm} mm: nothing trained (use force to train)",
+                                      tuple(runs), None, tuple(models), None, time.monotonic() - began,
+                                      active_calibration=active_calibration, stage_times=clock.times())
+        progress("training", (iteration + 0.9) * span, f"training on {len(run.deviations)} deviations")
+        models.append(await cell.train(run.measured_gls[:, :2], run.corrections))
+        check_model_explains(models[-1], rms, centre_uncertainty_mm(run, settings), settings)
+        candidate = save_candidate(runs, models)
+        await cell.load_calibration(candidate.path)
+
+    validation = active_validation = None
+    if validate:
+        validation_xy = validation_grid(settings)
+        await cell.exchange_plate()
+        validation = await run_plate(cell, settings, validation_xy, progress,
+                                     (iterations * span, span), want_truth, allow_marked=force)
+        before, against = runs[0], "this run's first plate"
+        if compare_active:
+            # like with like: the calibration in use marked at the candidate's validation positions
+            await cell.exchange_plate()
+            await cell.reload_active()
+            active_validation = await run_plate(cell, settings, validation_xy, progress,
+                                                ((iterations + 1) * span, span), want_truth, allow_marked=force)
+            await cell.load_calibration(candidate.path)
+            before, against = active_validation, "the validation grid"
+        rejected = acceptance_problem(before.metrics.full.rms_abs_mm, validation.metrics.full.rms_abs_mm,
+                                      max(centre_uncertainty_mm(before, settings),
+                                          centre_uncertainty_mm(validation, settings)), against)
+        if rejected:
+            rejected = f"{rejected}; {Path(candidate.path).name} stays in the history, inactive"
+            progress("done", 1.0, rejected)
+            return CalibrationOutcome(rejected, tuple(runs), validation, tuple(models), candidate,
+                                      time.monotonic() - began, rejection=rejected,
+                                      active_validation=active_validation, active_calibration=active_calibration,
+                                      stage_times=clock.times())
+    progress("done", 1.0, "calibration finished")
+    return CalibrationOutcome("calibrated", tuple(runs), validation, tuple(models), candidate,
+                              time.monotonic() - began, active_validation=active_validation,
+                              active_calibration=active_calibration, stage_times=clock.times())

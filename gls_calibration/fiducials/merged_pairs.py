@@ -1,0 +1,194 @@
+"""Two fiducials marked a fraction of a millimetre apart, told from one: the pair's signature in the image.
+
+Two double rings offset by s (about 0.1-0.3 mm) are found as one candidate about s / 2 from either,
+with ring radii and ellipticity an uncalibrated head can also produce. Along the offset their lines
+split, across it they coincide, so the pair darkens and broadens its lines by an amount that
+varies as cos 2(theta - phi) around the ring, and broadens them on average by as much; one ring
+seen through a distorted head changes its radius (first and second harmonics of the edge), not its
+line profile.
+
+The test works on the pixels themselves (no interpolation: resampling the prewhitened image's
+sharp lines along rays would put its own phase-dependent width pattern on every fiducial):
+
+1. Template: the plate's mean line profile g(rho) of the image against the signed distance rho from
+   each reference candidate's fitted mid-ring (mean radius plus elliptical second harmonic), in bins
+   of a fifth of a pixel, and its first and second derivatives (Savitzky-Golay). It holds whatever
+   the real lines, optics and prewhitening filter make of a mark; nothing is assumed about them.
+2. Per candidate, least squares over the pixels within ``band_mm`` of its rings: the single mark,
+   linearised about the fit (amplitude g, centre shift g' n, radius g', ellipse g' cos 2theta /
+   g' sin 2theta, shading g cos theta / g sin theta, offset), plus the pair's signature (line width
+   g'', g'' and g times cos 2theta and sin 2theta), per angular sector. Its five coefficients over
+   the amplitude, minus the plate's median (the part every mark shares: spot shape, unequal pixel
+   pitch).
+3. Their covariance: the candidate's delete-one-sector jackknife (the pixels' misfit is correlated
+   along the ring; a covariance from the residuals as if independent made single marks look like
+   pairs) plus the variance by which the plate's single marks truly differ (a marking laser's power
+   and focus wander along the path). Hotelling's T^2 against F(5, g - 5) with g sectors.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+from scipy.signal import savgol_filter
+
+from gls_calibration.common.robust import robust_sigma
+from gls_calibration.fiducials import sector_jackknife
+
+SIGNATURE_DOF = 5
+"""Coefficients of the pair's signature: the mean line width, and line width and darkness each as
+cos 2theta and sin 2theta."""
+
+PROFILE_BIN_PX = 0.2
+"""Bin of the plate's line profile, in pixels: pixel centres fall at every phase against the rings."""
+
+SECTORS = 24
+"""Angular sectors of the jackknife (as for the centres: a sector holds a stretch of ring whose
+misfit is shared, sectors much less)."""
+
+MIN_PIXELS = 200
+"""Pixels a candidate needs within the band for its own fit; fewer (at the scan's border): no test."""
+
+CANDIDATE_BLOCK = 32
+"""Candidates per batched least-squares product (bounds the work arrays to some tens of MB)."""
+
+
+def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm: float):
+    """Bin centres (B,) and the mean profile with its first and second derivatives (each (B,)) of
+    ``values`` against ``rho`` (1-D, mm); empty bins take their neighbours' values."""
+    edges = np.arange(-band_mm - 3 * bin_mm, band_mm + 3 * bin_mm + 0.5 * bin_mm, bin_mm)
+    index = np.digitize(rho, edges)
+    counts = np.bincount(index, minlength=len(edges) + 1)[1:-1]
+    sums = np.bincount(index, values, minlength=len(edges) + 1)[1:-1]
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    filled = counts > 0
+    profile = np.interp(centres, centres[filled], sums[filled] / counts[filled])
+    window = 7
+    return (centres, savgol_filter(profile, window, 3), savgol_filter(profile, window, 3, deriv=1, delta=bin_mm),
+            savgol_filter(profile, window + 2, 3, deriv=2, delta=bin_mm))
+
+
+def _window(pitch_mm: tuple[float, float], jacobian: np.ndarray, inner_mm: float, outer_mm: float):
+    """Pixel offsets (N, 2) as (column, row) around a candidate's centre pixel that can fall between
+    ``inner_mm`` and ``outer_mm`` of it (the plate's typical pixel map, a pixel of slack), and an
+    index (S, L) of them per angular sector, padded with N (a row of zeros is appended there)."""
+    half_rows, half_cols = int(np.ceil(outer_mm / pitch_mm[0])) + 1, int(np.ceil(outer_mm / pitch_mm[1])) + 1
+    rows, cols = np.mgrid[-half_rows:half_rows + 1, -half_cols:half_cols + 1]
+    offsets = np.stack([cols.ravel(), rows.ravel()], -1)
+    uv = offsets @ np.median(jacobian, axis=0).T
+    distance = np.hypot(uv[:, 0], uv[:, 1])
+    slack = 1.5 * max(pitch_mm)
+    keep = (distance >= inner_mm - slack) & (distance <= outer_mm + slack)
+    offsets = offsets[keep]
+    sector = ((np.arctan2(uv[keep, 1], uv[keep, 0]) + np.pi) / (2 * np.pi) * SECTORS).astype(int) % SECTORS
+    members = [np.nonzero(sector == k)[0] for k in range(SECTORS)]
+    longest = max(len(m) for m in members)
+    by_sector = np.full((SECTORS, longest), len(offsets))
+    for k, m in enumerate(members):
+        by_sector[k, :len(m)] = m
+    return offsets, by_sector
+
+
+def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacobian: np.ndarray,
+                   mid_radius_mm: np.ndarray, harmonic_mm: np.ndarray, reference: np.ndarray,
+                   pitch_mm: tuple[float, float], band_mm: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each candidate's pair signature over its amplitude (M, 5), its delete-one-sector jackknife
+    covariance (M, 5, 5) and the number of sectors that entered it (M,); NaN where it cannot be fitted.
+
+    ``image`` (H, W) is the image the centres were fitted on, marks positive or negative alike;
+    ``centres_uv`` (M, 2) the fitted centres in plate mm, ``offset`` (M, 2) and ``jacobian``
+    (M, 2, 2) each candidate's local map uv = offset + J (column, row); ``mid_radius_mm`` (M,) the
+    fitted mean radius between the rings and ``harmonic_mm`` (M, 2) its cos 2theta / sin 2theta
+    terms; ``reference`` (M,) the candidates the plate's line profile is taken from; ``pitch_mm``
+    the (row, column) pixel pitch.
+    """
+    count = len(centres_uv)
+    signature = np.full((count, SIGNATURE_DOF), np.nan)
+    covariance = np.full((count, SIGNATURE_DOF, SIGNATURE_DOF), np.nan)
+    groups = np.zeros(count, int)
+    if count == 0 or not reference.any():
+        return signature, covariance, groups
+    height, width = image.shape
+    radii = mid_radius_mm[reference]
+    offsets, by_sector = _window(pitch_mm, jacobian, float(radii.min()) - band_mm, float(radii.max()) + band_mm)
+    centre_px = np.rint(np.einsum("mij,mj->mi", np.linalg.inv(jacobian), centres_uv - offset)).astype(int)
+    col = centre_px[:, 0, None] + offsets[:, 0]                                              # (M, N)
+    row = centre_px[:, 1, None] + offsets[:, 1]
+    inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    values = image[np.clip(row, 0, height - 1), np.clip(col, 0, width - 1)].astype(float)
+    relative = np.matmul(offsets.astype(float), np.swapaxes(jacobian, 1, 2)) + (
+        offset - centres_uv + np.einsum("mij,mj->mi", jacobian, centre_px.astype(float)))[:, None, :]
+    # The angle's cosines and sines from the coordinates (no trigonometric calls on ~10^6 pixels).
+    distance = np.maximum(np.hypot(relative[..., 0], relative[..., 1]), 1e-12)
+    cos1, sin1 = relative[..., 0] / distance, relative[..., 1] / distance
+    cos2, sin2 = cos1 * cos1 - sin1 * sin1, 2 * cos1 * sin1
+    rho = distance - (mid_radius_mm[:, None] + harmonic_mm[:, 0, None] * cos2 + harmonic_mm[:, 1, None] * sin2)
+    usable = inside & (np.abs(rho) <= band_mm) & np.isfinite(values)
+
+    # 1. The plate's line profile from its reference candidates.
+    bin_mm = PROFILE_BIN_PX * min(pitch_mm)
+    taken = usable & reference[:, None]
+    if np.count_nonzero(taken) < MIN_PIXELS:
+        return signature, covariance, groups
+    centres, g0, g1, g2 = _profile_tables(rho[taken], values[taken], bin_mm, band_mm)
+
+    # 2. Each candidate's fit, the single mark linearised about it plus the pair's signature, per sector.
+    for start in range(0, count, CANDIDATE_BLOCK):
+        block = slice(start, min(start + CANDIDATE_BLOCK, count))
+        rho_b, use_b = rho[block], usable[block]
+        profile, slope, bend = (np.interp(rho_b, centres, table) for table in (g0, g1, g2))
+        c1, s1, c2, s2 = cos1[block], sin1[block], cos2[block], sin2[block]
+        design = np.stack([profile, slope * c1, slope * s1, slope, slope * c2, slope * s2,
+                           profile * c1, profile * s1, np.ones_like(rho_b), bend,
+                           bend * c2, bend * s2, profile * c2, profile * s2], -1) * use_b[..., None]
+        parameters = design.shape[-1]
+        # Per sector, through the padded index (a zero row at N): one batched product for all sectors.
+        design = np.concatenate([design, np.zeros((len(design), 1, parameters))], 1)[:, by_sector]   # (m, S, L, P)
+        target = np.concatenate([np.where(use_b, values[block], 0.0), np.zeros((len(design), 1))], 1)[:, by_sector]
+        transposed = np.swapaxes(design, 2, 3)
+        sector_normal = np.matmul(transposed, design)                                            # (m, S, P, P)
+        sector_right = np.matmul(transposed, target[..., None])[..., 0]                          # (m, S, P)
+        sector_pixels = np.concatenate([use_b, np.zeros((len(design), 1), bool)], 1)[:, by_sector].sum(axis=2)
+        normal = sector_normal.sum(axis=1)
+        fit = (sector_pixels.sum(axis=1) >= MIN_PIXELS) & (np.linalg.cond(normal) < 1e12)
+        normal[~fit] = np.eye(parameters)
+        solution = np.linalg.solve(normal, sector_right.sum(axis=1)[..., None])[..., 0]
+        jackknife, sectors = sector_jackknife(sector_normal, sector_right, sector_pixels >= parameters)
+        fit &= solution[:, 0] > 0
+        amplitude = np.where(fit, solution[:, 0], np.nan)
+        signature[block] = solution[:, -SIGNATURE_DOF:] / amplitude[:, None]
+        covariance[block] = jackknife[:, -SIGNATURE_DOF:, -SIGNATURE_DOF:] / amplitude[:, None, None] ** 2
+        groups[block] = sectors
+    return signature, covariance, groups
+
+
+def merged(signature: np.ndarray, covariance: np.ndarray, groups: np.ndarray, reference: np.ndarray,
+           false_alarm: float, min_reference: int) -> np.ndarray:
+    """Mask (M,) of candidates whose pair signature (``pair_signature``) stands out from the plate's.
+
+    The signature minus the ``reference`` candidates' median (what every mark shares: spot shape,
+    unequal pixel pitch) against its covariance: its own jackknife covariance plus, per coefficient,
+    the variance by which the plate's single marks truly differ (a laser's power and focus wander
+    along the marking path; robust: the references' squared MAD less their median own variance,
+    never negative). Hotelling's T^2 with g sectors, F(5, g - 5) distributed for a single fiducial;
+    merged where that puts it beyond ``false_alarm``. With fewer than ``min_reference`` usable
+    references nothing is called merged.
+    """
+    flagged = np.zeros(len(signature), bool)
+    finite = np.all(np.isfinite(signature), axis=1) & np.all(np.isfinite(covariance), axis=(1, 2))
+    usable = reference & finite
+    if np.count_nonzero(usable) < min_reference:
+        return flagged
+    excess = np.nan_to_num(signature - np.median(signature[usable], axis=0))
+    own_variance = np.diagonal(covariance[usable], axis1=1, axis2=2)
+    between = np.maximum(np.array([robust_sigma(excess[usable, k]) ** 2 for k in range(SIGNATURE_DOF)])
+                         - np.median(own_variance, axis=0), 0.0)
+    total = np.where(finite[:, None, None], covariance, np.eye(SIGNATURE_DOF)) + np.diag(between)
+    check = finite & (np.linalg.cond(total) < 1e12) & (groups > SIGNATURE_DOF + 1)
+    if not check.any():
+        return flagged
+    t_squared = np.einsum("mi,mij,mj->m", excess[check], np.linalg.inv(total[check]), excess[check])
+    dof = groups[check].astype(float)
+    statistic = t_squared * (dof - SIGNATURE_DOF) / (SIGNATURE_DOF * (dof - 1))
+    flagged[check] = stats.f.sf(statistic, SIGNATURE_DOF, dof - SIGNATURE_DOF) < false_alarm
+    return flagged

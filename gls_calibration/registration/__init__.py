@@ -1,0 +1,1 @@
+"""Stage 3, registration: measured centres onto the targets, combination of sweeps and separation of the scanner's errors."""

@@ -1,0 +1,136 @@
+"""The sweep plan of the marked plate, its cell time, and the combination of its sweeps.
+
+A plan is a sequence of passes (direction +1/-1 along the sensor's y, sensor turned 0 or 90 deg
+about its viewing axis). Every sweep's fiducials are paired with the targets, expressed in that
+sweep's sensor axes, and :func:`separation.separate` removes what is fixed to the scanner frame or
+to one sweep's motion; what is left is averaged. Clouds are in the scanner base frame (see
+``scan/sweep.py``), so a turned or reversed sweep measures the same marks in the same frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+
+from gls_calibration.fiducials.measure import FiducialMeasurement
+from gls_calibration.registration.rigid import RigidTransform, pair_with_targets
+from gls_calibration.registration.separation import TIME_PLACED, Separation, SeparationSettings, separate
+from gls_calibration.scan.sweep import nominal_start_pose
+
+ORIENTATIONS_DEG = (0.0, 90.0)
+
+
+@dataclass(frozen=True)
+class SweepPass:
+    """One sweep of the marked plate: travel direction (+1/-1) and sensor orientation (deg)."""
+
+    direction: int = 1
+    orientation_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.direction not in (1, -1):
+            raise ValueError(f"sweep plan direction must be +1 or -1, got {self.direction!r}")
+        if self.orientation_deg not in ORIENTATIONS_DEG:
+            raise ValueError(f"sweep plan orientation must be 0 or 90 deg, got {self.orientation_deg!r}")
+
+    @property
+    def label(self) -> str:
+        return f"{self.orientation_deg:g}{'+' if self.direction > 0 else '-'}"
+
+
+def parse_plan(text: str) -> tuple[SweepPass, ...]:
+    """Passes from a comma-separated list such as ``"0+,0-,90+,90-"`` (orientation deg, direction)."""
+    passes = []
+    for item in (part.strip() for part in str(text).split(",")):
+        if len(item) < 2 or item[-1] not in "+-":
+            raise ValueError(f"sweep plan item {item!r} must be an orientation (0 or 90) followed by + or -, "
+                             "e.g. 0+,0-,90+,90-")
+        try:
+            orientation = float(item[:-1])
+        except ValueError:
+            raise ValueError(f"sweep plan item {item!r}: orientation {item[:-1]!r} is not a number") from None
+        passes.append(SweepPass(1 if item[-1] == "+" else -1, orientation))
+    if not passes:
+        raise ValueError("the sweep plan needs at least one pass")
+    return tuple(passes)
+
+
+def plan_label(passes: Sequence[SweepPass]) -> str:
+    """The plan as ``parse_plan`` reads it."""
+    return ",".join(item.label for item in passes)
+
+
+@dataclass(frozen=True)
+class CellTimeModel:
+    """What one plate costs in cell time besides marking: sweeps at the scanner's speed, robot moves."""
+
+    sweep_length_mm: float = 200.0
+    sweep_speed_mm_s: float = 15.0
+    robot_move_s: float = 4.0          # back to a sweep's start (and turning the sensor) between sweeps
+
+    def plate_s(self, sweeps: int, marking_s: float) -> float:
+        """Cell time of one plate: ``sweeps`` sweeps (plain and marked), the moves, the marking."""
+        return sweeps * (self.sweep_length_mm / self.sweep_speed_mm_s + self.robot_move_s) + marking_s
+
+
+@dataclass(frozen=True)
+class CombinedSweeps:
+    """The marked plate's centres from every sweep of a plan (scanner base frame, mm).
+
+    ``centres_xy`` (K, 2) are in the base frame's plane (the caller puts them on the plate plane), ``sigma_mm`` (K,) is the standard uncertainty per
+    axis of each (ring fit and sweep spread; NaN when unknown), ``target_index`` (K,) the target each
+    belongs to. ``separation`` is None for a single sweep.
+    """
+
+    centres_xy: np.ndarray
+    sigma_mm: np.ndarray
+    target_index: np.ndarray
+    found_per_sweep: tuple[int, ...]
+    separation: Optional[Separation]
+
+
+def _ring_sigma(found: FiducialMeasurement) -> np.ndarray:
+    """Per-centre sigma (K,) from the ring fit when the measurement states one, else NaN."""
+    sigma = getattr(found, "sigma_xy_mm", None)
+    if sigma is None:
+        return np.full(len(found.centres), np.nan)
+    return np.sqrt(np.mean(np.asarray(sigma, dtype=float) ** 2, axis=1))
+
+
+def combine_sweeps(measurements: Sequence[FiducialMeasurement], passes: Sequence[SweepPass], targets_gls: np.ndarray, scanner_to_gls: RigidTransform,
+                   placed_by_pose: bool, settings: Optional[SeparationSettings] = None) -> CombinedSweeps:
+    """Pair every sweep's centres with the targets and separate the scanner-frame errors.
+
+    ``settings`` defaults to the separation for profiles placed by pose, or by time
+    (``separation.TIME_PLACED``) when ``placed_by_pose`` is false.
+    """
+    if len(measurements) != len(passes) or not measurements:
+        raise ValueError(f"{len(measurements)} measurement(s) for a plan of {len(passes)} pass(es)")
+    count = len(targets_gls)
+    if len(measurements) == 1:
+        found = measurements[0]
+        pairing = pair_with_targets(scanner_to_gls.apply(found.centres), targets_gls)
+        return CombinedSweeps(found.centres[pairing.measured_index, :2], _ring_sigma(found)[pairing.measured_index],
+                              pairing.target_index, (len(found.centres),), None)
+    tables, sigmas = [], []
+    for found, item in zip(measurements, passes):
+        pairing = pair_with_targets(scanner_to_gls.apply(found.centres), targets_gls)
+        axes = nominal_start_pose(0.0, item.direction, item.orientation_deg)[:2, :2]
+        table = np.full((count, 2), np.nan)
+        # the sweep's own axes: x along its line, y along its travel (B's axes turned by the orientation)
+        table[pairing.target_index] = found.centres[pairing.measured_index, :2] @ axes
+        sigma = np.full(count, np.nan)
+        sigma[pairing.target_index] = _ring_sigma(found)[pairing.measured_index]
+        tables.append(table)
+        sigmas.append(sigma)
+    # the reference sweep must see the most fiducials: the separation works in its frame
+    order = sorted(range(len(tables)), key=lambda k: -int(np.all(np.isfinite(tables[k]), axis=1).sum()))
+    reference = order[0]
+    if settings is None:
+        settings = SeparationSettings() if placed_by_pose else TIME_PLACED
+    result = separate([tables[k] for k in order], [sigmas[k] for k in order], settings)
+    seen = result.sweeps_seen > 0
+    axes = nominal_start_pose(0.0, passes[reference].direction, passes[reference].orientation_deg)[:2, :2]
+    return CombinedSweeps(result.centres_mm[seen] @ axes.T, result.sigma_mm[seen], np.flatnonzero(seen),
+                          tuple(len(found.centres) for found in measurements), result)

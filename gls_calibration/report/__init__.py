@@ -1,0 +1,1 @@
+"""Stage 7, the report of a calibration: Markdown, plots, CSV and JSON."""

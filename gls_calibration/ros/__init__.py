@@ -1,0 +1,1 @@
+"""The ROS machinery shared by the nodes: parameters, calls with deadlines, message conversion, diagnostics, RViz."""

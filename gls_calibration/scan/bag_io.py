@@ -1,0 +1,457 @@
+"""Record and replay a cell in the rosbag2 format (SQLite3 or MCAP) with standard message types only.
+
+What a bag holds (names are :class:`BagLayout`'s defaults):
+
+- ``/scanner/profile`` (``sensor_msgs/msg/PointCloud2``): one message per profile, height 1, fields
+  ``x, y, z, intensity`` float32, in the scanner's optical frame, in metres, stamped; NaN for no return.
+- ``/tf`` (``tf2_msgs/msg/TFMessage``): the flange pose the robot reports, robot base -> flange.
+- ``/tf_static`` (``tf2_msgs/msg/TFMessage``): flange -> scanner optical frame (hand-eye) and robot
+  base -> ``gls`` (the galvo head).
+- ``/motion/start`` and ``/motion/end`` (``std_msgs/msg/Header``): the stamps at which each straight
+  line of the robot began and ended (``header.stamp``; ``frame_id`` the robot base frame), one pair
+  per sweep, in order.
+
+Replay (:func:`read_sweeps`) takes the profiles stamped within each motion's start and end, places
+every one through the chain base -> flange -> sensor looked up at its stamp (translation and rotation
+interpolated in time), and returns each sweep as an organized cloud in the robot base frame in mm.
+Every problem of the input is a ``ValueError`` naming it; nothing is guessed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+import shutil
+import tempfile
+import warnings
+from typing import Callable, Iterator, Optional, Sequence
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+MM_PER_M = 1000.0
+NS_PER_S = 1_000_000_000
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+TFMESSAGE = "tf2_msgs/msg/TFMessage"
+HEADER = "std_msgs/msg/Header"
+_FLOAT32 = 7                              # sensor_msgs/msg/PointField FLOAT32
+_FIELDS = ("x", "y", "z", "intensity")
+_PROFILE_DTYPE = np.dtype([(name, "<f4") for name in _FIELDS])
+STORAGES = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}
+_TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+@dataclass(frozen=True)
+class BagLayout:
+    """Topics and frame names of a recorded cell."""
+
+    scan_topic: str = "/scanner/profile"
+    tf_topic: str = "/tf"
+    tf_static_topic: str = "/tf_static"
+    motion_start_topic: str = "/motion/start"
+    motion_end_topic: str = "/motion/end"
+    base_frame: str = "robot_base"
+    flange_frame: str = "flange"
+    sensor_frame: str = "scanner_optical"
+    gls_frame: str = "gls"
+
+
+@dataclass(frozen=True)
+class ReplayLimits:
+    """What replay accepts before it calls a stream broken.
+
+    ``max_pose_age_s``: the newest flange pose at or before a profile may be this old (the robot state
+    publisher's period plus its latency), and a pose at or after the profile must exist (no
+    extrapolation). ``max_gap_periods``: a gap in the profile stream (or between the last profile and
+    the motion's end) longer than this many of the sweep's median profile periods means the stream
+    stopped. ``max_range_m``: a profile whose median point distance exceeds it is not in metres.
+    """
+
+    max_pose_age_s: float = 0.05
+    max_gap_periods: float = 5.0
+    max_range_m: float = 10.0
+
+
+STANDSTILL_TRAVEL_MM = 1.0
+"""A motion whose first and last profiles' centroids lie closer than this is a stand-still (profiles
+taken with the robot standing at the marking pose); a sweep travels the grid's length."""
+
+
+@dataclass(frozen=True)
+class ReplayedSweep:
+    """One motion assembled from a bag: organized cloud in the robot base frame (mm)."""
+
+    xyz_mm: np.ndarray          # (H, W, 3) float64, NaN for no return
+    intensity: np.ndarray       # (H, W) float64
+    stamps_ns: np.ndarray       # (H,) int64, the profiles' stamps
+    start_ns: int
+    end_ns: int
+
+    @property
+    def travel_mm(self) -> float:
+        """Distance between the centroids of the first and last profiles (mm); NaN when either has no point."""
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)     # a profile without a point: NaN, said below
+            first, last = (np.nanmean(self.xyz_mm[row].reshape(-1, 3), axis=0) for row in (0, -1))
+        return float(np.linalg.norm(last - first))
+
+    @property
+    def standstill(self) -> bool:
+        """Whether the robot stood still (travel below ``STANDSTILL_TRAVEL_MM``); ValueError when the
+        travel is unknown."""
+        travel = self.travel_mm
+        if not np.isfinite(travel):
+            raise ValueError(f"motion from {self.start_ns} to {self.end_ns} ns: its first or last profile has no "
+                             "point, so its travel is unknown")
+        return travel < STANDSTILL_TRAVEL_MM
+
+
+# --------------------------------------------------------------------------------------------- writing
+
+def transform_msg(parent: str, child: str, pose_mm: np.ndarray, stamp_ns: int):
+    """``geometry_msgs/msg/TransformStamped`` of a 4x4 pose (child -> parent, mm) in metres."""
+    types = _TYPESTORE.types
+    quaternion = Rotation.from_matrix(pose_mm[:3, :3]).as_quat()          # x, y, z, w
+    translation = pose_mm[:3, 3] / MM_PER_M
+    return types["geometry_msgs/msg/TransformStamped"](
+        header=_header(stamp_ns, parent), child_frame_id=child,
+        transform=types["geometry_msgs/msg/Transform"](
+            translation=types["geometry_msgs/msg/Vector3"](*(float(v) for v in translation)),
+            rotation=types["geometry_msgs/msg/Quaternion"](*(float(v) for v in quaternion))))
+
+
+def _header(stamp_ns: int, frame_id: str):
+    types = _TYPESTORE.types
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    return types[HEADER](stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+
+def profile_msg(points_m: np.ndarray, frame_id: str, stamp_ns: int):
+    """PointCloud2 of one profile: ``points_m`` (W, 4) x, y, z (m), intensity; stored as float32."""
+    types = _TYPESTORE.types
+    points = np.empty(points_m.shape[0], dtype=_PROFILE_DTYPE)
+    for column, name in enumerate(_FIELDS):
+        points[name] = points_m[:, column]
+    fields = [types["sensor_msgs/msg/PointField"](name=name, offset=4 * column, datatype=_FLOAT32, count=1)
+              for column, name in enumerate(_FIELDS)]
+    return types[POINTCLOUD2](header=_header(stamp_ns, frame_id), height=1, width=points.size, fields=fields,
+                              is_bigendian=False, point_step=_PROFILE_DTYPE.itemsize,
+                              row_step=_PROFILE_DTYPE.itemsize * points.size,
+                              data=points.view(np.uint8).copy(), is_dense=bool(np.isfinite(points_m).all()))
+
+
+class BagRecorder:
+    """Writes a cell's streams to a new rosbag2 folder (use as a context manager).
+
+    ``flange_to_sensor`` (hand-eye) and ``base_to_gls`` are 4x4 poses in mm (child -> parent), written
+    once on ``/tf_static``. ``tap(topic, message)``, when given, sees every message as it is written
+    (what a live subscriber would receive). The folder must not exist; the bag is written under a temporary name
+    beside it and renamed when closed without error, so a failed recording leaves nothing at ``path``.
+    """
+
+    def __init__(self, path: str | Path, flange_to_sensor: np.ndarray, base_to_gls: np.ndarray,
+                 layout: BagLayout = BagLayout(), storage: str = "sqlite3",
+                 tap: Optional[Callable[[str, object], None]] = None) -> None:
+        if storage not in STORAGES:
+            raise ValueError(f"storage must be one of {', '.join(STORAGES)}, got {storage!r}")
+        self.path = Path(path)
+        if self.path.exists() or self.path.is_symlink():
+            raise ValueError(f"{self.path}: exists already; a bag is written only into a new folder")
+        self.layout = layout
+        # written inside a hidden folder beside the target, moved into place when complete
+        if not self.path.parent.is_dir():
+            raise ValueError(f"{self.path.parent}: no such folder")
+        self._scratch = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent))
+        self._writer = Writer(self._scratch / self.path.name, version=Writer.VERSION_LATEST,
+                              storage_plugin=STORAGES[storage])
+        self._static = (flange_to_sensor, base_to_gls)
+        self.tap = tap
+        self._connections: dict = {}
+        self.clock_ns = 0
+
+    def __enter__(self) -> "BagRecorder":
+        try:
+            self._writer.open()
+            for topic, msgtype in ((self.layout.scan_topic, POINTCLOUD2), (self.layout.tf_topic, TFMESSAGE),
+                                   (self.layout.tf_static_topic, TFMESSAGE),
+                                   (self.layout.motion_start_topic, HEADER), (self.layout.motion_end_topic, HEADER)):
+                self._connections[topic] = self._writer.add_connection(topic, msgtype, typestore=_TYPESTORE)
+        except BaseException:
+            shutil.rmtree(self._scratch, ignore_errors=True)
+            raise
+        return self
+
+    def __exit__(self, kind, value, traceback) -> None:
+        try:
+            self._writer.close()
+            if kind is None:
+                (self._scratch / self.path.name).rename(self.path)
+        finally:
+            shutil.rmtree(self._scratch, ignore_errors=True)
+
+    def _write(self, topic: str, stamp_ns: int, message) -> None:
+        msgtype = self._connections[topic].msgtype
+        self._writer.write(self._connections[topic], int(stamp_ns), _TYPESTORE.serialize_cdr(message, msgtype))
+        if self.tap is not None:
+            self.tap(topic, message)
+
+    def write_sweep(self, start_ns: int, end_ns: int, profile_stamps_ns: Sequence[int], profiles_m: np.ndarray,
+                    flange_stamps_ns: Sequence[int], base_to_flange_mm: np.ndarray) -> None:
+        """One sweep: the motion's start and end, the flange poses (N, 4, 4) and the profiles (H, W, 4)."""
+        layout = self.layout
+        if not self.clock_ns:    # the fixed frames, once, stamped at the first motion
+            flange_to_sensor, base_to_gls = self._static
+            self._write(layout.tf_static_topic, start_ns, _TYPESTORE.types[TFMESSAGE](transforms=[
+                transform_msg(layout.flange_frame, layout.sensor_frame, flange_to_sensor, start_ns),
+                transform_msg(layout.base_frame, layout.gls_frame, base_to_gls, start_ns)]))
+        self._write(layout.motion_start_topic, start_ns, _header(start_ns, layout.base_frame))
+        self.write_stream(profile_stamps_ns, profiles_m, flange_stamps_ns, base_to_flange_mm)
+        self._write(layout.motion_end_topic, end_ns, _header(end_ns, layout.base_frame))
+        self.clock_ns = max(self.clock_ns, int(end_ns))
+
+    def write_stream(self, profile_stamps_ns: Sequence[int], profiles_m: np.ndarray, flange_stamps_ns: Sequence[int],
+                     base_to_flange_mm: np.ndarray) -> None:
+        """Profiles (H, W, 4: x, y, z in m, intensity) and flange poses (N, 4, 4, mm), in time order, poses
+        first at equal stamps; outside a motion they are what a scanner streams while the robot is not
+        sweeping."""
+        layout = self.layout
+        events = sorted([(int(t), 0, i) for i, t in enumerate(flange_stamps_ns)]
+                        + [(int(t), 1, i) for i, t in enumerate(profile_stamps_ns)])
+        for stamp, kind, index in events:
+            if kind == 0:
+                message = _TYPESTORE.types[TFMESSAGE](transforms=[transform_msg(
+                    layout.base_frame, layout.flange_frame, base_to_flange_mm[index], stamp)])
+                self._write(layout.tf_topic, stamp, message)
+            else:
+                self._write(layout.scan_topic, stamp, profile_msg(profiles_m[index], layout.sensor_frame, stamp))
+        if len(events):
+            self.clock_ns = max(self.clock_ns, events[-1][0])
+
+
+# --------------------------------------------------------------------------------------------- reading
+
+def _stamp_ns(header) -> int:
+    return int(header.stamp.sec) * NS_PER_S + int(header.stamp.nanosec)
+
+
+def _pose_mm(transform) -> np.ndarray:
+    pose = np.eye(4)
+    q = transform.rotation
+    pose[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    t = transform.translation
+    pose[:3, 3] = np.array([t.x, t.y, t.z]) * MM_PER_M
+    return pose
+
+
+def profile_points(message, limits: ReplayLimits, where: str) -> np.ndarray:
+    """(W, 4) float64 x, y, z (m), intensity of one PointCloud2 profile; ValueError naming a problem."""
+    fields = {field.name: field for field in message.fields}
+    missing = [name for name in _FIELDS if name not in fields]
+    if missing:
+        raise ValueError(f"{where}: the cloud has no field(s) {', '.join(missing)}")
+    wrong = [name for name in _FIELDS if fields[name].datatype != _FLOAT32 or fields[name].count != 1]
+    if wrong:
+        raise ValueError(f"{where}: field(s) {', '.join(wrong)} are not single float32 values")
+    if message.is_bigendian:
+        raise ValueError(f"{where}: big-endian clouds are not supported")
+    count = int(message.width) * int(message.height)
+    step = int(message.point_step)
+    data = np.asarray(message.data, dtype=np.uint8)
+    if step < 16 or data.size < count * step:
+        raise ValueError(f"{where}: the cloud's data ({data.size} bytes) is shorter than its {count} points")
+    dtype = np.dtype({"names": list(_FIELDS), "formats": ["<f4"] * 4,
+                      "offsets": [int(fields[name].offset) for name in _FIELDS], "itemsize": step})
+    points = data[:count * step].view(dtype)
+    array = np.column_stack([points[name].astype(float) for name in _FIELDS])
+    ranges = np.linalg.norm(array[:, :3], axis=1)
+    ranges = ranges[np.isfinite(ranges)]
+    if ranges.size and float(np.median(ranges)) > limits.max_range_m:
+        raise ValueError(f"{where}: median point distance {float(np.median(ranges)):.4g} exceeds "
+                         f"{limits.max_range_m:g} m: the cloud is not in metres (millimetres?)")
+    return array
+
+
+def _open(path: Path) -> Reader:
+    if not path.exists():
+        raise ValueError(f"{path}: no such bag")
+    try:
+        reader = Reader(path)
+        reader.open()
+    except Exception as error:       # rosbags' reader errors and the storage libraries' own
+        raise ValueError(f"{path}: unreadable bag ({type(error).__name__}: {error})") from None
+    return reader
+
+
+def _messages(reader: Reader, path: Path, topics: Sequence[str]) -> Iterator[tuple[str, int, object]]:
+    connections = [c for c in reader.connections if c.topic in topics]
+    try:
+        for connection, _, raw in reader.messages(connections=connections):
+            yield connection.topic, connection, _TYPESTORE.deserialize_cdr(raw, connection.msgtype)
+    except Exception as error:
+        raise ValueError(f"{path}: unreadable bag ({type(error).__name__}: {error})") from None
+
+
+def read_sweeps(path: str | Path, layout: BagLayout = BagLayout(), limits: ReplayLimits = ReplayLimits()
+                ) -> list[ReplayedSweep]:
+    """Every sweep of a bag (see :func:`read_recording`; no galvo frame needed)."""
+    return _read_path(Path(path), layout, limits)[0]
+
+
+def read_recording(path: str | Path, layout: BagLayout = BagLayout(), limits: ReplayLimits = ReplayLimits()
+                   ) -> tuple[list[ReplayedSweep], np.ndarray]:
+    """Every sweep of a bag, assembled and placed in ``layout.base_frame`` (see the module docstring), and
+    the pose of ``layout.gls_frame`` in that frame (4x4, mm) at the first motion's start.
+
+    ValueError (naming the problem) for an unreadable bag, a missing topic or frame, a motion without
+    its end, a profile without a recent enough pose, a stream that stops mid-sweep, a cloud not in metres.
+    """
+    sweeps, buffer = _read_path(Path(path), layout, limits)
+    return sweeps, _pose_at(buffer, layout.base_frame, layout.gls_frame, sweeps[0].start_ns, limits, str(path))
+
+
+def _read_path(path: Path, layout: BagLayout, limits: ReplayLimits):
+    reader = _open(path)
+    try:
+        return _read(reader, path, layout, limits)
+    finally:
+        reader.close()
+
+
+def _read(reader: Reader, path: Path, layout: BagLayout, limits: ReplayLimits):
+    topics = {c.topic: c.msgtype for c in reader.connections}
+    assembler = StreamAssembler(layout, limits, str(path))
+    for topic, msgtype in assembler.topics().items():
+        if topic not in topics:
+            raise ValueError(f"{path}: topic {topic} is not in the bag (topics: {', '.join(sorted(topics)) or 'none'})")
+        if topics[topic] != msgtype:
+            raise ValueError(f"{path}: topic {topic} carries {topics[topic]}, not {msgtype}")
+    for topic, _, message in _messages(reader, path, list(assembler.topics())):
+        assembler.add(topic, message)
+    return assembler.sweeps(), assembler.buffer
+
+
+class StreamAssembler:
+    """Collects a cell's streams (profiles, TF, motion stamps) and assembles sweeps from them.
+
+    Fed message by message, from a bag or live as a subscriber sees them; ``source`` names the stream
+    in error messages. The same arithmetic serves both, so a live run and its replay agree exactly.
+    """
+
+    def __init__(self, layout: BagLayout = BagLayout(), limits: ReplayLimits = ReplayLimits(),
+                 source: str = "stream") -> None:
+        from gls_calibration.scan.tf_buffer import TfBuffer   # the package's buffer (time interpolation, chains)
+
+        self.layout = layout
+        self.limits = limits
+        self.source = source
+        self.buffer = TfBuffer()
+        self.starts: list[int] = []
+        self.ends: list[int] = []
+        self.profiles: list[tuple[int, np.ndarray]] = []
+
+    def topics(self) -> dict[str, str]:
+        """The topics it reads and their message types."""
+        layout = self.layout
+        return {layout.scan_topic: POINTCLOUD2, layout.tf_topic: TFMESSAGE, layout.tf_static_topic: TFMESSAGE,
+                layout.motion_start_topic: HEADER, layout.motion_end_topic: HEADER}
+
+    def add(self, topic: str, message) -> None:
+        """Take one message of one of :meth:`topics` (others are ignored)."""
+        layout = self.layout
+        if topic in (layout.tf_topic, layout.tf_static_topic):
+            for transform in message.transforms:
+                _add_transform(self.buffer, transform, static=topic == layout.tf_static_topic)
+        elif topic == layout.motion_start_topic:
+            self.starts.append(_stamp_ns(message))
+        elif topic == layout.motion_end_topic:
+            self.ends.append(_stamp_ns(message))
+        elif topic == layout.scan_topic:
+            if message.header.frame_id != layout.sensor_frame:
+                raise ValueError(f"{self.source}: a profile on {topic} is in frame {message.header.frame_id!r}, "
+                                 f"not {layout.sensor_frame!r}")
+            stamp = _stamp_ns(message.header)
+            self.profiles.append((stamp, profile_points(message, self.limits, f"{self.source}: profile at {stamp} ns")))
+
+    def sweeps(self) -> list[ReplayedSweep]:
+        """Every complete motion's sweep, in order; ValueError naming the first problem."""
+        windows = _windows(self.source, self.starts, self.ends)
+        stamps = np.array([stamp for stamp, _ in self.profiles], dtype=np.int64)
+        return [self._sweep(number, start, end, stamps) for number, (start, end) in enumerate(windows, 1)]
+
+    def take_last_sweep(self) -> ReplayedSweep:
+        """The latest motion's sweep; the profiles up to its end are dropped afterwards (live use)."""
+        number = len(self.starts)
+        if number == 0 or len(self.ends) != number:
+            raise ValueError(f"{self.source}: no complete motion to assemble")
+        start, end = self.starts[-1], self.ends[-1]
+        stamps = np.array([stamp for stamp, _ in self.profiles], dtype=np.int64)
+        sweep = self._sweep(number, start, end, stamps)
+        self.profiles = [item for item in self.profiles if item[0] > end]
+        return sweep
+
+    def _sweep(self, number: int, start: int, end: int, stamps: np.ndarray) -> ReplayedSweep:
+        where = f"{self.source}: sweep {number} ({start} to {end} ns)"
+        inside = np.flatnonzero((stamps >= start) & (stamps <= end))
+        if inside.size < 2:
+            raise ValueError(f"{where}: {inside.size} profile(s) within the motion")
+        inside = inside[np.argsort(stamps[inside], kind="stable")]
+        _check_stream(where, stamps[inside], end, self.limits)
+        widths = {self.profiles[i][1].shape[0] for i in inside}
+        if len(widths) != 1:
+            raise ValueError(f"{where}: profiles of different widths {sorted(widths)}")
+        points_m = np.stack([self.profiles[i][1] for i in inside])                    # (H, W, 4)
+        poses = np.stack([_sensor_pose(self.buffer, self.layout, self.limits, int(stamps[i]), where)
+                          for i in inside])
+        xyz = (np.einsum("hij,hwj->hwi", poses[:, :3, :3], points_m[..., :3] * MM_PER_M)
+               + poses[:, None, :3, 3])
+        return ReplayedSweep(xyz, points_m[..., 3], stamps[inside], start, end)
+
+
+def _windows(path: str, starts: list[int], ends: list[int]) -> list[tuple[int, int]]:
+    if not starts:
+        raise ValueError(f"{path}: no motion in the bag (no message on the motion start topic)")
+    starts, ends = sorted(starts), sorted(ends)
+    windows = []
+    for number, start in enumerate(starts):
+        following = [end for end in ends if end >= start]
+        end = following[0] if following else None
+        later_start = starts[number + 1] if number + 1 < len(starts) else None
+        if end is None or (later_start is not None and end > later_start):
+            raise ValueError(f"{path}: the motion that started at {start} ns has no end "
+                             "(a recording cut mid-sweep?)")
+        windows.append((start, end))
+    if len(ends) != len(starts):
+        raise ValueError(f"{path}: {len(starts)} motion start(s) but {len(ends)} end(s)")
+    return windows
+
+
+def _check_stream(where: str, stamps_ns: np.ndarray, end_ns: int, limits: ReplayLimits) -> None:
+    gaps = np.diff(stamps_ns)
+    period = float(np.median(gaps))
+    if period <= 0:
+        raise ValueError(f"{where}: profiles share stamps")
+    allowed = limits.max_gap_periods * period
+    longest = int(np.argmax(gaps))
+    if gaps[longest] > allowed:
+        raise ValueError(f"{where}: the profile stream stops for {gaps[longest] / NS_PER_S:.4g} s after "
+                         f"profile {longest + 1} (more than {limits.max_gap_periods:g} profile periods)")
+    if end_ns - stamps_ns[-1] > allowed:
+        raise ValueError(f"{where}: the profile stream stops {(end_ns - stamps_ns[-1]) / NS_PER_S:.4g} s "
+                         "before the motion ends")
+
+
+def _add_transform(buffer, transform, static: bool) -> None:
+    buffer.set_transform(transform.header.frame_id, transform.child_frame_id, _stamp_ns(transform.header),
+                         _pose_mm(transform.transform), static=static)
+
+
+def _sensor_pose(buffer, layout: BagLayout, limits: ReplayLimits, stamp_ns: int, where: str) -> np.ndarray:
+    return _pose_at(buffer, layout.base_frame, layout.sensor_frame, stamp_ns, limits, where)
+
+
+def _pose_at(buffer, target: str, source: str, stamp_ns: int, limits: ReplayLimits, where: str) -> np.ndarray:
+    """Pose of ``source`` in ``target`` (4x4, mm) at ``stamp_ns``; ValueError naming a missing frame or pose."""
+    return buffer.lookup(target, source, stamp_ns, max_age_ns=int(round(limits.max_pose_age_s * NS_PER_S)),
+                         where=where)
