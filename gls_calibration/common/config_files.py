@@ -12,7 +12,7 @@ Parsed = TypeVar("Parsed")
 
 def config_path(name: str) -> Path:
     """Path of ``config/<name>``; FileNotFoundError naming the places looked at."""
-    places = [Path(__file__).resolve().parent.parent / "config"]
+    places = [Path(__file__).resolve().parents[2] / "config"]
     try:
         from ament_index_python.packages import get_package_share_directory
         places.append(Path(get_package_share_directory("gls_calibration")) / "config")
