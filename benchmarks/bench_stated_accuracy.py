@@ -21,7 +21,7 @@ from pathlib import Path
 from bench_honest_robot import calibrate_once
 from gls_calibration.simulation.reference_plate import (FIELD_PLATE, calibration_plan, chain_check,
                                                         reference_plate_check)
-from gls_calibration.calibration import stated_accuracy
+from gls_calibration.calibration.stated_accuracy import stated_accuracy
 from gls_calibration.simulation.world import load_sim_config
 
 

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from gls_calibration.fiducials.measure import NO_LATTICE_PIXEL_MM, measure_fiducials
+from gls_calibration.fiducials.measure import measure_fiducials
+from gls_calibration.fiducials.raster import NO_LATTICE_PIXEL_MM
 from gls_calibration.scan.plate_pose import estimate_plate_pose
 from plate_renderers import CONDITIONS, RENDERERS, render
 import rendering_independent

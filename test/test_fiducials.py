@@ -9,7 +9,8 @@ import pytest
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from gls_calibration.fiducials.measure import FiducialMeasurement, _duplicates, _prewhitening_kernel, measure_fiducials
+from gls_calibration.fiducials.detection import _prewhitening_kernel
+from gls_calibration.fiducials.measure import FiducialMeasurement, _duplicates, measure_fiducials
 from gls_calibration.scan.plate_pose import estimate_plate_pose
 from rendering import BACKGROUND, MARK, plate_to_scanner, render_plate_scan
 
@@ -279,7 +280,7 @@ def test_moderated_uncertainties_are_raised_towards_the_plate_never_lowered():
     """Jackknife variances of equal true size scatter like chi2(23)/23: the low draws are raised towards
     the plate's typical one, nothing is lowered, a genuinely larger variance keeps its own, and a plate
     with too few candidates is left as it is."""
-    from gls_calibration.fiducials.measure import MODERATION_MIN_REFERENCE, _moderated
+    from gls_calibration.fiducials.centre_uncertainty import MODERATION_MIN_REFERENCE, _moderated
     rng = np.random.default_rng(5)
     count, dof = 300, 23
     variance = 4e-6 * rng.chisquare(dof, size=(count, 2)) / dof          # (2 um)^2, per axis
@@ -308,7 +309,8 @@ def test_centre_uncertainty_holds_for_edge_noise_correlated_along_the_ring(corre
     apart), fitted with the refinement's design: the stated variance of the centre is never well
     below the true one (Monte Carlo over 2000 rings). At l = 6 rays the sector jackknife alone gives
     half of it; the spectral estimate follows the noise's power in the first harmonic."""
-    from gls_calibration.fiducials.measure import RAY_COUNT, SECTORS, _centre_covariance, _harmonic_design, _spectral_covariance
+    from gls_calibration.fiducials.centre_uncertainty import SECTORS, _centre_covariance, _harmonic_design, _spectral_covariance
+    from gls_calibration.fiducials.ring_fit import RAY_COUNT
     rng = np.random.default_rng(3)
     count = 2000
     design = _harmonic_design(np.linspace(0.0, 2 * np.pi, RAY_COUNT, endpoint=False))
@@ -337,7 +339,7 @@ def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px, 
     # averaged over four (which blurs thin lines under speckle and shifts them by the local phase).
     # The fifth case is a 200 mm plate (every 20th point kept), where a coarse lattice search could
     # mistake the drift for another; the last two are clouds turned by 20° and -35° (a robot's frame).
-    from gls_calibration.fiducials.measure import _rasterised_image
+    from gls_calibration.fiducials.raster import _rasterised_image
     from gls_calibration.scan.plate_pose import PlatePose
     pitch = 0.1
     col, row = np.meshgrid(np.arange(size_px) + offset_px, np.arange(size_px * 3 // 4) + offset_px)
@@ -363,7 +365,7 @@ def test_missing_pixels_take_the_mean_of_the_smallest_box_holding_valid_ones(sha
     # pixel, borders reflected (cv2.BORDER_REFLECT: ...cba|abc...), gives the mean of those pixels.
     # Many missing pixels (the first case) are read from summed-area tables, few from their boxes;
     # the last case's hole holds pixels beyond the largest box (the median).
-    from gls_calibration.fiducials.measure import FILL_BOX_SIZES, _fill_missing
+    from gls_calibration.fiducials.raster import FILL_BOX_SIZES, _fill_missing
     rng = np.random.default_rng(7)
     image = rng.uniform(10.0, 100.0, shape)
     valid = rng.random(image.shape) > missing_share

@@ -13,8 +13,7 @@ from typing import TYPE_CHECKING, Any, Optional
 
 import numpy as np
 
-from gls_calibration.calibration import stated_accuracy
-from gls_calibration.calibration.stated_accuracy import SELF_CONSISTENCY, ChainCheck
+from gls_calibration.calibration.stated_accuracy import SELF_CONSISTENCY, ChainCheck, stated_accuracy
 from gls_calibration.common.time_budget import StageTimes
 from gls_calibration.common.validation import as_points, as_positive_number
 from gls_calibration.registration.chain_map import NO_CHAIN_MAP

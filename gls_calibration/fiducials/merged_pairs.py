@@ -32,7 +32,7 @@ from scipy import stats
 from scipy.signal import savgol_filter
 
 from gls_calibration.common.robust import robust_sigma
-from gls_calibration.fiducials import sector_jackknife
+from gls_calibration.fiducials.sector_jackknife import sector_jackknife
 
 SIGNATURE_DOF = 5
 """Coefficients of the pair's signature: the mean line width, and line width and darkness each as

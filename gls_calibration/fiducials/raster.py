@@ -1,0 +1,408 @@
+"""The plate as an image: an organized cloud as it is, an unorganized one rasterised on the plate plane
+(step 1 of :mod:`gls_calibration.fiducials.measure`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gls_calibration.fiducials.targets import RING_RADII_MM
+from gls_calibration.scan.plate_pose import PlatePose
+
+
+HIGH_PASS_SIGMA_PX = 1.5
+"""Gaussian (pixels) subtracted from the log image: ring lines are about one pixel wide, speckle grains
+of laser-marked steel 1-2 pixels correlated; this kept the most line signal over speckle in the
+vision benchmark (1.5 / 2 / 3 px compared)."""
+
+LINE_HALF_WIDTH_MM = 0.05
+"""Half the width of a marked ring line (the paper's 0.1 mm lines): how far a line's own darkness
+reaches beyond its radius."""
+
+NO_LATTICE_PIXEL_MM = 2 * LINE_HALF_WIDTH_MM / HIGH_PASS_SIGMA_PX
+"""Raster pixel (mm, 0.067) of a cloud without a lattice whose points are coarser: the finest at which
+the high pass's blur (``HIGH_PASS_SIGMA_PX``) still spans a line's width. Measured on the independent
+renderer's 19x19 plates (issue 31, jittered scan lines): 0.05 mm lost 19 of 361 fiducials under 0.3
+speckle (the blur subtracts the line's own darkness), 0.1 mm at 0.15 mm point pitch 13 (holes between
+points, 6-8 um RMS); 0.067 mm found all 361 in each of the issue's conditions, 0.5-4.9 um RMS per axis
+(docs/fiducial-measurement.md, *Plates from two renderers*)."""
+
+MIN_NORMAL_Z_FOR_CLOUD_RASTER = 0.7
+"""A cloud without a lattice is rasterised in its own x-y (``_rasterised_image``) when the plate's
+normal is within about 45 deg of the cloud's z; steeper, on the plate's plane."""
+
+LATTICE_TILE_PX = 125.0
+"""Tile size (pixels) in the search for an unorganized cloud's scan lattice (``_scan_lattice``): tile
+centres this far apart tell phase gradients apart up to 1 / 125 = 0.008 px per px, more than the
+search's range of +-0.003, so no gradient is taken for another."""
+
+LATTICE_SAMPLE_POINTS = 50_000
+"""Points of an unorganized cloud (a regular stride through it) that the lattice search and the
+raster's orientation are taken from: about 200 per tile are plenty for a phase."""
+
+SPACING_PATCH_POINTS = 120
+"""Side (in points) of the patch of an unorganized cloud whose neighbour distances give its point
+spacing (``_point_spacing``): about 14 000 points, whose median distances hold to 0.1 %."""
+
+SPACING_CONE_RATIO = 2.0
+"""A neighbour counts as one along a raster axis when its offset along that axis is at least this
+many times its offset across it (within about 27 deg of the axis)."""
+
+MAX_PIXEL_RADIUS_FRACTION = 0.2
+"""A pixel taken from the cloud's own point spacing must be below this share of the smallest ring
+radius (0.5 mm for 2.5 mm rings, a raster too coarse to see the rings): beyond, the spacing is
+taken for a units mistake and refused."""
+
+FILL_BOX_SIZES = (3, 5, 9, 17, 33)
+"""Box sizes (pixels) tried in turn to fill a missing pixel from its valid neighbours; beyond the last,
+the image's median."""
+
+
+@dataclass(frozen=True)
+class _PlateImage:
+    """Intensity image with a per-pixel plane position: the organized cloud's point (through the plate
+    pose) or uv = raster_origin + raster_matrix @ (col, row)."""
+
+    intensity: np.ndarray          # (H, W) float32, marks dark, no NaN
+    cloud_xyz: np.ndarray | None   # (H, W, 3) the organized cloud's point per pixel, NaN allowed
+    raster_origin: np.ndarray | None  # (2,) plane coordinates of pixel (0, 0) (rasterised clouds)
+    pitch: tuple[float, float]     # (row, column) pixel pitch in mm
+    raster_matrix: np.ndarray | None = None   # (2, 2) uv = raster_origin + raster_matrix @ (col, row)
+    pose: PlatePose | None = None  # plane coordinates of ``cloud_xyz``
+
+
+def _fill_missing(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Fill invalid pixels with the mean of the valid ones in the smallest box of ``FILL_BOX_SIZES``
+    around them holding any (borders reflected as ``cv2.BORDER_REFLECT``); beyond the largest, the
+    median of the valid pixels."""
+    if valid.all():
+        return image
+    filled = image.astype(np.float32)
+    values = np.where(valid, filled, np.float32(0.0))
+    reach = FILL_BOX_SIZES[-1] // 2
+    rows, cols = np.nonzero(~valid)
+    # The chessboard distance to the nearest valid pixel names the box each missing pixel needs
+    # (a copy reflected beyond the border is never nearer than the pixel it copies), so every
+    # missing pixel is read once, and those beyond the largest box not at all.
+    needed = cv2.distanceTransform((~valid).astype(np.uint8), cv2.DIST_C, 3)[rows, cols]
+    row_of = np.pad(np.arange(valid.shape[0]), reach, mode="symmetric")     # reflected row per padded row
+    col_of = np.pad(np.arange(valid.shape[1]), reach, mode="symmetric")
+    tables = None
+    smaller = 0
+    for size in FILL_BOX_SIZES:
+        half = size // 2
+        members = (needed > smaller) & (needed <= half)
+        smaller = half
+        box_rows, box_cols = rows[members], cols[members]
+        if len(box_rows) == 0:
+            continue
+        if len(box_rows) * size * size <= valid.size:
+            # Few pixels for this size: read their boxes (cheaper than any pass over the image).
+            offsets = np.arange(-half, half + 1)
+            rows_in_box = row_of[box_rows[:, None] + reach + offsets][:, :, None]
+            cols_in_box = col_of[box_cols[:, None] + reach + offsets][:, None, :]
+            counts = np.count_nonzero(valid[rows_in_box, cols_in_box], axis=(1, 2))
+            sums = values[rows_in_box, cols_in_box].sum(axis=(1, 2), dtype=np.float64)
+        else:
+            # Many: box sums from summed-area tables of the reflected image, built once.
+            if tables is None:
+                tables = [cv2.integral(cv2.copyMakeBorder(table, reach, reach, reach, reach, cv2.BORDER_REFLECT),
+                                       sdepth=depth)
+                          for table, depth in ((values, cv2.CV_64F), (valid.astype(np.uint8), cv2.CV_32S))]
+            low_r, high_r = box_rows + reach - half, box_rows + reach + half + 1
+            low_c, high_c = box_cols + reach - half, box_cols + reach + half + 1
+            sums, counts = (table[high_r, high_c] - table[low_r, high_c] - table[high_r, low_c]
+                            + table[low_r, low_c] for table in tables)
+        filled[box_rows, box_cols] = sums / counts
+    far = needed > reach
+    if far.any():
+        filled[rows[far], cols[far]] = np.median(image[valid])
+    return filled
+
+
+def _finite_points(xyz: np.ndarray, intensity: np.ndarray) -> np.ndarray:
+    """Mask (intensity's shape) of the points whose coordinates (xyz (..., 3)) and intensity are finite."""
+    finite = np.isfinite(intensity)
+    for axis in range(3):           # column by column: a third of the time of isfinite(xyz).all(axis=-1)
+        finite &= np.isfinite(xyz[..., axis])
+    return finite
+
+
+def _median_spacing(lines_uv: np.ndarray, axis: int) -> float:
+    """Median distance (mm) between neighbouring pixels' plane positions ``lines_uv`` (..., 2) along
+    image axis ``axis``."""
+    with np.errstate(invalid="ignore", over="ignore"):     # missing or absurd points drop out below
+        steps = np.diff(lines_uv, axis=axis)
+        lengths = np.hypot(steps[..., 0], steps[..., 1]).ravel()
+    lengths = lengths[np.isfinite(lengths)]
+    if lengths.size == 0:
+        raise ValueError("organized cloud has no two neighbouring finite points")
+    return float(np.median(lengths))
+
+
+def _organized_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose) -> _PlateImage:
+    """Image of an organized cloud: one pixel per point."""
+    valid = _finite_points(xyz, intensity)
+    if np.count_nonzero(valid) == 0:
+        raise ValueError("intensity image has no finite pixels")
+    # Every 8th line across each axis is plenty for a median: the plane coordinates of the whole
+    # cloud are never needed (the local affines take those of their windows).
+    pitch = (_median_spacing(pose.to_plane(xyz[:, ::8]), 0), _median_spacing(pose.to_plane(xyz[::8]), 1))
+    return _PlateImage(_fill_missing(intensity, valid), xyz, None, pitch, pose=pose)
+
+
+def _scan_lattice(uv: np.ndarray, pixel_size_mm: float) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Raster for an unorganized cloud: ``(to_pixel (2, 2), shift (2,), on_lattice)`` with pixel
+    (col, row) = to_pixel @ uv + shift, pixel centres on the points of a regular scan where it has
+    them (``on_lattice`` True).
+
+    Points midway between pixel centres are averaged 2x2 by the splatting, and a raster whose phase
+    against the scan drifts across the plate (tilt shears the scan's grid on the plane) blurs and
+    shifts the thin ring lines by different amounts in different places (measured: 2.4 um RMS where
+    the phase is within 0.1 px, 5 um at 0.1-0.3 px). The scan's phase against the raster is modelled
+    as linear in uv per axis (an affine lattice): a coarse search of its gradient over tiles of
+    ``LATTICE_TILE_PX``, then a least-squares refinement. A cloud without a lattice (phase concentration
+    below 0.5) keeps the plain raster at ``pixel_size_mm``.
+    """
+    step = max(1, len(uv) // LATTICE_SAMPLE_POINTS)
+    sample = uv[::step] / pixel_size_mm                                          # pixel units
+    low, span = sample.min(axis=0), np.maximum(np.ptp(sample, axis=0), 1e-9)
+    tiles = int(np.clip(np.ceil(span.max() / LATTICE_TILE_PX), 4, 64))          # per side
+    cell = np.minimum(((sample - low) / span * tiles).astype(int), tiles - 1)
+    tile = cell[:, 0] * tiles + cell[:, 1]
+    counts = np.bincount(tile, minlength=tiles**2)
+    filled = counts > 0
+    centres = np.stack([np.bincount(tile, weights=sample[:, k], minlength=tiles**2)
+                        for k in range(2)], -1)[filled] / counts[filled, None]
+    middle = centres.mean(axis=0)
+    centres = centres - middle
+    # Phase drift per pixel: up to 6 px over 2000 px, in steps that turn the plate's ends by 0.2 px.
+    gradients = np.arange(-30, 31) * 1e-4
+    to_pixel, shift = np.eye(2), np.zeros(2)
+    for axis in range(2):
+        phasor = np.exp(2j * np.pi * sample[:, axis])
+        tile_sums = (np.bincount(tile, weights=phasor.real, minlength=tiles**2)
+                     + 1j * np.bincount(tile, weights=phasor.imag, minlength=tiles**2))[filled]
+        # Coarse: the gradient (px of phase per px) that best lines the tiles' phasors up.
+        # score[a, b] = |sum_t tile_sums_t exp(-2 pi i (g_a u_t + g_b v_t))|: one matrix product.
+        along_u = np.exp(-2j * np.pi * np.outer(gradients, centres[:, 0]))
+        along_v = np.exp(-2j * np.pi * np.outer(gradients, centres[:, 1]))
+        score = np.abs((along_u * tile_sums) @ along_v.T)
+        best = np.unravel_index(np.argmax(score), score.shape)
+        gradient = np.array([gradients[best[0]], gradients[best[1]]])
+        # Fine: least squares on the tiles' residual phases, weighted by their phasor sums' length.
+        aligned = tile_sums * np.exp(-2j * np.pi * centres @ gradient)
+        residual = np.angle(aligned * np.exp(-1j * np.angle(aligned.sum()))) / (2 * np.pi)   # about 0: no wrap
+        design = np.column_stack([np.ones(len(centres)), centres])
+        weight = np.abs(tile_sums)
+        fit = np.linalg.lstsq(design * weight[:, None], residual * weight, rcond=None)[0]
+        gradient = gradient + fit[1:]
+        mean_phasor = np.exp(2j * np.pi * (sample[:, axis] - (sample - middle) @ gradient)).mean()
+        if abs(mean_phasor) < 0.5:
+            return np.eye(2) / pixel_size_mm, np.zeros(2), False
+        to_pixel[axis] -= gradient
+        shift[axis] = middle @ gradient - np.angle(mean_phasor) / (2 * np.pi)
+    return to_pixel / pixel_size_mm, shift, True
+
+
+def _point_spacing(xyz: np.ndarray, keep: np.ndarray, pose: PlatePose, turn: np.ndarray,
+                   footprint_mm2: float) -> tuple[float, float, float]:
+    """Point spacing (mm) of an unorganized cloud on the plate: ``(along, across, per_point)``.
+
+    ``along`` and ``across`` are the median distances from a point to its nearest neighbour in the
+    positive direction of each raster axis (the plane turned by ``turn``), over a patch of about
+    ``SPACING_PATCH_POINTS`` squared points at the middle of the cloud: a scan's step along its
+    lines and between them, exactly, whatever the points' order in the cloud. ``per_point`` is the
+    square root of the plate area per point (``footprint_mm2`` over the finite points), the spacing
+    of points that lie on no lines.
+    """
+    finite = xyz[keep] if not keep.all() else xyz
+    per_point = float(np.sqrt(footprint_mm2 / max(len(finite), 1)))
+    step = max(1, len(finite) // LATTICE_SAMPLE_POINTS)
+    middle = np.median(finite[::step], axis=0)
+    # A square of the cloud's x-y about its middle: the plate's scale there, up to its tilt.
+    half = SPACING_PATCH_POINTS / 2 * per_point / max(abs(float(pose.normal[2])), 0.1)
+    near = (np.abs(finite[:, 0] - middle[0]) < half) & (np.abs(finite[:, 1] - middle[1]) < half)
+    patch = pose.to_plane(finite[near]) @ turn.T
+    if len(patch) < 16:
+        return per_point, per_point, per_point
+    _, neighbour = cKDTree(patch).query(patch, k=9)
+    offsets = patch[neighbour[:, 1:]] - patch[:, None, :]
+    spacing = []
+    for axis in range(2):
+        along, across = offsets[..., axis], np.abs(offsets[..., 1 - axis])
+        nearest = np.where((along > 0) & (along >= SPACING_CONE_RATIO * across), along, np.inf).min(axis=1)
+        nearest = nearest[np.isfinite(nearest)]
+        spacing.append(float(np.median(nearest)) if len(nearest) else per_point)
+    return spacing[0], spacing[1], per_point
+
+
+def _edge_turn(points: np.ndarray) -> np.ndarray:
+    """Rotation (2, 2) that turns 2-D ``points`` (N, 2) so that the edges of their minimum-area
+    rectangle lie along the axes (by at most 45 deg)."""
+    with np.errstate(over="ignore", invalid="ignore"):     # absurd coordinates fail the size check later
+        edge_deg = cv2.minAreaRect(points.astype(np.float32))[2]
+    turn_rad = np.deg2rad((edge_deg + 45.0) % 90.0 - 45.0)
+    return np.array([[np.cos(turn_rad), np.sin(turn_rad)], [-np.sin(turn_rad), np.cos(turn_rad)]])   # by -turn
+
+
+def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
+                      pixel_size_mm: float | None, smallest_radius_mm: float = RING_RADII_MM[0]) -> _PlateImage:
+    """Image of an unorganized cloud: mean intensity of the points falling in each plane pixel.
+
+    ``pixel_size_mm`` None takes the pixel from the cloud's own point spacing (``_point_spacing``):
+    the larger of its steps along and across the scan lines, so that every pixel holds a point,
+    where the raster follows a regular scan; otherwise the larger side of the plate area per point
+    split in the same ratio (points off any lattice, ``_scan_lattice``). ValueError when that pixel
+    is at least ``MAX_PIXEL_RADIUS_FRACTION`` of ``smallest_radius_mm`` (a cloud in other units).
+    """
+    keep = _finite_points(xyz, intensity)
+    if not keep.any():
+        raise ValueError("cloud has no finite point with a finite intensity")
+    step = max(1, len(xyz) // LATTICE_SAMPLE_POINTS)
+    sample = xyz[::step][keep[::step]]
+    sample = sample if len(sample) else xyz[keep]
+    sample_uv = pose.to_plane(sample)
+    # Raster axes along the edges of the cloud's minimum-area rectangle: a cloud turned in its plane
+    # (into a robot's frame, say) keeps a tight image, and a regular scan's lines come out along the
+    # raster, where _scan_lattice can follow them.
+    turn = _edge_turn(sample_uv)
+    if pixel_size_mm is None:
+        with np.errstate(over="ignore", invalid="ignore"):      # absurd coordinates: refused below
+            footprint_mm2 = float(np.prod(cv2.minAreaRect(sample_uv.astype(np.float32))[1]))
+        along, across, per_point = _point_spacing(xyz, keep, pose, turn, footprint_mm2)
+        pixel_size_mm = max(along, across)
+        if not (np.isfinite(pixel_size_mm) and 0 < pixel_size_mm < MAX_PIXEL_RADIUS_FRACTION * smallest_radius_mm):
+            raise ValueError(f"the cloud's point spacing ({pixel_size_mm:.3g} mm) is not between 0 and "
+                             f"{MAX_PIXEL_RADIUS_FRACTION * smallest_radius_mm:.3g} mm for rings of "
+                             f"{smallest_radius_mm:g} mm; check the cloud's units (mm) or give pixel_size_mm")
+        to_pixel, shift, on_lattice = _scan_lattice(sample_uv @ turn.T, pixel_size_mm)
+        if not on_lattice:
+            # No lattice: the points sample the lines at random phases and splatting blurs them by
+            # about a pixel, so the raster is finer than a coarse scan (most of its pixels then hold
+            # no point and are filled from their neighbours), down to NO_LATTICE_PIXEL_MM. Finer
+            # clouds keep their own spacing, from the area per point (a step to the nearest
+            # neighbour is short where points lie at random).
+            spacing_mm = per_point * float(np.sqrt(max(along, across) / min(along, across)))
+            pixel_size_mm = min(spacing_mm, NO_LATTICE_PIXEL_MM)
+            to_pixel = np.eye(2) / pixel_size_mm
+    else:
+        to_pixel, shift, on_lattice = _scan_lattice(sample_uv @ turn.T, pixel_size_mm)
+    to_pixel = to_pixel @ turn
+    # Pixel coordinates straight from the cloud, column = xyz @ in_plane[:, 0] + offset[0] (gemv): the
+    # plane coordinates of the whole cloud are never needed.
+    in_plane = pose.rotation[:, :2] @ to_pixel.T            # (3, 2)
+    in_cloud_xy = not on_lattice and abs(pose.normal[2]) >= MIN_NORMAL_Z_FOR_CLOUD_RASTER
+    if in_cloud_xy:
+        # No lattice to follow, but the points may still lie one per cell of the scanner's grid (a
+        # jittered scan), which the cloud's x-y carries undistorted and the tilted plate foreshortens
+        # (~100 ppm at 1.3 deg). Splatting's error depends on the raster's phase against those cells:
+        # on the plate's plane that phase drifts slowly across the plate and stretches it (measured:
+        # 41 ppm, 4 um at its edge); on the cloud's x-y it stays put. So the raster lies in x-y, along
+        # the edges of the cloud's footprint there, and maps to the plate through the plane (affine).
+        to_pixel_xy = _edge_turn(sample[:, :2]) / pixel_size_mm
+        in_plane = np.vstack([to_pixel_xy.T, np.zeros((1, 2))])            # pixel = to_pixel_xy @ (x, y)
+        to_pixel = to_pixel_xy @ pose.rotation[:2, :2]     # points on the plane: (x, y) = centre + R uv
+        shift = np.zeros(2)
+    offset = shift - pose.centre @ in_plane
+    column = xyz @ np.ascontiguousarray(in_plane[:, 0])
+    row = xyz @ np.ascontiguousarray(in_plane[:, 1])
+    values = intensity
+    if not keep.all():      # no copy of a whole cloud for nothing
+        column, row, values = column[keep], row[keep], intensity[keep]
+    # Move by whole pixels only (the lattice's phase stays), one pixel of margin.
+    offset = offset + 1.0 - np.floor([column.min() + offset[0], row.min() + offset[1]])
+    column += offset[0]
+    row += offset[1]
+    # The image's size before any cast to integers (a cloud in metres or absurd coordinates would wrap).
+    width, height = float(column.max()) + 2.0, float(row.max()) + 2.0
+    if not (width * height <= 10_000 * 10_000):         # also NaN
+        raise ValueError(f"rasterised plate image would have {height:.3g}x{width:.3g} pixels; "
+                         f"check pixel_size_mm ({pixel_size_mm}) and the cloud's units (mm)")
+    if on_lattice:
+        # Each point is one pixel's sample, at its centre up to the scan's jitter: nearest-pixel binning
+        # takes it as it is (two bincounts where splatting takes eight).
+        corner_column, corner_row = np.rint(column).astype(np.int64), np.rint(row).astype(np.int64)
+    else:
+        corner_column, corner_row = column.astype(np.int64), row.astype(np.int64)    # >= 1: the floor
+        fraction_column, fraction_row = column - corner_column, row - corner_row
+    width, height = int(corner_column.max()) + 2, int(corner_row.max()) + 2
+    base = corner_row
+    base *= width
+    base += corner_column                   # in place: every fresh array of a whole cloud costs
+    if on_lattice:
+        sums = np.bincount(base, weights=values, minlength=width * height)
+        weights = np.bincount(base, minlength=width * height)
+    else:
+        # Bilinear splatting: every point spreads over its four nearest pixels. Off a lattice, nearest-
+        # pixel binning would shift whole regions by up to half a pixel where the scan and raster are
+        # out of phase; splatting keeps the marks' sub-pixel position.
+        rest_column, rest_row = 1.0 - fraction_column, 1.0 - fraction_row
+        size = width * height
+        sums, weights, weight = np.zeros(size), np.zeros(size), np.empty(len(base))
+        for step, column_weight, row_weight in ((0, rest_column, rest_row), (1, fraction_column, rest_row),
+                                                (width, rest_column, fraction_row),
+                                                (width + 1, fraction_column, fraction_row)):
+            # Binned at the corner pixel, then moved by ``step``: no index array per neighbour.
+            np.multiply(column_weight, row_weight, out=weight)
+            weights[step:] += np.bincount(base, weights=weight, minlength=size)[:size - step]
+            weight *= values
+            sums[step:] += np.bincount(base, weights=weight, minlength=size)[:size - step]
+    covered = weights > 1e-3
+    mean = np.divide(sums, weights, out=sums, where=covered).reshape(height, width)   # 0 where not covered
+    image = _fill_missing(mean, covered.reshape(height, width))
+    to_plane = np.linalg.inv(to_pixel)
+    shift = offset + pose.centre @ in_plane         # pixel = to_pixel @ uv + shift
+    # (row, column) pitch on the plate: the nominal one, or through the plane for a raster in x-y.
+    pitch = ((float(np.linalg.norm(to_plane[:, 1])), float(np.linalg.norm(to_plane[:, 0]))) if in_cloud_xy
+             else (pixel_size_mm, pixel_size_mm))
+    return _PlateImage(image, None, -to_plane @ shift, pitch, to_plane)
+
+
+def _local_affines(plate: _PlateImage, centres_px: np.ndarray, half_px: int):
+    """Per candidate: plane offset (M, 2) and 2x2 Jacobian (M, 2, 2) with uv = offset + J @ (col, row)."""
+    count = len(centres_px)
+    if plate.cloud_xyz is None:
+        jacobian = np.broadcast_to(plate.raster_matrix, (count, 2, 2)).copy()
+        return np.broadcast_to(plate.raster_origin, (count, 2)).copy(), jacobian, np.ones(count, bool)
+    # Least-squares affine fit of the cloud's plane coordinates over a window around each candidate:
+    # smoother than interpolating four noisy neighbours, and it carries tilt and pitch.
+    height, width = plate.intensity.shape
+    # Every third pixel of the window: plenty for six affine parameters, nine times cheaper.
+    offsets_1d = np.arange(-half_px, half_px + 1, 3)
+    base = np.rint(centres_px).astype(np.int64)
+    cols = base[:, 0, None, None] + offsets_1d[None, None, :]
+    rows = base[:, 1, None, None] + offsets_1d[None, :, None]
+    cols, rows = np.broadcast_arrays(cols, rows)
+    inside = (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
+    uv = plate.pose.to_plane(plate.cloud_xyz[np.clip(rows, 0, height - 1), np.clip(cols, 0, width - 1)])
+    weight = (inside & np.isfinite(uv).all(axis=-1)).astype(float)
+    uv = np.where(weight[..., None] > 0, uv, 0.0)
+    # Design matrix relative to the candidate pixel for conditioning.
+    design = np.stack([np.ones_like(cols, dtype=float), (cols - base[:, 0, None, None]).astype(float),
+                       (rows - base[:, 1, None, None]).astype(float)], axis=-1).reshape(count, -1, 3)
+    weight = weight.reshape(count, -1)
+    uv = uv.reshape(count, -1, 2)
+    weighted = design * weight[..., None]
+    normal_matrix = np.matmul(weighted.transpose(0, 2, 1), design)
+    right = np.matmul(weighted.transpose(0, 2, 1), uv)
+    # Enough pixels, and not all on one line (a window missing all but a row of its points).
+    with np.errstate(divide="ignore", invalid="ignore"):    # a singular window's condition is inf
+        usable = (weight.sum(axis=1) >= 10) & (np.linalg.cond(normal_matrix) < 1e10)
+    normal_matrix[~usable] = np.eye(3)
+    solution = np.linalg.solve(normal_matrix, right)            # (M, 3, 2)
+    jacobian = np.ascontiguousarray(np.transpose(solution[:, 1:, :], (0, 2, 1)))   # (M, 2 [u,v], 2 [col,row])
+    offset = solution[:, 0, :] - np.einsum("mij,mj->mi", jacobian, base.astype(float))
+    usable &= np.isfinite(offset).all(axis=1) & np.isfinite(jacobian).all(axis=(1, 2))
+    usable[usable] &= np.linalg.cond(jacobian[usable]) < 1e6
+    if not usable.all():
+        # A window without a usable fit (points missing or absurd) borrows its nearest usable
+        # neighbour's map, so that its candidate is still placed (and turned down as ``fit``).
+        if usable.any():
+            nearest = np.flatnonzero(usable)[cKDTree(centres_px[usable]).query(centres_px[~usable])[1]]
+            offset[~usable], jacobian[~usable] = offset[nearest], jacobian[nearest]
+        else:
+            offset[~usable], jacobian[~usable] = 0.0, np.diag(plate.pitch[::-1])
+    return offset, jacobian, usable

@@ -1,0 +1,281 @@
+"""Sub-pixel double-ring centres: rays in plate millimetres, edge points, the ring model's weighted fit
+(step 3 of :mod:`gls_calibration.fiducials.measure`)."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from gls_calibration.common.robust import NORMAL_MAD_SCALE
+from gls_calibration.fiducials.centre_uncertainty import SECTORS, _centre_covariance, _harmonic_design, _sector_sums
+
+
+RAY_COUNT = 256
+"""Rays per fiducial: about 1.5 rays per pixel of outer-ring circumference at 0.1 mm pixels."""
+
+RADIAL_STEP_PX = 0.2
+
+COARSE_MARGIN_PX = 4.0
+"""How far (pixels) the first pass looks for the rings: the detection may be this far off."""
+
+FINE_MARGIN_PX = 1.5
+"""How far later passes look for the rings around the current circle."""
+
+PASSES = 3
+"""Coarse pass, fine pass on all rays, fine pass on the rays of sectors where the rings are seen."""
+
+SECTOR_SEEN_FRACTION = 0.4
+"""A sector sees the rings when its amplitude reaches this share of the fiducial's typical one."""
+
+MIN_VALID_RAY_FRACTION = 0.5
+"""A fit needs this share of all rays usable."""
+
+EDGE_WEIGHT_POWER = 2.0
+"""A ray's weight in the ring fit grows as the square of its rings' contrast (``_edge_weights``): the
+edge point's variance falls as the contrast's square, at equal noise."""
+
+EDGE_WEIGHT_MAX = 2.0
+"""Relative contrast beyond which a ray weighs no more: a speckle grain or a scratch that adds to a
+ray's contrast does not take over the fit."""
+
+FIT_PASSES = 1
+"""Passes of the centre fit on the prewhitened image, from the high-passed image's result: that
+start is within about 20 um, where the ring model's first-order centre is exact to well below 1 nm
+(a second pass changed the 19x19 speckle plate's RMS by 0.04 um)."""
+
+
+def _sample_bicubic(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    """Bicubic samples (``cv2.INTER_CUBIC``) of ``image`` at float32 (column, row) positions (M, ...);
+    NaN outside."""
+    count = len(map_x)
+    shape = map_x.shape
+    map_x, map_y = map_x.reshape(count, -1), map_y.reshape(count, -1)
+    # cv2.remap limits every image side to SHRT_MAX: one row per candidate, in blocks of rows.
+    block = 16_384
+    samples = np.empty(map_x.shape, np.float32)
+    for start in range(0, count, block):
+        rows = slice(start, start + block)
+        samples[rows] = cv2.remap(image, map_x[rows], map_y[rows], interpolation=cv2.INTER_CUBIC,
+                                  borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    return samples.reshape(shape)
+
+
+def _profile_template(step: float, offsets: np.ndarray, line_sigma_mm: float) -> np.ndarray:
+    """Radial profile of dark lines at ``offsets`` (mm from the template centre), zero mean, negated."""
+    half = float(np.max(np.abs(offsets))) + 3 * line_sigma_mm
+    positions = np.arange(-np.ceil(half / step), np.ceil(half / step) + 1) * step
+    darkness = sum(np.exp(-0.5 * ((positions - offset) / line_sigma_mm) ** 2) for offset in offsets)
+    template = -darkness
+    return (template - template.mean()).astype(np.float32)
+
+
+def _correlate_rows(profiles: np.ndarray, template: np.ndarray) -> np.ndarray:
+    """Correlation of every profile (..., S) with a centred odd-length template, same length."""
+    shape = profiles.shape
+    flat = np.ascontiguousarray(profiles.reshape(-1, shape[-1]), dtype=np.float32)
+    out = np.empty_like(flat)
+    # cv2.filter2D correlates (no flip) with the anchor at the kernel centre; limited to 32767 rows.
+    block = 32_000
+    for start in range(0, len(flat), block):
+        out[start:start + block] = cv2.filter2D(flat[start:start + block], cv2.CV_32F, template[None, :],
+                                                borderType=cv2.BORDER_REPLICATE)
+    return out.reshape(shape)
+
+
+def _peak(score: np.ndarray, low: np.ndarray, width: int):
+    """Sub-sample argmax of ``score`` (M, A, S) within sample indices [low, low + width) per candidate.
+
+    ``low`` (M,) must keep the window and one neighbour on each side inside the profile. Returns
+    the fractional index (M, A) and whether the maximum is interior (a real peak, not an end)."""
+    index = low[:, None, None] + np.arange(width)[None, None, :]                   # (M, 1, W)
+    window = np.take_along_axis(score, np.broadcast_to(index, score.shape[:2] + (width,)), -1)
+    best = np.argmax(window, axis=-1)
+    interior = (best > 0) & (best < width - 1)
+    at = low[:, None] + best
+    left = np.take_along_axis(score, (at - 1)[..., None], -1)[..., 0]
+    centre = np.take_along_axis(score, at[..., None], -1)[..., 0]
+    right = np.take_along_axis(score, (at + 1)[..., None], -1)[..., 0]
+    curvature = left - 2 * centre + right
+    delta = np.where(curvature < 0, 0.5 * (left - right) / np.where(curvature < 0, curvature, -1.0), 0.0)
+    return at + np.clip(delta, -0.5, 0.5), interior & (curvature < 0)
+
+
+def _row_nanquantile(values: np.ndarray, quantile: float) -> np.ndarray:
+    """Per row of ``values`` (M, N) the ``quantile`` (0-1, linear interpolation) of its finite entries,
+    NaN for a row without any: ``np.nanpercentile`` along rows, with one sort for all rows instead of
+    numpy's loop over the rows that hold a NaN."""
+    ordered = np.sort(np.where(np.isfinite(values), values, np.nan), axis=1)      # NaN sorts last
+    last = np.isfinite(values).sum(axis=1) - 1
+    position = np.maximum(last, 0) * quantile
+    low = np.floor(position).astype(int)
+    high = np.minimum(low + 1, np.maximum(last, 0))
+    rows = np.arange(len(values))
+    lower, upper = ordered[rows, low], ordered[rows, high]
+    return np.where(last >= 0, lower + (upper - lower) * (position - low), np.nan)
+
+
+def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, usable: np.ndarray, strength: np.ndarray | None = None):
+    """Weighted least-squares fit of the radial model to edge radii (M, A) over the ``usable`` rays,
+    each weighted by its ``strength`` (M, A; default 1), with one 3-sigma trimming round.
+
+    Returns the centre shift (M, 2), mean radius (M,), the fitted radius along every ray (M, A),
+    residuals (M, A), rays used (M, A) and fit_ok (M,).
+    """
+    used = usable.copy()
+    parameters = design.shape[-1]
+    for trimming in range(2):
+        w = used * (1.0 if strength is None else strength)
+        normal_matrix = np.einsum("ai,ma,aj->mij", design, w, design)
+        right = np.einsum("ai,ma->mi", design, w * edge_radius)
+        well_posed = np.linalg.cond(normal_matrix) < 1e10
+        normal_matrix[~well_posed] = np.eye(parameters)
+        solution = np.linalg.solve(normal_matrix, right[..., None])[..., 0]
+        residual = edge_radius - solution @ design.T
+        if trimming == 0:
+            # Rays hit by speckle, a scratch or a neighbour's mark: beyond 3 robust sigmas.
+            mad = _row_nanquantile(np.where(used, np.abs(residual), np.nan), 0.5)
+            limit = np.maximum(3.0 * NORMAL_MAD_SCALE * np.nan_to_num(mad, nan=0.0), 1e-6)
+            used = used & (np.abs(residual) <= limit[:, None])
+    fit_ok = well_posed & (used.sum(axis=1) >= 16)
+    return solution[:, 1:3], solution[:, 0], edge_radius - residual, residual, used, fit_ok
+
+
+def _edge_weights(peak_score: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """Weight (M, A) of every ray's edge point in the ring fit: its darkness contrast (the profile's
+    correlation with the rings at the edge) over the candidate's median one, to the power
+    ``EDGE_WEIGHT_POWER``, at most ``EDGE_WEIGHT_MAX``.
+
+    A ray's edge error grows as its rings' contrast falls (marks fainter along the path, a line
+    sampled between points), so rays are weighed by how clearly they see the rings, relative to the
+    same fiducial's other rays rather than against a fixed threshold."""
+    median = _row_nanquantile(np.where(usable, peak_score, np.nan), 0.5)
+    relative = peak_score / np.where(median > 0, median, np.inf)[:, None]
+    return np.clip(relative, 0.0, EDGE_WEIGHT_MAX) ** EDGE_WEIGHT_POWER
+
+
+def _second_harmonic(radius_per_ray: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """cos 2theta and sin 2theta amplitudes (M, 2) of radii (M, A) at equally spaced ray ``angles`` (A,)."""
+    return np.stack([radius_per_ray @ np.cos(2 * angles), radius_per_ray @ np.sin(2 * angles)], -1) * (
+        2.0 / len(angles))
+
+
+def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacobian: np.ndarray,
+            radii_nominal: np.ndarray, pitch_mm: float, fit_image: np.ndarray | None = None) -> dict:
+    """Sub-pixel double-ring fit per candidate (see the module docstring, step 3 and 4).
+
+    ``PASSES`` passes on ``image`` follow the rings and give the coverage and the rings' radii; with
+    a ``fit_image`` (the prewhitened image), ``FIT_PASSES`` more passes on it, over the sectors seen,
+    give the centres and their covariance.
+    Returns centres (M, 2), covariance (M, 2, 2) with its degrees of freedom (M,), per-ring radii
+    (M, R), edge RMS (M,), coverage (M,), ellipticity (M,), the last fit's mean radius (M,) and
+    elliptical second harmonic (M, 2), and fit_ok (M,).
+    """
+    count = len(centres_uv)
+    mid = float(np.mean(radii_nominal))
+    offsets = radii_nominal - mid
+    line_sigma = max(0.9 * pitch_mm, 0.05)
+    step = RADIAL_STEP_PX * pitch_mm
+    pair_template = _profile_template(step, offsets, line_sigma)
+    half = (len(pair_template) - 1) / 2 * step
+    angles = np.linspace(0.0, 2 * np.pi, RAY_COUNT, endpoint=False)
+    directions = np.stack([np.cos(angles), np.sin(angles)], axis=-1)         # (A, 2)
+    design = _harmonic_design(angles)                                        # (A, 5)
+    sector_of_ray = (np.arange(RAY_COUNT) * SECTORS) // RAY_COUNT
+    inverse = np.linalg.inv(jacobian)
+    centres = centres_uv.copy()
+    visible = np.ones((count, RAY_COUNT), bool)
+    fit_ok = np.ones(count, bool)
+    coverage = np.zeros(count)
+    schedule = [image] * PASSES + ([fit_image] * FIT_PASSES if fit_image is not None else [])
+    tracked = None
+    for refinement, pass_image in enumerate(schedule):
+        fitting_only = refinement >= PASSES
+        if fitting_only and refinement == PASSES:
+            # What the rings' tracking found is kept: radii and coverage are measured on the
+            # high-passed image, whose line shape the templates describe.
+            tracked = dict(profiles=profiles, used=used, at=at, sampled_at=sampled_at, radial=radial)
+        margin = (COARSE_MARGIN_PX if refinement == 0 else FINE_MARGIN_PX) * pitch_mm
+        reach = half + (margin if refinement == 0 else 2 * margin) + step
+        radial = (mid + np.arange(-np.ceil(reach / step), np.ceil(reach / step) + 1) * step).astype(np.float32)
+        profiles = _ray_profiles(pass_image, centres, offset, inverse, directions, radial)
+        finite = np.isfinite(profiles)
+        inside = finite.all(axis=2)
+        profiles = np.where(finite, profiles, np.float32(0.0))
+        score = _correlate_rows(profiles, pair_template)
+        # Search window (indices along the ray): +- margin about the nominal mid radius, then about
+        # the last fitted one (rings of the wrong size stay in view and fail the radius check).
+        centre_radius = np.full(count, mid) if refinement == 0 else np.clip(radius, mid - margin, mid + margin)
+        width = int(np.floor(2 * margin / step)) + 1
+        low = np.clip(np.ceil((centre_radius - margin - radial[0]) / step).astype(int), 1, len(radial) - width - 1)
+        index, peak_ok = _peak(score, low, width)
+        edge = radial[0] + index * step
+        ray_ok = inside & peak_ok & (visible if refinement >= 2 else True)
+        strength = _edge_weights(np.take_along_axis(score, np.rint(index).astype(int)[..., None], -1)[..., 0],
+                                 ray_ok)
+        shift, radius, at, residual, used, ok = _fit_ring(edge, design, ray_ok, strength)
+        ok &= ray_ok.mean(axis=1) >= MIN_VALID_RAY_FRACTION * (coverage if refinement >= 2 else 1.0)
+        fit_ok = ok if refinement == 0 else fit_ok & ok
+        if fitting_only:
+            centres = np.where(fit_ok[:, None], centres + shift, centres)
+            continue
+        # Ring amplitude of every ray at the fitted circle: erased arcs read about zero there.
+        position = np.clip(np.rint((at - radial[0]) / step).astype(int), 0, len(radial) - 1)
+        amplitude = np.where(inside, np.take_along_axis(score, position[..., None], -1)[..., 0], np.nan)
+        sector_sum = _sector_sums(np.where(np.isfinite(amplitude), amplitude, 0.0), sector_of_ray)
+        sector_n = _sector_sums(np.isfinite(amplitude).astype(float), sector_of_ray)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sector = np.where(sector_n > 0, sector_sum / sector_n, np.nan)
+        reference = _row_nanquantile(sector, 0.75)
+        seen = np.nan_to_num(sector) > SECTOR_SEEN_FRACTION * np.where(reference > 0, reference, np.inf)[:, None]
+        coverage = seen.mean(axis=1)
+        visible = seen[:, sector_of_ray]
+        sampled_at = centres
+        centres = np.where(fit_ok[:, None], centres + shift, centres)
+    final_residual, final_used, final_weight = residual, used, used * strength
+    # The fitted ring about the final centre: mean radius and elliptical second harmonic.
+    mid_radius = radius
+    harmonic = _second_harmonic(at, angles)
+    if tracked is not None:
+        profiles, used, at, sampled_at, radial = (
+            tracked[key] for key in ("profiles", "used", "at", "sampled_at", "radial"))
+    # Second harmonic of the tracked ring (half the difference of its axes): a ring on the plate is a
+    # circle, so this is small; the envelope of two offset rings (a merged detection) is not.
+    ellipticity = np.hypot(*_second_harmonic(at, angles).T)
+    covariance, dof = _centre_covariance(design, final_residual, final_weight, sector_of_ray)
+
+    # Each ring's radius about the final centre: darkness centroid in a window of +- half the ring
+    # gap around its expected position on every used ray (a check of the ring sizes, not the centre).
+    ring_radii = np.full((count, len(radii_nominal)), np.nan)
+    gap = float(np.min(np.diff(radii_nominal))) if len(radii_nominal) > 1 else 4 * pitch_mm
+    outside = np.abs(radial - mid) > half + margin
+    background = np.median(profiles[:, :, outside], axis=2) if outside.any() else np.zeros(profiles.shape[:2])
+    darkness = np.clip(background[..., None] - profiles, 0.0, None)
+    at = at.astype(np.float32)
+    for ring, ring_offset in enumerate(offsets):
+        expected = (at + np.float32(ring_offset))[..., None]
+        window = np.clip((np.float32(gap / 2) - np.abs(radial - expected)) / np.float32(step) + np.float32(0.5),
+                         0.0, 1.0)
+        weight = darkness * window
+        total = weight.sum(axis=2)
+        centroid = (weight * radial).sum(axis=2) / np.where(total > 0, total, 1.0)
+        points = sampled_at[:, None, :] + centroid[..., None] * directions
+        distance = np.linalg.norm(points - centres[:, None, :], axis=-1)
+        good = used & (total > 0)
+        counts = good.sum(axis=1)
+        ring_radii[:, ring] = np.where(counts > 0, np.where(good, distance, 0.0).sum(axis=1)
+                                       / np.maximum(counts, 1), np.nan)
+    rms = np.sqrt((np.where(final_used, final_residual, 0.0) ** 2).sum(axis=1) / np.maximum(final_used.sum(axis=1), 1))
+    return dict(centres=centres, covariance=covariance, dof=dof, radii=ring_radii, rms=rms, coverage=coverage,
+                ellipticity=ellipticity, mid_radius=mid_radius, harmonic=harmonic,
+                fit_ok=fit_ok & np.isfinite(ring_radii).all(axis=1))
+
+
+def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, inverse: np.ndarray,
+                  directions: np.ndarray, radial: np.ndarray) -> np.ndarray:
+    """Image samples along rays (M, A, S) laid out in plate mm from ``centres``; NaN outside.
+
+    Rays map to pixels through each candidate's inverse affine map (pixel = J^-1 (uv - offset))."""
+    start = np.einsum("mij,mj->mi", inverse, centres - offset).astype(np.float32)      # (M, 2)
+    heading = np.einsum("mij,aj->mai", inverse, directions).astype(np.float32)          # (M, A, 2)
+    map_x = start[:, None, None, 0] + heading[..., 0, None] * radial                    # (M, A, S)
+    map_y = start[:, None, None, 1] + heading[..., 1, None] * radial
+    return _sample_bicubic(image, map_x, map_y)
