@@ -7,9 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gls_calibration import discrepancy
 from gls_calibration.calibration.outcome import deviation_metrics
-from gls_calibration.cli import discrepancy as cli
 from gls_calibration.cli.discrepancy import main
 from gls_calibration.discrepancy import run_verdict_lines
 from gls_calibration.geometry.kinematics import HeadGeometry, inverse
@@ -36,10 +34,6 @@ def run_fiducials_csv(tmp_path, measured_xy):
         targets_after=TARGETS, deviations_after=after, metrics_after=deviation_metrics(TARGETS, after).to_dict(),
         true_before=deviations))
     return tmp_path / "run" / "fiducials.csv"
-
-
-def test_min_points_matches_the_workflow():
-    assert cli.MIN_POINTS == discrepancy.MIN_POINTS
 
 
 def test_a_runs_fiducials_csv_is_accepted_and_outliers_give_its_data_rows(tmp_path):
