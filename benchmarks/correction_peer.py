@@ -22,7 +22,8 @@ from gls_calibration.correction.setpoints import Correction
 from gls_calibration.fiducials.targets import grid_targets
 from gls_calibration.geometry.kinematics import HeadGeometry
 from gls_calibration.models.rbf import OLSRBFNetwork
-from gls_calibration.ros.base import NodeThreads, use_fast_liveliness
+from gls_calibration.ros.dds import use_fast_liveliness
+from gls_calibration.ros.runtime import NodeThreads
 
 
 def synthetic_calibration(directory: Path) -> None:

@@ -30,7 +30,8 @@ if "ROS_DOMAIN_ID" not in os.environ:
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 # As `make test` sets it (before numpy loads OpenBLAS), so that `python -m pytest` runs alike.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-from gls_calibration.ros.base import use_fast_liveliness, with_companions  # noqa: E402
+from gls_calibration.ros.dds import use_fast_liveliness  # noqa: E402
+from gls_calibration.ros.runtime import with_companions
 use_fast_liveliness()  # as every node process does: a killed node leaves the graph within 1.5 s
 
 try:

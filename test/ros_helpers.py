@@ -30,7 +30,7 @@ from rclpy.parameter import Parameter
 from rclpy.task import Future
 
 from gls_calibration.cli import sim_cell
-from gls_calibration.ros.base import NodeThreads
+from gls_calibration.ros.runtime import NodeThreads
 
 
 def wait_for(condition: Callable[[], bool], timeout_s: float, *, what: str = "condition",

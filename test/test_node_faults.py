@@ -5,7 +5,9 @@ import pytest
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from gls_calibration.ros.base import GlsNode, NodeThreads, answers_errors
+from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros.runtime import NodeThreads
+from gls_calibration.ros.service_errors import answers_errors
 from ros_helpers import call_service
 
 TIMEOUT_S = 10.0

@@ -2,7 +2,7 @@
 
 A thread still inside compiled code when the interpreter finalises is ended by ``pthread_exit``, whose
 unwinding through C++ frames aborts the process ("terminate called without an active exception",
-exit 134). The stop order of ``base.NodeThreads.stop`` (no new work, runs canceled, owned threads
+exit 134). The stop order of ``runtime.NodeThreads.stop`` (no new work, runs canceled, owned threads
 joined, executors shut down, nodes destroyed, then the context) must leave none.
 
 Both tests run the cell in child processes (an abort must not take pytest with it) beside a busy
@@ -21,7 +21,8 @@ import threading
 import pytest
 from rclpy.node import Node
 
-from gls_calibration.ros.base import GlsNode, NodeThreads
+from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros.runtime import NodeThreads
 
 from gls_calibration_msgs.srv import Calibrate
 

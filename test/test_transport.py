@@ -165,7 +165,8 @@ def test_correction_process_exits_cleanly_on_sigint(ros_context, add_node, tmp_p
 # test or an operator may send it), then says it was built.
 SIGINT_WHILE_BUILT = """
 import os, signal, sys
-from gls_calibration.ros.base import GlsNode, run_node
+from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros.runtime import run_node
 from std_srvs.srv import Trigger
 
 class Interrupted(GlsNode):

@@ -42,7 +42,8 @@ from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import SimScannerNode
 from gls_calibration.registration.sweep_plan import parse_plan
-from gls_calibration.ros.base import NodeThreads, StopSignals, discard, exit_now_if_stuck, use_fast_liveliness
+from gls_calibration.ros.dds import use_fast_liveliness
+from gls_calibration.ros.runtime import NodeThreads, StopSignals, discard, exit_now_if_stuck
 from gls_calibration.ros.manager_parameters import MANAGER_PARAMETERS, value_problem
 from gls_calibration.ros.parameter_rules import unapplied_rule_problem
 from gls_calibration.simulation.measurement import PRESETS
@@ -329,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.serve:
         shutil.rmtree(store, ignore_errors=True)
     use_fast_liveliness()
-    # SIGINT/SIGTERM handled once (base.StopSignals); rclpy's own handlers stay off.
+    # SIGINT/SIGTERM handled once (runtime.StopSignals); rclpy's own handlers stay off.
     stop = StopSignals()
     context = rclpy.Context()
     # "--" ends the cell's ROS arguments; the user's command line follows with its own --ros-args.
@@ -378,7 +379,7 @@ def main(argv: list[str] | None = None) -> int:
         return status
     finally:
         stop.stopping()
-        # Order (base.NodeThreads.stop): no new work, runs canceled, owned threads joined, executors
+        # Order (runtime.NodeThreads.stop): no new work, runs canceled, owned threads joined, executors
         # shut down, nodes destroyed; then the context.
         if threads is not None:
             left = threads.stop()

@@ -10,7 +10,7 @@ user waits for once the cell has stopped moving, before the report is written an
 activated.
 
 CPU per node is only visible where the nodes share a process (``gls-sim-cell``): each node spins in
-a thread of its own (``nodes.base.NodeThreads``) whose CPU clock :func:`thread_cpu_s` reads. Work done
+a thread of its own (``ros.runtime.NodeThreads``) whose CPU clock :func:`thread_cpu_s` reads. Work done
 in threads a node does not own (OpenCV's and BLAS's pools, DDS) is not attributed to it.
 
 Example

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gls_calibration.common.robust import  robust_sigma
+from gls_calibration.common.robust import robust_sigma
 from gls_calibration.fiducials.raster import HIGH_PASS_SIGMA_PX
 
 

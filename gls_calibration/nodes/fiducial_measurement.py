@@ -4,7 +4,9 @@ from __future__ import annotations
 from gls_calibration.fiducials.measure import measure_fiducials
 from gls_calibration.fiducials.targets import RING_RADII_MM
 from gls_calibration.ros import conversions
-from gls_calibration.ros.base import GlsNode, answers_errors, run_node
+from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros.runtime import run_node
+from gls_calibration.ros.service_errors import answers_errors
 from gls_calibration_msgs.srv import MeasureFiducials
 
 

@@ -4,7 +4,9 @@ from __future__ import annotations
 import math
 
 from gls_calibration.ros import conversions
-from gls_calibration.ros.base import GlsNode, answers_errors, run_node
+from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros.runtime import run_node
+from gls_calibration.ros.service_errors import answers_errors
 from gls_calibration.scan.plate_pose import estimate_plate_pose
 from gls_calibration_msgs.srv import EstimatePlatePose
 

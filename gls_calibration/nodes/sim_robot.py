@@ -23,7 +23,8 @@ from tf2_msgs.msg import TFMessage
 
 from gls_calibration.nodes.sim_scanner import MARKS_RESEND_AFTER_S
 from gls_calibration.ros import conversions
-from gls_calibration.ros.base import GlsNode, ServiceCallError
+from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros.service_errors import ServiceCallError
 from gls_calibration.ros.sim_parameters import declare_sim_config
 from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC, line_from_msg, static_qos, stream_qos, time_msg, transform_msg
 from gls_calibration.scan.cell_frames import load_cell_frames

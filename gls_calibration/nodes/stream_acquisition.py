@@ -40,7 +40,9 @@ from tf2_msgs.msg import TFMessage
 
 from gls_calibration.nodes.scan_acquisition import request_problem
 from gls_calibration.ros import conversions
-from gls_calibration.ros.base import GlsNode, ServiceCallError, run_node
+from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros.runtime import run_node
+from gls_calibration.ros.service_errors import ServiceCallError
 from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC, line_msg, static_qos, stamp_ns, stream_qos, time_msg
 from gls_calibration.scan.bag_io import BagLayout, ReplayLimits, StreamAssembler
 from gls_calibration.scan.cell_frames import load_cell_frames
