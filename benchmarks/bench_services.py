@@ -31,8 +31,8 @@ import rclpy
 from gls_calibration.calibration.record import correction_from_record
 from gls_calibration.calibration.record_file import head_geometry, load_record
 from gls_calibration.calibration.store import CalibrationStore
-from gls_calibration.ros.runtime import NodeThreads
 from gls_calibration.ros.conversions import float64_sequence
+from gls_calibration.ros.runtime import NodeThreads
 from gls_calibration_msgs.srv import AcquireSweep, CorrectSetpoints
 
 from correction_peer import call
@@ -43,8 +43,8 @@ ECHO_NODE = """
 import numpy as np
 from gls_calibration.correction.setpoints import CorrectedSetpoints
 from gls_calibration.ros.base import GlsNode
-from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.conversions import setpoints_to_response
+from gls_calibration.ros.runtime import run_node
 from gls_calibration_msgs.srv import CorrectSetpoints
 
 class Echo(GlsNode):

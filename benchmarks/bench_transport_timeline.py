@@ -24,8 +24,8 @@ import rclpy
 
 from gls_calibration.calibration.record_file import load_record
 from gls_calibration.calibration.store import CalibrationStore
-from gls_calibration.ros.runtime import NodeThreads
 from gls_calibration.ros.conversions import float64_sequence
+from gls_calibration.ros.runtime import NodeThreads
 from gls_calibration_msgs.srv import CorrectSetpoints
 
 from bench_services import default_main_job_calibration
@@ -38,8 +38,8 @@ import sys, time
 import numpy as np
 from gls_calibration.correction.setpoints import CorrectedSetpoints
 from gls_calibration.ros.base import GlsNode
-from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.conversions import setpoints_to_response
+from gls_calibration.ros.runtime import run_node
 from gls_calibration_msgs.srv import CorrectSetpoints
 SLEEP_S = float(sys.argv[1]) / 1000.0
 

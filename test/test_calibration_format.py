@@ -49,7 +49,7 @@ def stored_calibration(tmp_path, models, plane_z_mm=0.3, taper_mm=10.0) -> dict:
         fiducials={"target_x": grid[:, 0], "target_y": grid[:, 1], "measured_x": grid[:, 0],
                    "measured_y": grid[:, 1], "measured_z": zeros, "dx": zeros, "dy": zeros})
     path = CalibrationStore(tmp_path).save(record)
-    return load_record(path)
+    return load_record(path).to_dict()
 
 
 def queries(count=2000, seed=0):

@@ -20,7 +20,7 @@ from gls_calibration.geometry.kinematics import HeadGeometry
 
 
 def make_record(seed: int = 0, count: int = 5) -> dict:
-    """A complete, valid record with random float64 content."""
+    """A complete, valid record with random float64 content, as a plain dict (tests change it)."""
     rng = np.random.default_rng(seed)
     targets = rng.uniform(-95.0, 95.0, (count, 2))
     deviations = rng.normal(0.0, 0.5, (count, 2))
@@ -37,7 +37,7 @@ def make_record(seed: int = 0, count: int = 5) -> dict:
         fiducials={"target_x": targets[:, 0], "target_y": targets[:, 1],
                    "measured_x": targets[:, 0] + deviations[:, 0], "measured_y": targets[:, 1] + deviations[:, 1],
                    "measured_z": np.zeros(count), "dx": deviations[:, 0], "dy": deviations[:, 1]},
-    )
+    ).to_dict()
 
 
 def leftover_temp_files(directory: Path) -> list[Path]:

@@ -57,7 +57,7 @@ class FiguresCell:
         self.loaded = "active"
         self.calls.append("reload_active")
 
-    async def load_calibration(self, path):
+    async def use_candidate(self, candidate):
         self.loaded = "candidate"
         self.calls.append("load_candidate")
 

@@ -18,8 +18,8 @@ from gls_calibration.cli.client import call_and_wait
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import SimScannerNode
 from gls_calibration.ros.base import DEFAULT_NAMESPACE, GlsNode
-from gls_calibration.ros.service_errors import DeadlineExpired
 from gls_calibration.ros.request_ids import AnsweredRequests, id_key, new_request_id
+from gls_calibration.ros.service_errors import DeadlineExpired
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import MarkPolylines, StartSweep
 from unique_identifier_msgs.msg import UUID

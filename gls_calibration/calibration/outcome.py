@@ -128,10 +128,12 @@ class PlateRun:
 
 @dataclass(frozen=True)
 class Candidate:
-    """A calibration saved (not activated) during a run: its file and the correction it describes."""
+    """A calibration saved (not activated) during a run: its file, its validated record and the
+    correction it describes; it travels as this object (``Cell.use_candidate``), never re-read."""
 
     path: str
     correction: "Correction"
+    record: Optional[Mapping] = None
 
 
 @dataclass(frozen=True)
@@ -216,6 +218,7 @@ class RunSummary:
     accepted_against: str = ""
     stage_wall_s: Mapping[str, float] = field(default_factory=dict)   # wall time per stage (time_budget)
     last_sweep_to_result_s: float = math.nan    # end of the last marked-plate sweep to the flow's result
+    measurement_preset: str = ""                # the simulated measurement chain's preset; empty: a real cell
 
     def to_dict(self) -> dict:
         """The summary as plain values, in field order (``summary.json``)."""
@@ -231,15 +234,16 @@ def _full(metrics: Optional[DeviationMetrics], name: str) -> float:
 
 
 def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = None,
-              placement: str = "pose") -> RunSummary:
+              placement: str = "pose", *, measurement_preset: str = "") -> RunSummary:
     """The run summary of ``outcome``; ``chain_check`` (the reference check of the chain, measured
-    with the plan the run used and profiles placed by ``placement``) gives the stated accuracy."""
+    with the plan the run used and profiles placed by ``placement``) gives the stated accuracy;
+    ``measurement_preset`` names the simulated measurement chain (empty: a real cell)."""
     first, validation = outcome.runs[0], outcome.validation
     last_model = outcome.models[-1] if outcome.models else None
     measured_after = validation.metrics if validation else None
     true_after = validation.true_metrics if validation else None
     return RunSummary(
-        message=outcome.message,
+        message=outcome.message, measurement_preset=measurement_preset,
         pre_rms_mm=_full(first.metrics, "rms_abs_mm"), pre_max_mm=_full(first.metrics, "max_abs_mm"),
         post_rms_mm=_full(measured_after, "rms_abs_mm"), post_max_mm=_full(measured_after, "max_abs_mm"),
         true_pre_rms_mm=_full(first.true_metrics, "rms_abs_mm"),

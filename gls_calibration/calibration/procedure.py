@@ -16,14 +16,14 @@ from typing import Any, Callable, Optional, Protocol
 
 import numpy as np
 
-from gls_calibration.calibration.outcome import CalibrationOutcome, Candidate, DeviationMetrics, PlateRun, deviation_metrics
+from gls_calibration.calibration.outcome import CalibrationOutcome, Candidate, PlateRun, deviation_metrics
 from gls_calibration.common.time_budget import StageClock
 from gls_calibration.common.validation import as_positive_number
 from gls_calibration.correction.setpoints import CorrectedSetpoints
 from gls_calibration.fiducials import targets as grid
 from gls_calibration.fiducials.measure import FiducialMeasurement
 from gls_calibration.models.training import TrainedModel
-from gls_calibration.registration.chain_map import NO_CHAIN_MAP, ChainMap, chain_map_identity, correct_measurements
+from gls_calibration.registration.chain_map import ChainMap, chain_map_identity, correct_measurements
 from gls_calibration.registration.rigid import RigidTransform, align_rigid_2d, pair_with_targets
 from gls_calibration.registration.separation import SeparationSettings
 from gls_calibration.registration.sweep_plan import CellTimeModel, CombinedSweeps, SweepPass, combine_sweeps, plan_label
@@ -62,9 +62,11 @@ class Cell(Protocol):
     async def estimate_plate_pose(self, cloud: Any) -> PlatePose:
         """The plate plane fitted to ``cloud`` (scanner frame, normal towards the head)."""
 
-    async def measure_fiducials(self, cloud: Any, pose: PlatePose, expected_count: int) -> FiducialMeasurement:
+    async def measure_fiducials(self, cloud: Any, pose: PlatePose, expected_count: int,
+                                ring_radii_mm: tuple[float, ...]) -> FiducialMeasurement:
         """Centres (scanner frame, mm) of the ring fiducials found in ``cloud`` on the plate ``pose``;
-        ``expected_count`` fiducials were marked (a hint, not a promise)."""
+        ``expected_count`` fiducials were marked (a hint, not a promise) with rings of ``ring_radii_mm``
+        (the procedure's settings: the radii it marked with, the one owner)."""
 
     async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> CorrectedSetpoints:
         """Setpoints that land on the targets (x, y, z) (gls frame, mm) through the calibration loaded
@@ -79,8 +81,9 @@ class Cell(Protocol):
         """A model of the correction to add at a target, trained on the landed points P (N, 2) and the
         corrections K(Q) - K(P) (N, 2) (gls frame, mm); see ``training.train_correction``."""
 
-    async def load_calibration(self, path: str) -> None:
-        """Make the cell correct through the calibration file ``path`` (a saved candidate) from now on."""
+    async def use_candidate(self, candidate: Candidate) -> None:
+        """Make the cell correct through ``candidate`` (saved, not active) from now on: its correction
+        as it is, not its file read again."""
 
     async def reload_active(self) -> None:
         """Make the cell correct through the store's active calibration again (the nominal model when
@@ -352,7 +355,7 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
         cloud = await cell.acquire_sweep(settings.marked_sweep_step_mm, item.direction, item.orientation_deg)
         report("measurement", 0.45 + 0.4 * (number + 0.5) / len(plan),
                f"measuring the fiducials of sweep {number + 1} of {len(plan)}")
-        found = await cell.measure_fiducials(cloud, pose_scanner, len(grid_xy))
+        found = await cell.measure_fiducials(cloud, pose_scanner, len(grid_xy), settings.ring_radii_mm)
         if len(found.centres) < needed:
             which = f" (sweep {item.label} of {plan_label(plan)})" if len(plan) > 1 else ""
             raise CalibrationError(f"found {len(found.centres)} of {len(grid_xy)} fiducials; at least {needed} "
@@ -453,7 +456,7 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
         models.append(await cell.train(run.measured_gls[:, :2], run.corrections))
         check_model_explains(models[-1], rms, centre_uncertainty_mm(run, settings), settings)
         candidate = save_candidate(runs, models)
-        await cell.load_calibration(candidate.path)
+        await cell.use_candidate(candidate)
 
     validation = active_validation = None
     if validate:
@@ -468,7 +471,7 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
             await cell.reload_active()
             active_validation = await run_plate(cell, settings, validation_xy, progress,
                                                 ((iterations + 1) * span, span), want_truth, allow_marked=force)
-            await cell.load_calibration(candidate.path)
+            await cell.use_candidate(candidate)
             before, against = active_validation, "the validation grid"
         rejected = acceptance_problem(before.metrics.full.rms_abs_mm, validation.metrics.full.rms_abs_mm,
                                       max(centre_uncertainty_mm(before, settings),

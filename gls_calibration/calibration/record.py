@@ -15,7 +15,7 @@ import numpy as np
 from gls_calibration.calibration.outcome import Candidate
 from gls_calibration.calibration.outcome import PlateRun
 from gls_calibration.calibration.procedure import ProcedureSettings
-from gls_calibration.calibration.record_file import dump_record, new_record
+from gls_calibration.calibration.record_file import CalibrationRecord, dump_record, new_record
 from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.correction.setpoints import CalibratedRegion, Correction
 from gls_calibration.geometry.kinematics import HeadGeometry
@@ -26,44 +26,66 @@ from gls_calibration.models.training import TrainedModel
 TAPER_MM = 10.0   # fade of the correction beyond the calibrated region (correction.taper_weight)
 
 
+def region_around(targets_xy: np.ndarray, ring_radii_mm: Sequence[float], plane_z_mm: float = 0.0) -> CalibratedRegion:
+    """The one rule of the calibrated region: the box of the fiducial targets (N, 2), padded by the
+    outer ring radius so that whole rings stay inside, on the plane ``z = plane_z_mm`` where the plate
+    was measured."""
+    box = CalibratedRegion.from_points(targets_xy, plane_z_mm)
+    pad = max(ring_radii_mm)
+    return CalibratedRegion(box.x_min - pad, box.x_max + pad, box.y_min - pad, box.y_max + pad, plane_z_mm)
+
+
 def calibrated_region(settings: ProcedureSettings, plane_z_mm: float = 0.0) -> CalibratedRegion:
-    """The training grid's box, padded by the outer ring radius so whole rings stay inside, on the
-    plane ``z = plane_z_mm`` where the plate was measured."""
-    half = settings.grid_size_mm / 2.0 + max(settings.ring_radii_mm)
-    return CalibratedRegion(-half, half, -half, half, plane_z_mm)
+    """:func:`region_around` the training grid of ``settings``."""
+    half = settings.grid_size_mm / 2.0
+    return region_around(np.array([[-half, -half], [half, half]]), settings.ring_radii_mm, plane_z_mm)
+
+
+def calibration_record(geometry: HeadGeometry, *, plate_pose, models: Sequence[Mapping],
+                       trained: Sequence[TrainedModel], region: CalibratedRegion, targets_xy: np.ndarray,
+                       measured_xyz: np.ndarray, deviations_xy: np.ndarray, through_nominal_model: bool,
+                       metrics: Mapping, source: Mapping | None = None) -> CalibrationRecord:
+    """The record of a calibration, built the same way by the calibrate flow and by ``gls-train``.
+
+    ``models``: every model in order of application (earlier calibrations' first); ``trained``: the
+    ones trained now (their hyper-parameters are recorded); the first plate's ``targets_xy`` (N, 2),
+    ``measured_xyz`` (N, 3, gls frame, aligned) and ``deviations_xy`` Q - P (N, 2); whether that
+    plate was marked through the nominal model (what the discrepancy workflow assumes) or an earlier
+    calibration; ``source`` says where the data came from (an offline tool's inputs).
+    """
+    hyper_parameters = {"trained_models": [
+        {"method": model.method, "neurons": model.neurons, "spread_mm": model.spread_mm,
+         "cv_rms_mm": model.cv_rms_mm} for model in trained]}
+    if source is not None:
+        hyper_parameters["source"] = dict(source)
+    return new_record(
+        head=geometry, plate_pose=plate_pose, models=list(models),
+        calibrated_region={**region.to_dict(), "taper_mm": TAPER_MM},
+        hyper_parameters=hyper_parameters, metrics=metrics,
+        fiducials={"target_x": targets_xy[:, 0], "target_y": targets_xy[:, 1],
+                   "measured_x": measured_xyz[:, 0], "measured_y": measured_xyz[:, 1],
+                   "measured_z": measured_xyz[:, 2], "dx": deviations_xy[:, 0], "dy": deviations_xy[:, 1],
+                   "commanded_through_nominal_model": bool(through_nominal_model)})
 
 
 def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequence[PlateRun],
-                 models: Sequence[TrainedModel], existing_models: Sequence[Mapping]) -> dict:
+                 models: Sequence[TrainedModel], existing_models: Sequence[Mapping]) -> CalibrationRecord:
     """The record of a run whose ``models`` were trained on ``runs`` (after ``existing_models``)."""
     first = runs[0]
-    fiducials = {
-        "target_x": first.paired_targets_xy[:, 0], "target_y": first.paired_targets_xy[:, 1],
-        "measured_x": first.measured_gls[:, 0], "measured_y": first.measured_gls[:, 1],
-        "measured_z": first.measured_gls[:, 2],
-        "dx": first.deviations[:, 0], "dy": first.deviations[:, 1],
-        # Whether the first plate was marked through the nominal model (what the discrepancy
-        # workflow assumes) or through an earlier calibration.
-        "commanded_through_nominal_model": not existing_models,
-    }
-    return new_record(
-        head=geometry, plate_pose=runs[-1].plate_pose_gls,
-        models=list(existing_models) + [model.model for model in models],
+    return calibration_record(
+        geometry, plate_pose=runs[-1].plate_pose_gls,
+        models=list(existing_models) + [model.model for model in models], trained=models,
         # The calibration plane: the mean height the first plate's targets were commanded at (the
         # plate's plane); targets off it are corrected through Q'.
-        calibrated_region={**calibrated_region(settings, float(np.mean(first.targets[:, 2]))).to_dict(),
-                           "taper_mm": TAPER_MM},
-        hyper_parameters={"trained_models": [
-            {"method": model.method, "neurons": model.neurons, "spread_mm": model.spread_mm,
-             "cv_rms_mm": model.cv_rms_mm} for model in models]},
-        metrics={"iterations": [run.metrics.to_dict() for run in runs]},
-        fiducials=fiducials)
+        region=calibrated_region(settings, float(np.mean(first.targets[:, 2]))),
+        targets_xy=first.paired_targets_xy, measured_xyz=first.measured_gls, deviations_xy=first.deviations,
+        through_nominal_model=not existing_models, metrics={"iterations": [run.metrics.to_dict() for run in runs]})
 
 
-def save_candidate(store: CalibrationStore, record: Mapping, geometry: HeadGeometry) -> Candidate:
-    """Store ``record`` without activating it; the candidate's file and the correction it describes."""
+def save_candidate(store: CalibrationStore, record: CalibrationRecord, geometry: HeadGeometry) -> Candidate:
+    """Store ``record`` without activating it; the candidate's file, record and the correction it describes."""
     correction = correction_from_record(record, geometry)   # refuses an unusable record before saving
-    return Candidate(str(store.save(record, activate=False)), correction)
+    return Candidate(str(store.save(record, activate=False)), correction, record)
 
 
 def record_models(record: Mapping) -> list[dict]:

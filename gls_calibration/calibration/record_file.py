@@ -7,7 +7,8 @@ example an empty sub-field) is stored as ``null``.
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+import copy
 import dataclasses
 from datetime import datetime, timezone
 import math
@@ -38,6 +39,35 @@ FIDUCIAL_KEYS = ("target_x", "target_y", "measured_x", "measured_y", "measured_z
 HEAD_KEYS = tuple(field.name for field in dataclasses.fields(HeadGeometry))
 
 
+class CalibrationRecord(Mapping):
+    """A calibration record validated once, when it was built (:func:`new_record`) or read
+    (:func:`load_record`); read-only. Code that holds one need not validate it again (the store saves
+    it as it is); ``to_dict`` gives a plain copy to modify, which is validated again wherever it is used.
+    """
+
+    __slots__ = ("_data",)
+
+    def __init__(self, plain: dict, source: str | os.PathLike | None = None) -> None:
+        validate_record(plain, source)
+        self._data = plain
+
+    def __getitem__(self, key: str) -> Any:
+        return self._data[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._data)
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def __repr__(self) -> str:
+        return f"CalibrationRecord(created_utc={self._data.get('created_utc')!r})"
+
+    def to_dict(self) -> dict:
+        """A deep plain copy (to change and save as a new record)."""
+        return copy.deepcopy(self._data)
+
+
 class CalibrationFileError(ValueError):
     """A calibration file (or record) that cannot be used; the message names the file and the problem."""
 
@@ -50,13 +80,13 @@ class CalibrationFileError(ValueError):
 
 def new_record(*, head: HeadGeometry | Mapping, plate_pose: Any, models: list, calibrated_region: Mapping,
                hyper_parameters: Mapping, metrics: Mapping, fiducials: Mapping,
-               created_utc: str | None = None) -> dict:
+               created_utc: str | None = None) -> CalibrationRecord:
     """Build a calibration record from the run's objects and fill the version and time stamp.
 
     ``head`` is a HeadGeometry or its dict; ``plate_pose`` a PlatePose (or any object/mapping with
     normal, centre, rotation, flatness_rms_mm); ``models`` the list of model ``to_dict()`` results in
     order of application; ``fiducials`` a mapping with the lists in FIDUCIAL_KEYS (arrays welcome).
-    Non-finite metric values become None. The result is validated.
+    Non-finite metric values become None. The result is validated (once: it is a CalibrationRecord).
     """
     head_dict = dataclasses.asdict(head) if dataclasses.is_dataclass(head) else dict(head)
     pose_keys = ("normal", "centre", "rotation", "flatness_rms_mm")
@@ -76,9 +106,7 @@ def new_record(*, head: HeadGeometry | Mapping, plate_pose: Any, models: list, c
         "metrics": nan_to_none(to_plain(metrics)),
         "fiducials": dict(fiducials),
     }
-    record = to_plain(record)
-    validate_record(record)
-    return record
+    return CalibrationRecord(to_plain(record))
 
 
 def _type_name(value: Any) -> str:
@@ -309,11 +337,10 @@ def read_calibration_yaml(path: Path) -> Any:
         raise CalibrationFileError(path, f"invalid YAML{location}: {problem}") from None
 
 
-def load_record(path: str | os.PathLike) -> dict:
+def load_record(path: str | os.PathLike) -> CalibrationRecord:
     """Read and validate one calibration file; CalibrationFileError names the file and the problem."""
     path = Path(path)
     record = read_calibration_yaml(path)
     if record is None:
         raise CalibrationFileError(path, "file is empty")
-    validate_record(record, path)
-    return record
+    return CalibrationRecord(record, path)

@@ -28,13 +28,21 @@ import re
 
 import yaml
 
-from gls_calibration.calibration.record_file import (CalibrationFileError, read_calibration_yaml, dump_record, load_record,
-                                                     validate_record)
+from gls_calibration.calibration.record_file import (CalibrationFileError, CalibrationRecord, dump_record,
+                                                     load_record, read_calibration_yaml)
 from gls_calibration.common.files import atomic_write_text, nan_to_none, to_plain
 
 ACTIVE_FILE_NAME = "active.yaml"
 HISTORY_DIR_NAME = "history"
 _HISTORY_NAME = re.compile(r"^calibration_(\d{8}T\d{6}Z)_(\d+)\.yaml$")
+
+
+def _signature(path: Path) -> tuple[int, int, int] | None:
+    try:
+        status = path.stat()
+    except OSError:
+        return None
+    return status.st_ino, status.st_size, status.st_mtime_ns
 
 
 class CalibrationStore:
@@ -46,6 +54,9 @@ class CalibrationStore:
         self.directory = Path(directory).absolute()
         self.history_directory = self.directory / HISTORY_DIR_NAME
         self.pointer_path = self.directory / ACTIVE_FILE_NAME
+        # History files this store wrote, by name: their (inode, size, mtime) when written. Such a file,
+        # unchanged since, holds a record validated before it was written: activating it needs no re-read.
+        self._written: dict[str, tuple[int, int, int]] = {}
 
     def save(self, record: Mapping, *, activate: bool = True) -> Path:
         """Validate and store ``record`` as a new history file, then (by default) make it the active one.
@@ -57,15 +68,17 @@ class CalibrationStore:
         Returns the history file's path. Raises CalibrationFileError for an invalid record and
         OSError for write errors; in both cases the previous active calibration stays active.
         """
-        plain = to_plain(record)  # a copy: the caller's record is not modified
-        if isinstance(plain, dict) and "metrics" in plain:
-            plain["metrics"] = nan_to_none(plain["metrics"])  # registration marks empty sub-fields NaN
-        validate_record(plain)
-        text = dump_record(plain)
+        if not isinstance(record, CalibrationRecord):   # a CalibrationRecord was validated when built
+            plain = to_plain(record)  # a copy: the caller's record is not modified
+            if isinstance(plain, dict) and "metrics" in plain:
+                plain["metrics"] = nan_to_none(plain["metrics"])  # registration marks empty sub-fields NaN
+            record = CalibrationRecord(plain)
+        text = dump_record(record)
         self.history_directory.mkdir(parents=True, exist_ok=True)
         stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
         target = self.history_directory / f"calibration_{stamp}_{self._next_number():04d}.yaml"
         atomic_write_text(target, text)
+        self._written[target.name] = _signature(target)
         if activate:
             self.activate(target)
         return target
@@ -75,7 +88,9 @@ class CalibrationStore:
         path = Path(path)
         if path.parent.resolve() != self.history_directory.resolve() or not _HISTORY_NAME.match(path.name):
             raise CalibrationFileError(path, "only a file of this store's history can be activated")
-        load_record(path)  # never point at a file that does not load
+        signature = _signature(path)
+        if signature is None or self._written.get(path.name) != signature:
+            load_record(path)  # never point at a file that does not load (one this store wrote, unchanged, does)
         pointer = {"active": path.name, "switched_utc": datetime.now(timezone.utc).isoformat()}
         atomic_write_text(self.pointer_path, yaml.safe_dump(pointer, sort_keys=False))
 
@@ -100,7 +115,7 @@ class CalibrationStore:
                 self.pointer_path, f"key 'active' must name a history file calibration_<time>_<n>.yaml, got {name!r}")
         return self.history_directory / name
 
-    def load_active(self) -> dict:
+    def load_active(self) -> CalibrationRecord:
         """The active calibration record, validated; CalibrationFileError if absent or unusable."""
         path = self.active_path()
         if path is None:
@@ -114,7 +129,7 @@ class CalibrationStore:
         entries = [path for path in self.history_directory.iterdir() if _HISTORY_NAME.match(path.name)]
         return sorted(entries, key=lambda path: (int(_HISTORY_NAME.match(path.name).group(2)), path.name))
 
-    def load(self, path: str | os.PathLike) -> dict:
+    def load(self, path: str | os.PathLike) -> CalibrationRecord:
         """Read and validate one calibration file of this store (relative paths are taken inside the
         history); a path that leads outside the store's directory, even through a symlink, is refused."""
         return load_record(self.confined(path))

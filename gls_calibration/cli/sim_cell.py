@@ -43,9 +43,9 @@ from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import SimScannerNode
 from gls_calibration.registration.sweep_plan import parse_plan
 from gls_calibration.ros.dds import use_fast_liveliness
-from gls_calibration.ros.runtime import NodeThreads, StopSignals, discard, exit_now_if_stuck
 from gls_calibration.ros.manager_parameters import MANAGER_PARAMETERS, value_problem
 from gls_calibration.ros.parameter_rules import unapplied_rule_problem
+from gls_calibration.ros.runtime import NodeThreads, StopSignals, discard, exit_now_if_stuck
 from gls_calibration.simulation.measurement import PRESETS
 from gls_calibration.simulation.world import load_sim_config
 from gls_calibration.cli.client import (ProgressBar, call_and_wait, ros_rules, split_ros_arguments,
@@ -247,6 +247,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         args.sim = replace(load_sim_config(args.sim_config or config_path("sim.yaml"), args.measurement),
                            seed=args.seed)
         args.reference_plan = reference_plan(args)
+        args.chain_map_file = None    # measured once the cell runs (--chain-map)
         if args.reference_check is not None:
             load_chain_check(args.reference_check)
     except ValueError as error:
@@ -282,6 +283,7 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
         "physics_first": args.physics_first,
         "sim_config": str(sim_config),
         "measurement_preset": args.measurement or "",
+        "report.simulated_chain": args.sim.measurement_preset,   # what the manager's report names
         "use_pose_stream": args.placement == "pose",
         "sweep.placed_by_pose": args.placement == "pose",
     }
@@ -291,7 +293,7 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
         overrides["marks_service"] = "sim/marked_paths"
     if args.reference_check is not None:
         overrides["reference_check_file"] = str(args.reference_check.resolve())
-    if getattr(args, "chain_map_file", None) is not None:
+    if args.chain_map_file is not None:
         overrides["chain_map_file"] = str(args.chain_map_file.resolve())
     ros_args = ["--ros-args", "--log-level", "info" if args.verbose else "warn"]
     for path in (config_path("head.yaml"), config_path("gls.yaml"), sim_config):
@@ -411,8 +413,6 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager, threa
     if response is None:
         print(f"calibrate did not answer within {args.timeout:g} s", file=sys.stderr)
         return 1
-    if response.report_dir:
-        note_measurement(Path(response.report_dir), args.sim.measurement_preset)
     print(summary_table(response))
     if response.report_dir:
         truth = json.loads((Path(response.report_dir) / "summary.json").read_text())
@@ -453,21 +453,6 @@ def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, fl
         f"{seconds(budget['process_cpu_s'])} (imports, reference check, DDS and library threads included)"])
 
 
-def note_measurement(report_dir: Path, preset: str) -> None:
-    """Say in summary.json and report.md which measurement chain produced the figures."""
-    summary_path = report_dir / "summary.json"
-    if summary_path.is_file():
-        summary = json.loads(summary_path.read_text())
-        summary["measurement_preset"] = preset
-        atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
-    report_path = report_dir / "report.md"
-    if report_path.is_file():
-        lines = report_path.read_text().splitlines()
-        note = (f"Simulated cell, measurement chain preset **{preset}**: `post_rms_mm` / `post_max_mm` are "
-                "MEASURED (as a real cell sees them), `true_post_*` are TRUE (simulation ground truth).")
-        atomic_write_text(report_path, "\n".join(lines[:1] + ["", note] + lines[1:]) + "\n")
-
-
 def measure_chain_map_file(args: argparse.Namespace) -> Path:
     """Measure the chain map of the calibration's lines on the simulated robot (the certified plate
     swept along them, as a real cell would): DIR/chain_map.yaml."""
@@ -488,7 +473,7 @@ def measure_reference_check(args: argparse.Namespace) -> Path:
     from gls_calibration.registration.chain_map import load_chain_map
     from gls_calibration.simulation.reference_plate import FIELD_PLATE, chain_check, reference_plate_check
 
-    chain_map = load_chain_map(args.chain_map_file) if getattr(args, "chain_map_file", None) else None
+    chain_map = load_chain_map(args.chain_map_file) if args.chain_map_file else None
     print(f"reference check of the chain ({args.reference_plan.label}, placed by {args.reference_plan.placement}, "
           f"certified plate {FIELD_PLATE.label}{', chain map applied' if chain_map else ''})",
           file=sys.stderr, flush=True)

@@ -19,16 +19,17 @@ from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from gls_calibration.calibration.record_file import dump_record, new_record
+from gls_calibration.calibration.record import TAPER_MM, calibration_record, region_around
+from gls_calibration.calibration.record_file import dump_record
 from gls_calibration.common.config_files import config_path, read_config_file
 from gls_calibration.common.files import atomic_write_text, require_regular_output
-from gls_calibration.correction.setpoints import CalibratedRegion, check_calibration_plane
+from gls_calibration.correction.setpoints import check_calibration_plane
+from gls_calibration.fiducials.targets import RING_RADII_MM
 from gls_calibration.geometry.head_config import default_head_config_path, load_head_config
 from gls_calibration.models.training import GRID_SEARCH_PARAMETERS, TRAINER_PARAMETERS, TrainingOptions, train_correction, training_options_from
 from gls_calibration.registration.rigid import align_rigid_2d
 
 COLUMNS = ("x_cmd", "y_cmd", "x_meas", "y_meas")
-TAPER_MM = 10.0
 
 
 def read_measured(path: Path) -> tuple[np.ndarray, np.ndarray, Optional[float]]:
@@ -138,22 +139,18 @@ def train_file(measured_csv: Path, head_file: Path, config: Path, physics_first:
     corrections = commanded - aligned
     trained = train_correction(aligned, corrections, geometry, physics_first=physics_first,
                                options=training_options(config))
-    region = CalibratedRegion.from_points(commanded, plane_z_mm)
+    region = region_around(commanded, RING_RADII_MM, plane_z_mm)   # the fiducials' rings, as the calibrate flow
     rms = float(np.sqrt(np.mean(np.sum(corrections ** 2, axis=1))))
     worst = float(np.max(np.linalg.norm(corrections, axis=1)))
-    record = new_record(
-        head=geometry,
-        plate_pose={"normal": [0.0, 0.0, 1.0], "centre": [0.0, 0.0, plane_z_mm], "rotation": np.eye(3),
-                    "flatness_rms_mm": 0.0},
-        models=[trained.model], calibrated_region={**region.to_dict(), "taper_mm": TAPER_MM},
-        hyper_parameters={"trained_models": [{"method": trained.method, "neurons": trained.neurons,
-                                              "spread_mm": trained.spread_mm, "cv_rms_mm": trained.cv_rms_mm}],
-                          "source": {"tool": "gls-train", "measured": str(measured_csv), "head": str(head_file),
-                                     "trainer_config": str(config), "physics_first": physics_first}},
+    record = calibration_record(
+        geometry, plate_pose={"normal": [0.0, 0.0, 1.0], "centre": [0.0, 0.0, plane_z_mm], "rotation": np.eye(3),
+                              "flatness_rms_mm": 0.0},
+        models=[trained.model], trained=[trained], region=region, targets_xy=commanded,
+        measured_xyz=np.column_stack([aligned, np.full(len(commanded), plane_z_mm)]), deviations_xy=corrections,
+        through_nominal_model=True,
         metrics={"training": {"count": len(commanded), "rms_abs_mm": rms, "max_abs_mm": worst}},
-        fiducials={"target_x": commanded[:, 0], "target_y": commanded[:, 1], "measured_x": aligned[:, 0],
-                   "measured_y": aligned[:, 1], "measured_z": np.full(len(commanded), plane_z_mm),
-                   "dx": corrections[:, 0], "dy": corrections[:, 1], "commanded_through_nominal_model": True})
+        source={"tool": "gls-train", "measured": str(measured_csv), "head": str(head_file),
+                "trainer_config": str(config), "physics_first": physics_first})
     report = "\n".join([
         "# gls-train", "",
         f"- measured fiducials: {measured_csv} ({len(commanded)} points), head {head_file}, grid search {config}",

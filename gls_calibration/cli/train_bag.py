@@ -88,8 +88,7 @@ def train_from_bag(args: argparse.Namespace, settings: ProcedureSettings) -> int
         return 2
     with tempfile.TemporaryDirectory(prefix=f".{args.out.name}.", dir=args.out.parent) as scratch:
         cell = ReplayCell(sweeps, geometry, CalibrationStore(Path(scratch) / "store"),
-                          ring_radii_mm=settings.ring_radii_mm, physics_first=args.physics_first,
-                          training=args.training)
+                          physics_first=args.physics_first, training=args.training)
 
         def save(runs, models):
             return save_candidate(cell.store, build_record(geometry, settings, runs, models, []), geometry)

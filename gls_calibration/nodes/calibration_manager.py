@@ -25,7 +25,7 @@ from visualization_msgs.msg import MarkerArray
 from gls_calibration import discrepancy
 from gls_calibration.calibration import procedure
 from gls_calibration.calibration.outcome import RunSummary, summarise
-from gls_calibration.calibration.record import build_record, correction_from_record, record_fiducials, record_models, save_candidate
+from gls_calibration.calibration.record import build_record, record_fiducials, record_models, save_candidate
 from gls_calibration.calibration.record_file import CalibrationFileError
 from gls_calibration.calibration.stated_accuracy import SELF_CONSISTENCY, load_chain_check
 from gls_calibration.calibration.store import CalibrationStore
@@ -36,11 +36,11 @@ from gls_calibration.report.files import json_safe
 from gls_calibration.report.run_report import write_outcome_report
 from gls_calibration.ros import conversions, rviz
 from gls_calibration.ros.base import GlsNode, SERVER_WAIT_S
-from gls_calibration.ros.runtime import run_node
-from gls_calibration.ros.service_errors import ServiceCallError, answers_errors
 from gls_calibration.ros.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
 from gls_calibration.ros.manager_parameters import MANAGER_PARAMETERS, SETTABLE, ManagerConfig, ManagerParameter, manager_config
 from gls_calibration.ros.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
+from gls_calibration.ros.runtime import run_node
+from gls_calibration.ros.service_errors import ServiceCallError, answers_errors
 from gls_calibration_msgs.action import Calibrate as CalibrateAction
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import (AcquireSweep, Calibrate, CorrectSetpoints, EstimatePlatePose,
@@ -125,10 +125,10 @@ class ServiceCell:
         response = await self._checked(self.pose, EstimatePlatePose.Request(cloud=cloud))
         return conversions.plate_pose_from_msg(response.pose)
 
-    async def measure_fiducials(self, cloud, pose, expected_count):
+    async def measure_fiducials(self, cloud, pose, expected_count, ring_radii_mm):
         request = MeasureFiducials.Request(cloud=cloud, pose=conversions.plate_pose_to_msg(pose),
                                            expected_count=int(expected_count),
-                                           ring_radii_mm=[float(r) for r in self.node.settings.ring_radii_mm])
+                                           ring_radii_mm=[float(r) for r in ring_radii_mm])
         response = await self._checked(self.fiducials, request)
         return conversions.fiducials_from_response(response, pose)
 
@@ -156,9 +156,10 @@ class ServiceCell:
         response = await self._checked(self.trainer, request)
         return conversions.trained_model_from_response(response)
 
-    async def load_calibration(self, path: str) -> None:
-        """Evaluate the candidate ``path`` here from now on; the correction node does not see it."""
-        self.candidate = correction_from_record(self.node.store.load(Path(path)), self.node.geometry)
+    async def use_candidate(self, candidate) -> None:
+        """Evaluate ``candidate`` here from now on (its correction as built, not its file read again);
+        the correction node does not see it."""
+        self.candidate = candidate.correction
 
     async def reload_active(self) -> None:
         """Correct through the active calibration again (the correction node's): drop the candidate."""
@@ -235,6 +236,7 @@ class CalibrationManager(GlsNode):
         self.report_root, self.report_per_run = config.report_root, config.report_per_run
         self.reference_check_file = config.reference_check_file
         self.chain_map_file = config.chain_map_file
+        self.simulated_chain = config.simulated_chain
         self.arrow_scale, self.colour_full_scale_mm = config.arrow_scale, config.colour_full_scale_mm
 
     def _apply_settable(self, requested: dict) -> Optional[str]:
@@ -390,8 +392,8 @@ class CalibrationManager(GlsNode):
         self.plate_pose_publisher.publish(rviz.plate_pose_msg(outcome.runs[-1].plate_pose_gls, stamp))
         self.markers_publisher.publish(rviz.calibration_markers(outcome.runs[0], outcome.validation, stamp,
                                                                 self.arrow_scale, self.colour_full_scale_mm))
-        summary = summarise(outcome, chain_check,
-                            "pose" if settings.profiles_placed_by_pose else "time")
+        summary = summarise(outcome, chain_check, "pose" if settings.profiles_placed_by_pose else "time",
+                            measurement_preset=self.simulated_chain)
         message = summary.message
         # Every file first, activation last: a failure before it leaves the old calibration in force.
         response.report_dir = str(write_outcome_report(report_dir, outcome, summary))
@@ -399,6 +401,8 @@ class CalibrationManager(GlsNode):
             if cancel_requested():
                 raise CalibrationCanceled("activation")
             self.store.activate(outcome.candidate.path)
+            # /diagnostics describes the record in hand, not the file read back
+            self._active_cache = (self.store.active_path(), record_summary(outcome.candidate.record))
             await self.cell.reload_active()
             try:
                 await self.cell.reload_correction_node()

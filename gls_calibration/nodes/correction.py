@@ -24,10 +24,10 @@ from gls_calibration.common.validation import as_coordinate_arrays
 from gls_calibration.correction.setpoints import Correction
 from gls_calibration.ros import conversions
 from gls_calibration.ros.base import GlsNode
-from gls_calibration.ros.runtime import run_node
-from gls_calibration.ros.service_errors import answers_errors
 from gls_calibration.ros.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
 from gls_calibration.ros.head_parameters import HEAD_PARAMETERS, declare_head_geometry, head_geometry_from
+from gls_calibration.ros.runtime import run_node
+from gls_calibration.ros.service_errors import answers_errors
 from gls_calibration_msgs.srv import CorrectSetpoints, LoadCalibration
 
 NOMINAL_ID = "nominal"

@@ -10,9 +10,9 @@ import yaml
 
 from gls_calibration.models.training import TRAINER_PARAMETERS, train_correction, training_options_from
 from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros.head_parameters import declare_head_geometry
 from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import answers_errors
-from gls_calibration.ros.head_parameters import declare_head_geometry
 from gls_calibration_msgs.srv import TrainCorrection
 
 

@@ -25,9 +25,9 @@ from sensor_msgs.msg import PointCloud2
 
 from gls_calibration.ros import conversions
 from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
 from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import ServiceCallError
-from gls_calibration.ros.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
 from gls_calibration.scan.sweep import PoseTrack, ProfileRules, SweepCollector, SweepMotion, nominal_start_pose
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, StartSweep

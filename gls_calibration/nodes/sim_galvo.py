@@ -11,9 +11,9 @@ from std_srvs.srv import Trigger
 
 from gls_calibration.ros import conversions
 from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros.request_ids import AnsweredRequests
 from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import answers_errors
-from gls_calibration.ros.request_ids import AnsweredRequests
 from gls_calibration.ros.sim_parameters import declare_sim_config
 from gls_calibration.simulation.head import TruthHead
 from gls_calibration_msgs.msg import MarkedPaths

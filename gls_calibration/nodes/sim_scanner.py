@@ -32,9 +32,9 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from gls_calibration.ros import conversions
 from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros.request_ids import AnsweredRequests
 from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import ServiceCallError, answers_errors
-from gls_calibration.ros.request_ids import AnsweredRequests
 from gls_calibration.ros.sim_parameters import declare_sim_config
 from gls_calibration.simulation.scanner import ORIENTATIONS_DEG, Profile
 from gls_calibration_msgs.msg import SweepDone

@@ -149,6 +149,8 @@ MANAGER_PARAMETERS: tuple[ManagerParameter, ...] = (
                      "YAML: a plate with known centres measured with this plan); read at every calibrate; empty: "
                      "none, the cell then states no accuracy and labels its measured figures self-consistency",
                      "text"),
+    ManagerParameter("report.simulated_chain", "", "the simulated cell's measurement chain preset the figures come "
+                     "from, said in the report and summary.json (gls-sim-cell sets it); empty: a real cell", "text"),
     ManagerParameter("rviz.arrow_scale", 50.0, "RViz deviation arrows are this many times longer than the "
                      "deviation", minimum=1.0, maximum=10000.0),
     ManagerParameter("rviz.colour_full_scale_mm", 1.0, "deviation drawn fully red in RViz (mm)", minimum=1e-4),
@@ -173,6 +175,7 @@ class ManagerConfig:
     report_per_run: bool
     reference_check_file: str
     chain_map_file: str
+    simulated_chain: str
     arrow_scale: float
     colour_full_scale_mm: float
 
@@ -257,5 +260,5 @@ def manager_config(values: Mapping[str, Any]) -> ManagerConfig:
         ground_truth_service=str(values["ground_truth_service"]),
         calibration_dir=Path(values["calibration_dir"]), report_root=Path(values["report_dir"]),
         report_per_run=bool(values["report_per_run"]), reference_check_file=str(values["reference_check_file"]),
-        chain_map_file=str(values["chain_map_file"]),
+        chain_map_file=str(values["chain_map_file"]), simulated_chain=str(values["report.simulated_chain"]),
         arrow_scale=number("rviz.arrow_scale"), colour_full_scale_mm=number("rviz.colour_full_scale_mm"))

@@ -16,9 +16,9 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-from gls_calibration.ros.parameter_rules import unapplied_rule_problem
 from gls_calibration.ros.base import GlsNode, POLL_PERIOD_S
 from gls_calibration.ros.dds import use_fast_liveliness
+from gls_calibration.ros.parameter_rules import unapplied_rule_problem
 
 
 # Stopping: a run in progress gets this long to end at its next step, each owned thread and each

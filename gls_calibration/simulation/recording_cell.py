@@ -17,10 +17,11 @@ import math
 
 import numpy as np
 
+from gls_calibration.calibration.core_cell import Cloud, refusing
 from gls_calibration.fiducials.measure import FiducialMeasurement
 from gls_calibration.scan.bag_io import NS_PER_S, MM_PER_M, BagRecorder, ReplayLimits, StreamAssembler
 from gls_calibration.scan.plate_pose import PlatePose
-from gls_calibration.simulation.direct_cell import Cloud, DirectCell, _refusing
+from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.scanner import pose_matrix
 
 SIM_FLANGE_TO_SENSOR = pose_matrix([40.0, 0.0, 180.0], [0.0, 0.0, math.pi / 2])
@@ -50,13 +51,13 @@ class RecordingCell(DirectCell):
 
     async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Cloud:
         self.sweeps += 1
-        data = _refusing(self.sim.sweep_data, step_mm=step_mm, seed=self.sim.config.seed * 100003 + self.sweeps,
+        data = refusing(self.sim.sweep_data, step_mm=step_mm, seed=self.sim.config.seed * 100003 + self.sweeps,
                          direction=direction, orientation_deg=orientation_deg)
         return self._record(data)
 
     async def acquire_standstill(self, profiles: int) -> Cloud:
         self.standstills += 1     # the same draws as DirectCell's
-        data = _refusing(self.sim.standstill_data, profiles, seed=self.sim.config.seed * 100003 + self.standstills)
+        data = refusing(self.sim.standstill_data, profiles, seed=self.sim.config.seed * 100003 + self.standstills)
         return self._record(data)
 
     def _record(self, data) -> Cloud:
@@ -75,7 +76,7 @@ class RecordingCell(DirectCell):
         after = int(stamps_ns[-1]) + period_ns * np.arange(1, STREAM_AFTER_PROFILES + 1)
         self.recorder.write_stream(after, np.repeat(profiles_m[-1:], after.size, axis=0), after,
                                    np.repeat(base_to_flange[-1:], after.size, axis=0))
-        sweep = _refusing(self.stream.take_last_sweep)
+        sweep = refusing(self.stream.take_last_sweep)
         return sweep.xyz_mm, sweep.intensity
 
     async def estimate_plate_pose(self, cloud: Cloud) -> PlatePose:
@@ -83,8 +84,9 @@ class RecordingCell(DirectCell):
         self.live_poses.append(pose)
         return pose
 
-    async def measure_fiducials(self, cloud: Cloud, pose: PlatePose, expected_count: int) -> FiducialMeasurement:
-        found = await super().measure_fiducials(cloud, pose, expected_count)
+    async def measure_fiducials(self, cloud: Cloud, pose: PlatePose, expected_count: int,
+                                ring_radii_mm) -> FiducialMeasurement:
+        found = await super().measure_fiducials(cloud, pose, expected_count, ring_radii_mm)
         self.live_measurements.append(found)
         return found
 
