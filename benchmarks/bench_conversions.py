@@ -9,7 +9,8 @@ import argparse
 
 import numpy as np
 
-from gls_calibration.ros.conversions import array_to_pointcloud2, cloud_arrays_from_msg, cloud_from_msg, cloud_to_msg, pointcloud2_to_array, xyz_intensity_arrays, xyzi_array
+from gls_calibration.ros.conversions import (array_to_pointcloud2, cloud_arrays_from_msg, cloud_from_msg, cloud_to_msg,
+                                             pointcloud2_to_array, xyz_intensity_arrays, xyzi_array)
 from timing import median_seconds
 
 

@@ -37,7 +37,8 @@ import time
 import numpy as np
 
 from gls_calibration.calibration.outcome import deviation_metrics
-from gls_calibration.calibration.procedure import ProcedureSettings, plane_height, pose_in_frame, true_fiducial_centres, validation_grid
+from gls_calibration.calibration.procedure import (ProcedureSettings, plane_height, pose_in_frame,
+                                                   true_fiducial_centres, validation_grid)
 from gls_calibration.calibration.record import calibrated_region
 from gls_calibration.common.config_files import config_path
 from gls_calibration.correction.setpoints import Correction

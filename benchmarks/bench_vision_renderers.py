@@ -61,7 +61,7 @@ def main() -> None:
                 rms = np.sqrt(np.mean(error_um**2, axis=0)) if len(error_um) else (np.nan, np.nan)
                 worst = float(np.abs(error_um).max()) if len(error_um) else np.nan
                 beyond = int(np.count_nonzero(~match) + np.count_nonzero(np.abs(error_um).max(axis=1)
-                                                                          > LIMIT_MM * 1000))
+                                                                         > LIMIT_MM * 1000))
             else:
                 found, rms, worst, beyond = 0, (np.nan, np.nan), np.nan, 0
             print(f"{renderer:12s} {condition:12s} {found:4d}/{count:<4d} {measurement.rejected:4d} "

@@ -38,8 +38,8 @@ def synthetic_calibration(directory: Path) -> None:
                                          "flatness_rms_mm": 0.0},
         models=[model.to_dict()], calibrated_region=calibrated_region(ProcedureSettings()).to_dict(),
         hyper_parameters={}, metrics={}, fiducials={"target_x": targets[:, 0], "target_y": targets[:, 1],
-                                                     "measured_x": targets[:, 0], "measured_y": targets[:, 1],
-                                                     "measured_z": zeros, "dx": field[:, 0], "dy": field[:, 1]})
+                                                    "measured_x": targets[:, 0], "measured_y": targets[:, 1],
+                                                    "measured_z": zeros, "dx": field[:, 0], "dy": field[:, 1]})
     CalibrationStore(directory).save(record)
 
 

@@ -142,7 +142,7 @@ class Peer(Node):
         tf_samples = range(-BEFORE * 50, int(duration_ns / tf_period_ns) + 50)
         tf_stamps = [int(start_ns + round(k * tf_period_ns)) for k in tf_samples]
         profile_stamps = [int(start_ns + round(k * period_ns)) for k in range(-BEFORE, round(duration_ns / period_ns)
-                                                                             + 1 + AFTER)]
+                                                                              + 1 + AFTER)]
         if mode == "stops":
             profile_stamps = [ns for ns in profile_stamps if ns < start_ns + duration_ns // 2]
         for ns in tf_stamps:      # the robot state publisher's stream (poses first: nothing waits on them)

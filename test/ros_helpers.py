@@ -119,7 +119,6 @@ def stop_process(process: subprocess.Popen, timeout_s: float = 5.0) -> int:
     return process.returncode
 
 
-
 # --- the simulated cell in-process -------------------------------------------------------------
 
 def parameter_text(value: Any) -> str:

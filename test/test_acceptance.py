@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from std_srvs.srv import Trigger
 
-from gls_calibration.calibration.procedure import CalibrationError, ProcedureSettings, acceptance_problem, centre_uncertainty_mm, check_clean_plate, check_model_explains
+from gls_calibration.calibration.procedure import (CalibrationError, ProcedureSettings, acceptance_problem,
+                                                   centre_uncertainty_mm, check_clean_plate, check_model_explains)
 from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.models.training import TrainedModel
 from gls_calibration.scan.plate_marks import existing_marks
@@ -163,5 +164,3 @@ def test_no_worse_calibration_is_activated_and_the_report_comes_before_activatio
     assert store_bytes(cell.calibration_dir)[0] == before[0]
     now = cell.call(CorrectSetpoints, "correct_setpoints", probe, TIMEOUT_S)
     assert list(now.alpha_x) == list(served.alpha_x)
-
-

@@ -71,7 +71,7 @@ def client(ros_context, add_node):
 
 @pytest.mark.parametrize("service", ["correct_setpoints", "correct_setpoints_batch"])
 def test_correct_setpoints_refuses_bad_and_oversized_requests_and_keeps_serving(ros_context, add_node, client,
-                                                                              tmp_path, service):
+                                                                                tmp_path, service):
     """Both services (the batch one is served by the companion node) validate the same way."""
     add_node(CorrectionNode(context=ros_context, parameter_overrides=[
         Parameter("calibration_dir", value=str(tmp_path / "store")), Parameter("max_targets", value=10)]))
@@ -93,7 +93,7 @@ def test_correct_setpoints_refuses_bad_and_oversized_requests_and_keeps_serving(
 
 @pytest.mark.parametrize("service", ["correct_setpoints", "correct_setpoints_batch"])
 def test_correct_setpoints_refuses_heights_beyond_the_working_distance_and_keeps_serving(ros_context, add_node,
-                                                                                       client, tmp_path, service):
+                                                                                         client, tmp_path, service):
     """A target at the mirrors' height divided by zero in the ray transfer: the node's thread died and
     no request was answered again. Now refused, one target (scalar path) or many, and served after."""
     store_dir = tmp_path / "store"
@@ -263,7 +263,7 @@ def test_fiducial_measurement_refuses_bad_clouds_and_poses_and_then_measures(ros
 
 
 def test_fiducial_measurement_logs_a_surplus_and_answers_missing_never_negative(ros_context, add_node, client,
-                                                                                  monkeypatch):
+                                                                                monkeypatch):
     node = add_node(FiducialMeasurementNode(context=ros_context))
     warnings = []
     monkeypatch.setattr(node.get_logger(), "warning", lambda message, **_: warnings.append(message))
@@ -362,7 +362,7 @@ def test_manager_refuses_bad_requests_and_hostile_files_and_then_serves(start_ce
 @pytest.mark.parametrize("node_type, name, value, match", [
     (FiducialMeasurementNode, "grid.ring_radii_mm", [-2.5, 2.7], "parameter grid.ring_radii_mm"),
     (FiducialMeasurementNode, "pixel_size_mm", 0.001, r"parameter pixel_size_mm must be 0 \(from the point "
-                                                       r"spacing\) or at least 0.005 mm, got 0.001"),
+     r"spacing\) or at least 0.005 mm, got 0.001"),
     (RbfTrainerNode, "spreads_mm", [35.0, NAN], "parameter spreads_mm"),
     (RbfTrainerNode, "mse_goals_mm2", [0.0], "parameter mse_goals_mm2"),
     (RbfTrainerNode, "tps_smoothings", [-1.0], "parameter tps_smoothings"),
@@ -499,7 +499,7 @@ class SpoofingScanner(FakeScanner):
 
 
 def test_an_end_of_sweep_that_contradicts_the_sweep_is_ignored_and_the_real_end_awaited(ros_context, add_node,
-                                                                                       client):
+                                                                                        client):
     add_node(ScanAcquisitionNode(context=ros_context))
     scanner = SpoofingScanner(add_node(Node("fake_scanner", namespace=NAMESPACE, context=ros_context)), "complete")
     acquire = client(AcquireSweep, "scan/acquire")
@@ -541,7 +541,7 @@ class BusyScanner(FakeScanner):
 
 
 def test_a_sweep_left_running_by_a_failed_acquisition_does_not_get_the_next_one_refused(ros_context, add_node,
-                                                                                      client):
+                                                                                        client):
     # Issue 31 item 8: an acquisition that fails before its sweep ended left the scanner sweeping, and
     # the next sweep was refused ("a sweep is running"). The next acquisition now awaits that end.
     add_node(ScanAcquisitionNode(context=ros_context))
@@ -568,7 +568,7 @@ def test_an_announcement_that_contradicts_the_requested_length_and_step_is_said(
 
 
 def test_malformed_profiles_and_foreign_ends_of_sweep_are_dropped_counted_and_survived(ros_context, add_node,
-                                                                                      client):
+                                                                                       client):
     add_node(ScanAcquisitionNode(context=ros_context))
     HostileScanner(add_node(Node("fake_scanner", namespace=NAMESPACE, context=ros_context)), "complete")
     acquire = client(AcquireSweep, "scan/acquire")

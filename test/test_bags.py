@@ -100,7 +100,7 @@ def test_the_bag_holds_only_standard_types_in_metres(recorded):
         static = []
         profile = None
         for connection, _, raw in reader.messages([c for c in reader.connections
-                                                    if c.topic in ("/tf_static", layout.scan_topic)]):
+                                                   if c.topic in ("/tf_static", layout.scan_topic)]):
             message = store.deserialize_cdr(raw, connection.msgtype)
             if connection.topic == "/tf_static":
                 static += [(t.header.frame_id, t.child_frame_id) for t in message.transforms]
@@ -287,7 +287,7 @@ def test_gls_train_bag_reproduces_the_recorded_calibration(recorded, tmp_path, c
     assert not again.exists() and not (tmp_path / "again.yaml.report").exists()
     # told the recording has no stand-still, the replay finds one where it expects the first marked sweep
     assert train_main(arguments[:2] + ["--out", str(again)] + arguments[4:] + ["--no-standstill-height",
-                                                                             "--plain-sweeps", "3"]) == 1
+                                                                               "--plain-sweeps", "3"]) == 1
     assert re.search(r"the bag's motion 3 travels 0\.\d+ mm: a stand-still where the calibration asks for a sweep",
                      capsys.readouterr().err)
     assert not again.exists() and not (tmp_path / "again.yaml.report").exists()

@@ -99,7 +99,7 @@ def test_a_format_version_1_file_still_loads(tmp_path):
     record["models"] = [{"type": "thin_plate_spline", "smoothing": 10.0, "points": grid.tolist(),
                          "values": field(grid).tolist()}]
     record["calibrated_region"] = {key: record["calibrated_region"][key] for key in ("type", "x_min", "x_max",
-                                                                                      "y_min", "y_max")}
+                                                                                     "y_min", "y_max")}
     old = tmp_path / "old.yaml"
     old.write_text(yaml.safe_dump(record))
     loaded = load_record(old)

@@ -49,7 +49,7 @@ def exit_code(call) -> int:
 
 @pytest.mark.parametrize("kind", ["device", "fifo", "directory", "symlink", "dot"])
 def test_gls_train_refuses_an_output_that_is_not_a_regular_file_before_training(tmp_path, monkeypatch, capsys,
-                                                                                 no_training, kind):
+                                                                                no_training, kind):
     measured = measured_csv(tmp_path)
     out = {"device": Path("/dev/null"), "fifo": tmp_path / "pipe", "directory": tmp_path / "folder",
            "symlink": tmp_path / "link", "dot": Path(".")}[kind]
@@ -163,7 +163,7 @@ def no_cell(monkeypatch):
     (["--ros-args", "-p", "max_iterations:=0"], "max_iterations must be an integer between 1 and 10, got '0'"),
 ])
 def test_gls_sim_cell_refuses_bad_options_before_starting_or_creating_anything(tmp_path, capsys, no_cell,
-                                                                              options, message):
+                                                                               options, message):
     out = tmp_path / "cell"
     assert exit_code(lambda: sim_cell.main(["--out", str(out), *options])) == 2
     assert message in capsys.readouterr().err

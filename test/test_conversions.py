@@ -10,7 +10,8 @@ from rclpy.serialization import deserialize_message, serialize_message
 from rclpy.time import Time as RclpyTime
 from sensor_msgs.msg import PointCloud2, PointField
 
-from gls_calibration.ros.conversions import array_to_pointcloud2, pointcloud2_to_array, unstructured_xyz, xyz_intensity_arrays, xyzi_array, xyzi_dtype
+from gls_calibration.ros.conversions import (array_to_pointcloud2, pointcloud2_to_array, unstructured_xyz,
+                                             xyz_intensity_arrays, xyzi_array, xyzi_dtype)
 
 # A scanner-like layout with every awkward feature: a float64 field, small integer fields, a
 # count-3 sub-array, holes between fields and trailing padding (point_step 48 > 41 bytes used).
@@ -273,7 +274,7 @@ def test_array_to_pointcloud2_rejects_bad_input(points, message):
 @pytest.mark.parametrize(("call", "message"), [
     (lambda: xyzi_array(np.zeros((5, 2))), r"^xyz must have shape \(\.\.\., 3\), got \(5, 2\)$"),
     (lambda: xyzi_array(np.zeros((5, 3)), np.zeros(4)), r"^intensity must have shape \(5,\) to match xyz, "
-                                                       r"got \(4,\)$"),
+     r"got \(4,\)$"),
     (lambda: unstructured_xyz(np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4")])),
      r"^points has no field 'z' \(fields: x, y\)$"),
     (lambda: xyz_intensity_arrays(np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])),

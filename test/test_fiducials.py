@@ -309,7 +309,8 @@ def test_centre_uncertainty_holds_for_edge_noise_correlated_along_the_ring(corre
     apart), fitted with the refinement's design: the stated variance of the centre is never well
     below the true one (Monte Carlo over 2000 rings). At l = 6 rays the sector jackknife alone gives
     half of it; the spectral estimate follows the noise's power in the first harmonic."""
-    from gls_calibration.fiducials.centre_uncertainty import SECTORS, _centre_covariance, _harmonic_design, _spectral_covariance
+    from gls_calibration.fiducials.centre_uncertainty import (SECTORS, _centre_covariance, _harmonic_design,
+                                                              _spectral_covariance)
     from gls_calibration.fiducials.ring_fit import RAY_COUNT
     rng = np.random.default_rng(3)
     count = 2000
@@ -333,7 +334,7 @@ def test_centre_uncertainty_holds_for_edge_noise_correlated_along_the_ring(corre
     (0.3, 1.0008, 0.0015, 0.0, 400), (0.2, 1.0, 0.00024, 0.00135, 2000), (0.3, 1.0, 0.0, 0.35, 400),
     (0.2, 1.0008, 0.0015, -0.61, 400)])
 def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px, scale, shear, turn_rad,
-                                                                       size_px):
+                                                                     size_px):
     # A flat scan near the raster's pitch, shifted by a fraction of a pixel, slightly stretched,
     # sheared (as a tilted plate shears it) or turned: each point must land on one pixel, not be
     # averaged over four (which blurs thin lines under speckle and shifts them by the local phase).

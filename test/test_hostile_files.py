@@ -10,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from gls_calibration.calibration.record_file import MAX_FILE_BYTES, MAX_YAML_DEPTH, CalibrationFileError, load_record, read_bounded_text
+from gls_calibration.calibration.record_file import (MAX_FILE_BYTES, MAX_YAML_DEPTH, CalibrationFileError, load_record,
+                                                     read_bounded_text)
 from gls_calibration.calibration.store import CalibrationStore
 from test_persistence import make_record
 

@@ -6,7 +6,8 @@ import pytest
 
 from gls_calibration.geometry.effect_table import EFFECT_TABLE
 from gls_calibration.geometry.kinematics import HeadGeometry, forward, inverse
-from gls_calibration.geometry.optics import EFFECTS, HeadEffects, PhysicalHead, effect_names, parameter_count, parameter_labels
+from gls_calibration.geometry.optics import (EFFECTS, HeadEffects, PhysicalHead, effect_names, parameter_count,
+                                             parameter_labels)
 
 GEOMETRY = HeadGeometry()
 LIMIT = GEOMETRY.mirror_limit_rad

@@ -4,7 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from gls_calibration.calibration.outcome import CalibrationOutcome, DeviationMetrics, FieldMetrics, deviation_metrics, summarise
+from gls_calibration.calibration.outcome import (CalibrationOutcome, DeviationMetrics, FieldMetrics, deviation_metrics,
+                                                 summarise)
 from gls_calibration.fiducials.targets import grid_targets
 
 

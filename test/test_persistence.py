@@ -13,7 +13,8 @@ import yaml
 
 import gls_calibration
 from gls_calibration.calibration import record_file as persistence
-from gls_calibration.calibration.record_file import CalibrationFileError, dump_record, head_geometry, load_record, new_record, validate_record
+from gls_calibration.calibration.record_file import (CalibrationFileError, dump_record, head_geometry, load_record,
+                                                     new_record, validate_record)
 from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.common.files import atomic_write_text
 from gls_calibration.geometry.kinematics import HeadGeometry

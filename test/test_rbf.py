@@ -7,7 +7,8 @@ import pytest
 from gls_calibration.fiducials.targets import grid_targets
 from gls_calibration.models import rbf
 from gls_calibration.models.deviation_models import load_model_yaml, model_from_dict, save_model_yaml
-from gls_calibration.models.rbf import CrossValidation, OLSRBFNetwork, ThinPlateSplineModel, cross_validate, select_model
+from gls_calibration.models.rbf import (CrossValidation, OLSRBFNetwork, ThinPlateSplineModel, cross_validate,
+                                        select_model)
 
 GRID = grid_targets()
 
@@ -307,6 +308,7 @@ def test_blocked_cv_is_not_fooled_by_errors_correlated_between_neighbours():
     error = np.column_stack([sum(0.02 * np.sin(points @ w + p) for w, p in zip(waves[:6], phases[:6])),
                              sum(0.02 * np.sin(points @ w + p) for w, p in zip(waves[6:], phases[6:]))])
     measured = truth + error + rng.normal(0, 0.003, truth.shape)
+
     def tps(smoothing):
         return lambda x, y: rbf.ThinPlateSplineModel(x, y, smoothing)
     random_cv = rbf.cross_validate(tps(0.0), points, measured, 5, 0).rms_mm

@@ -74,7 +74,7 @@ def test_the_per_sweep_part_is_drawn_anew_and_the_repeating_part_stays():
 
 def test_field_statistics_over_many_robots():
     values = np.array([smooth_field(np.random.default_rng(seed), 0.05, 20.0)(np.array([[0.0, 0.0], [20.0, 0.0],
-                                                                                         [0.0, 20.0]]))
+                                                                                       [0.0, 20.0]]))
                        for seed in range(300)])
     assert values.std() == pytest.approx(0.05, rel=0.1)
     # Gaussian autocorrelation exp(-d^2 / 2 L^2) at d = L, in x and in y alike

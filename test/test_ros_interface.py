@@ -24,7 +24,8 @@ from gls_calibration.common.config_files import config_path
 from gls_calibration.geometry import kinematics
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.ros import rviz
-from gls_calibration.ros.conversions import array_to_pointcloud2, cloud_from_msg, cloud_to_msg, pointcloud2_to_array, time_to_msg, xyzi_array
+from gls_calibration.ros.conversions import (array_to_pointcloud2, cloud_from_msg, cloud_to_msg, pointcloud2_to_array,
+                                             time_to_msg, xyzi_array)
 from gls_calibration.scan.bag_io import BagLayout
 from gls_calibration.scan.cell_frames import load_cell_frames
 from gls_calibration_msgs.action import Calibrate as CalibrateAction

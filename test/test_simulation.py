@@ -177,7 +177,7 @@ def test_noise_levels_and_dropouts_roughly_as_configured():
     settings = ScannerSettings(line_length_mm=40.0, linearity_mm=0.0, z_noise_mm=0.015,
                                speckle=0.05, dropout_fraction=0.01)
     xyz, intensity = LaserLineScanner(settings).sweep_cloud(Plate(PlateSettings(texture_std=0.0)),
-                                                              length_mm=40.0, seed=5)
+                                                            length_mm=40.0, seed=5)
     z = xyz[..., 2].astype(float)
     finite = np.isfinite(z)
     rows, cols = np.nonzero(finite)

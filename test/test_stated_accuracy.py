@@ -8,7 +8,8 @@ import pytest
 import yaml
 
 from gls_calibration.calibration.outcome import CalibrationOutcome, deviation_metrics, summarise
-from gls_calibration.calibration.stated_accuracy import REFERENCE_BASIS, SELF_CONSISTENCY, ChainCheck, load_chain_check, save_chain_check
+from gls_calibration.calibration.stated_accuracy import (REFERENCE_BASIS, SELF_CONSISTENCY, ChainCheck,
+                                                         load_chain_check, save_chain_check)
 from gls_calibration.calibration.stated_accuracy import stated_accuracy
 from gls_calibration.fiducials.targets import grid_targets
 from gls_calibration.registration.chain_map import NO_CHAIN_MAP

@@ -55,7 +55,6 @@ def test_an_unreadable_check_refuses_the_run_before_anything_moves(start_cell, t
     assert not (cell.calibration_dir / "active.yaml").exists() and not list(cell.report_dir.glob("*.md"))
 
 
-
 def zero_chain_map_file(tmp_path):
     """A chain map of line 0+ that is zero everywhere the sweeps reach: it changes no centre, only
     which map the run and its check must share."""

@@ -60,7 +60,7 @@ def peer_session(ros_context, add_node, tmp_path):
         node = add_node(StreamAcquisitionNode(context=ros_context, parameter_overrides=[
             Parameter("profile_rate_hz", value=RATE_HZ), Parameter("end_grace_s", value=0.5)]))
         client_node = add_node(__import__("rclpy").create_node("peer_test_client", namespace="gls",
-                                                                 context=ros_context))
+                                                               context=ros_context))
         client = client_node.create_client(AcquireSweep, "scan/acquire")
 
         def acquire(direction: int = 1, orientation_deg: float = 0.0):

@@ -95,8 +95,8 @@ def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: S
     if response is None:
         raise RuntimeError(f"{SERVICE}: no answer")
     complete = all(len(values) == len(x) for values in (response.x, response.y, response.alpha_x, response.alpha_y,
-                                                         response.focus_shift, response.inside_calibrated_field,
-                                                         response.within_limits))
+                                                        response.focus_shift, response.inside_calibrated_field,
+                                                        response.within_limits))
     # A refusal for unreachable targets still carries every answer and its flags.
     if not complete or (not response.success and all(response.within_limits)):
         raise RuntimeError(f"{SERVICE}: {response.message}")

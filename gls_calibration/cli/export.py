@@ -55,6 +55,7 @@ def table_axes(correction: Correction, pitch_mm: float) -> tuple[np.ndarray, np.
     region = correction.calibrated_region
     if region is None:
         raise ValueError("the calibration holds no model: there is nothing to tabulate")
+
     def axis(low: float, high: float) -> np.ndarray:
         return low + pitch_mm * np.arange(axis_points(low, high, pitch_mm))
     return axis(region.x_min, region.x_max), axis(region.y_min, region.y_max)
@@ -118,7 +119,7 @@ def interpolation_errors(correction: Correction, axis_x, axis_y, z: float, table
     inside = corners[j, i] & corners[j, i + 1] & corners[j + 1, i] & corners[j + 1, i + 1]
     return {"z_mm": z, "points_checked": int(grid_x.size), "points_in_cells_inside_calibrated_field": int(inside.sum()),
             "cells_inside_calibrated_field": {name: float(np.max(values[inside], initial=0.0))
-                                        for name, values in errors.items()},
+                                              for name, values in errors.items()},
             "whole_table": {name: float(np.max(values)) for name, values in errors.items()}}
 
 

@@ -281,8 +281,8 @@ def _outputs(xyz, intensity, args, source: str, units: str) -> tuple[dict[str, s
 def _bag_outputs(args) -> dict[str, tuple[dict[str, str], bytes, FiducialMeasurement, float]]:
     """Results of every sweep of ``args.bag`` by sub-folder name (``sweep_01``, ...)."""
     layout = BagLayout(**{name: value for name, value in (("scan_topic", args.scan_topic),
-                                                           ("base_frame", args.base_frame),
-                                                           ("sensor_frame", args.sensor_frame)) if value is not None})
+                                                          ("base_frame", args.base_frame),
+                                                          ("sensor_frame", args.sensor_frame)) if value is not None})
     sweeps = read_sweeps(args.bag, layout)
     width = max(2, len(str(len(sweeps))))
     results = {}
@@ -330,8 +330,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.bag is not None:
             results = _bag_outputs(args)
             overview = {"bag": str(args.bag), "sweeps": {name: {"accepted": len(result[2].centres),
-                                                                 "rejected": int(result[2].rejected)}
-                                                          for name, result in results.items()}}
+                                                                "rejected": int(result[2].rejected)}
+                                                         for name, result in results.items()}}
         else:
             xyz, intensity = load_cloud(args.cloud)
             units = cloud_units(plate_extent(xyz), args.units, args.grid, args.size, max(args.rings))

@@ -26,7 +26,8 @@ from gls_calibration.common.files import atomic_write_text, require_regular_outp
 from gls_calibration.correction.setpoints import check_calibration_plane
 from gls_calibration.fiducials.targets import RING_RADII_MM
 from gls_calibration.geometry.head_config import default_head_config_path, load_head_config
-from gls_calibration.models.training import GRID_SEARCH_PARAMETERS, TRAINER_PARAMETERS, TrainingOptions, train_correction, training_options_from
+from gls_calibration.models.training import (GRID_SEARCH_PARAMETERS, TRAINER_PARAMETERS, TrainingOptions,
+                                             train_correction, training_options_from)
 from gls_calibration.registration.rigid import align_rigid_2d
 
 COLUMNS = ("x_cmd", "y_cmd", "x_meas", "y_meas")

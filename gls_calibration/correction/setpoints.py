@@ -31,7 +31,8 @@ from typing import Any, Optional
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from gls_calibration.common.validation import as_coordinate_arrays, as_finite_array, as_integer_at_least, as_non_negative_number, as_points
+from gls_calibration.common.validation import (as_coordinate_arrays, as_finite_array, as_integer_at_least,
+                                               as_non_negative_number, as_points)
 from gls_calibration.geometry.kinematics import HeadGeometry, inverse
 from gls_calibration.models.rbf import BLOCK_ROWS, TILED_MIN_ROWS, DeviationModel
 

@@ -261,7 +261,7 @@ class Verdict:
 
     verdict: str                   # explained | unexplained_structure
     unexplained_rms_mm: float      # residual RMS above the floor, in quadrature; with below_floor the RMS
-                                   # of the smooth structure the F-test found
+    # of the smooth structure the F-test found
     ratio_to_floor: float          # residual RMS / noise floor
     chi2_p_value: float            # residual consistent with the floor (chi-square test)
     pattern: str                   # the dominant pattern in words

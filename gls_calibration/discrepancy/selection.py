@@ -322,7 +322,7 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
     for number in range(1, max_steps + 1):
         # with independent evidence, structure that is not smooth (above the floor) is still worth a step
         at_floor = sigma_points is None or against_floor(current.residual_xy, floor, len(current.vector),
-                                                          alpha=structure_alpha)[0]
+                                                         alpha=structure_alpha)[0]
         if not structure.is_structure and at_floor:
             stop_reason = (f"no smooth structure is left (F-test p = {structure.p_value:.3g} >= {structure_alpha:g}; "
                            f"RMS {current.rms_mm:.4f} mm, {floor.source} floor {floor.noise_floor_mm:.4f} mm)")

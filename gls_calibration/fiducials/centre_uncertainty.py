@@ -64,7 +64,7 @@ def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarra
     sector_normal = _sector_sums(np.einsum("mai,ma,maj->maij", full_design, u, full_design), sector_of_ray)
     sector_score = _sector_sums(full_design * (u * np.where(u > 0, residual, 0.0))[..., None], sector_of_ray)
     jackknife, groups = sector_jackknife(sector_normal, sector_score, _sector_sums(u, sector_of_ray) > 0,
-                                          total_right=np.zeros((count, parameters)))
+                                         total_right=np.zeros((count, parameters)))
     jackknife = jackknife[:, 1:3, 1:3]
     spectral, spectral_dof = _spectral_covariance(design, residual, used)
     larger = np.trace(jackknife, axis1=1, axis2=2) >= np.trace(spectral, axis1=1, axis2=2)

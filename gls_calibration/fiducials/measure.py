@@ -56,7 +56,8 @@ from scipy.spatial import cKDTree
 from gls_calibration.common.validation import as_finite_array
 from gls_calibration.fiducials import merged_pairs as merged_fiducials
 from gls_calibration.fiducials.centre_uncertainty import MODEL_SIGMA_MM, _moderated, _plane_to_cloud_sigma
-from gls_calibration.fiducials.detection import PREWHITENING_KERNEL_PX, _detect, _log_intensity, _prewhitening_kernel, _refinement_image
+from gls_calibration.fiducials.detection import (PREWHITENING_KERNEL_PX, _detect, _log_intensity, _prewhitening_kernel,
+                                                 _refinement_image)
 from gls_calibration.fiducials.raster import LINE_HALF_WIDTH_MM, _local_affines, _organized_image, _rasterised_image
 from gls_calibration.fiducials.ring_fit import _refine
 from gls_calibration.fiducials.targets import RING_RADII_MM

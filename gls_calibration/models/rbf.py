@@ -21,7 +21,8 @@ from typing import Any, Optional, Protocol
 import cv2
 import numpy as np
 
-from gls_calibration.common.validation import as_integer_at_least, as_matching_points, as_non_negative_number, as_points, as_positive_number, require_key, require_type
+from gls_calibration.common.validation import (as_integer_at_least, as_matching_points, as_non_negative_number,
+                                               as_points, as_positive_number, require_key, require_type)
 from gls_calibration.models import tps_tiles
 
 LN2 = math.log(2.0)

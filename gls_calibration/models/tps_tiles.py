@@ -185,7 +185,7 @@ def build(centres: np.ndarray, half_weights: np.ndarray, tiles: int = TILES,
             far_weights = half_weights.copy()
             far_weights[near] = 0.0
             at = origin + tile_size * (np.array([ix, iy]) + 0.5 * (1.0 + np.column_stack([grid_u.ravel(),
-                                                                                           grid_v.ravel()])))
+                                                                                          grid_v.ravel()])))
             values = exact_kernel_sum(at, centres, far_weights).reshape(degree + 1, degree + 1, outputs)
             tile_coefficients = np.einsum("ka,abo,lb->olk", transform, values, transform)
             coefficients[ix * tiles + iy] = tile_coefficients.reshape(outputs * (degree + 1), degree + 1)

@@ -37,7 +37,8 @@ from gls_calibration.report.run_report import write_outcome_report
 from gls_calibration.ros import conversions, rviz
 from gls_calibration.ros.base import GlsNode, SERVER_WAIT_S
 from gls_calibration.ros.diagnostics import NOMINAL_SUMMARY, Health, publish_diagnostics, record_summary, with_age
-from gls_calibration.ros.manager_parameters import MANAGER_PARAMETERS, SETTABLE, ManagerConfig, ManagerParameter, manager_config
+from gls_calibration.ros.manager_parameters import (MANAGER_PARAMETERS, SETTABLE, ManagerConfig, ManagerParameter,
+                                                    manager_config)
 from gls_calibration.ros.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
 from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import ServiceCallError, answers_errors

@@ -202,7 +202,7 @@ class CorrectionNode(GlsNode):
             first = int(np.argmin(reachable))
             response.success = False
             response.message = (f"{unreachable} target(s) beyond the mirror limits or the focus range "
-                                 f"(first at index {first}); see within_limits")
+                                f"(first at index {first}); see within_limits")
         else:
             response.success = True
             response.message = "corrected" if served.file else "no calibration loaded: nominal model"

@@ -26,7 +26,8 @@ from gls_calibration.ros import conversions
 from gls_calibration.ros.base import GlsNode
 from gls_calibration.ros.service_errors import ServiceCallError
 from gls_calibration.ros.sim_parameters import declare_sim_config
-from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC, line_from_msg, static_qos, stream_qos, time_msg, transform_msg
+from gls_calibration.ros.stream_topics import (LAYOUT, LINE_TOPIC, line_from_msg, static_qos, stream_qos, time_msg,
+                                               transform_msg)
 from gls_calibration.scan.cell_frames import load_cell_frames
 from gls_calibration.simulation.line_motion import LineCommand, MotionRun, SimulatedLineMotion
 from gls_calibration.simulation.world import SimulatedCell
@@ -117,5 +118,3 @@ class SimRobotNode(GlsNode):
             self.ends.publish(Header(stamp=time_msg(run.end_ns), frame_id=self.frames.base))
             self.job = None
             self.timer.cancel()
-
-

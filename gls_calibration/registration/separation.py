@@ -67,7 +67,6 @@ class SeparationSettings:
     passes: int = 3
     scale_from: str = "travel"           # "travel": trust the pose stream's travel; "line": the sensor's lateral scale
 
-
     def __post_init__(self) -> None:
         for name in ("lateral_knot_spacing_mm", "motion_knot_spacing_mm", "lateral_prior_sigma_mm",
                      "across_prior_sigma_mm", "along_prior_sigma_mm", "default_sigma_mm"):
@@ -299,7 +298,7 @@ def separate(centres: Sequence, sigmas: Optional[Sequence] = None,
     across_shapes, along_shapes = [], []
     offset = n_lateral
     for knots, (_, _, _, across_free, along_free), (n_across, n_along) in zip(motion_knots, motion_blocks,
-                                                                            motion_sizes):
+                                                                              motion_sizes):
         across_shapes.append(Shape(knots, across_free @ shapes[offset:offset + n_across]))
         offset += n_across
         along_shapes.append(Shape(knots, along_free @ shapes[offset:offset + n_along]))

@@ -433,10 +433,10 @@ def setpoints_to_response(result, response) -> None:
 def setpoints_from_response(response) -> CorrectedSetpoints:
     """A ``correction.CorrectedSetpoints`` from a CorrectSetpoints response."""
     return CorrectedSetpoints(x=float64_array(response.x), y=float64_array(response.y),
-                     alpha_x=float64_array(response.alpha_x), alpha_y=float64_array(response.alpha_y),
-                     focus_shift=float64_array(response.focus_shift),
-                     inside_calibrated_field=flag_array(response.inside_calibrated_field),
-                     within_limits=flag_array(response.within_limits))
+                              alpha_x=float64_array(response.alpha_x), alpha_y=float64_array(response.alpha_y),
+                              focus_shift=float64_array(response.focus_shift),
+                              inside_calibrated_field=flag_array(response.inside_calibrated_field),
+                              within_limits=flag_array(response.within_limits))
 
 
 def trained_model_from_response(response) -> TrainedModel:

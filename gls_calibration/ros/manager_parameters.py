@@ -18,7 +18,8 @@ from gls_calibration.calibration import procedure
 from gls_calibration.geometry.kinematics import HeadGeometry
 from gls_calibration.registration.sweep_plan import CellTimeModel, parse_plan, plan_label
 from gls_calibration.ros.deadlines import Deadlines
-from gls_calibration.ros.head_parameters import HEAD_SPECS, SCANNER_TO_GLS_DEFAULTS, head_geometry_from, scanner_to_gls_from
+from gls_calibration.ros.head_parameters import (HEAD_SPECS, SCANNER_TO_GLS_DEFAULTS, head_geometry_from,
+                                                 scanner_to_gls_from)
 
 KINDS = ("integer", "number", "numbers", "flag", "text")
 NEXT_RUN = "settable: applies from the next calibration run"

@@ -39,11 +39,13 @@ def static_qos() -> QoSProfile:
 
 
 def time_msg(stamp_ns: int) -> Time:
+    """A ROS time stamp of ``stamp_ns`` (integer nanoseconds)."""
     sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     return Time(sec=sec, nanosec=nanosec)
 
 
 def stamp_ns(stamp: Time) -> int:
+    """Integer nanoseconds of a ROS time stamp."""
     return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
 
 

@@ -129,7 +129,7 @@ def estimate_plate_pose(points, *, distance_threshold_mm: float = 0.2, head_dire
     o3d.utility.random.seed(int(rng.integers(2**31 - 1)))
     o3d_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample))
     (a, b, c, d), _ = o3d_cloud.segment_plane(distance_threshold=distance_threshold_mm, ransac_n=3,
-                                               num_iterations=ransac_iterations)
+                                              num_iterations=ransac_iterations)
     normal = np.array([a, b, c]) / np.linalg.norm([a, b, c])
     centre = -d * normal / np.linalg.norm([a, b, c])
 

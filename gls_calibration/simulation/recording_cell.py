@@ -52,7 +52,7 @@ class RecordingCell(DirectCell):
     async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Cloud:
         self.sweeps += 1
         data = refusing(self.sim.sweep_data, step_mm=step_mm, seed=self.sim.config.seed * 100003 + self.sweeps,
-                         direction=direction, orientation_deg=orientation_deg)
+                        direction=direction, orientation_deg=orientation_deg)
         return self._record(data)
 
     async def acquire_standstill(self, profiles: int) -> Cloud:

@@ -40,7 +40,8 @@ from gls_calibration.common.validation import as_integer_at_least, as_positive_n
 from gls_calibration.fiducials import targets
 from gls_calibration.fiducials.measure import measure_fiducials
 from gls_calibration.geometry.head_config import parameters_block
-from gls_calibration.registration.chain_map import ChainMap, ChainMapFit, ReferenceSweep, chain_map_identity, fit_chain_map
+from gls_calibration.registration.chain_map import (ChainMap, ChainMapFit, ReferenceSweep, chain_map_identity,
+                                                    fit_chain_map)
 from gls_calibration.registration.rigid import RigidTransform, align_rigid_2d, pair_with_targets
 from gls_calibration.registration.sweep_plan import SweepPass, parse_plan, plan_label
 from gls_calibration.scan.plate_pose import PlatePose, estimate_plate_pose, mean_plate_pose

@@ -48,7 +48,7 @@ from scipy.spatial.transform import Rotation
 from scipy.ndimage import gaussian_filter, gaussian_filter1d
 
 from gls_calibration.simulation.measurement import (MeasurementChain, lateral_linearity_shape, smooth_field,
-                                                   smooth_process)
+                                                    smooth_process)
 from gls_calibration.common.validation import as_finite_array, as_non_negative_number, as_positive_number
 from gls_calibration.geometry.optics import plate_frame
 from gls_calibration.simulation.plate import Plate
@@ -406,7 +406,7 @@ class LaserLineScanner:
               orientation_deg: float = 0.0) -> Iterator[Profile]:
         """Profiles of one sweep over ``length_mm`` at ``speed_mm_s``, one every ``step_mm``, in order."""
         for first, period, xyz, intensity, reported in self._chunks(plate, length_mm, speed_mm_s, step_mm, seed,
-                                                                     direction, orientation_deg):
+                                                                    direction, orientation_deg):
             for row in range(xyz.shape[0]):
                 points = np.empty(xyz.shape[1], dtype=PROFILE_DTYPE)
                 points["x"], points["y"], points["z"] = xyz[row, :, 0], xyz[row, :, 1], xyz[row, :, 2]
