@@ -241,6 +241,33 @@ class Correction:
         process may use; 1: none). The targets are split at multiples of the models' evaluation
         block, so the answer is bit-identical whatever the number of workers. Once a request has been
         shared, BLAS runs on one thread in this process (the workers are the parallelism).
+
+        Parameters
+        ----------
+        x, y : array_like
+            Targets (mm, gls frame).
+        z : array_like, optional
+            Target heights (mm); None: the work plane.
+        workers : int, optional
+            Threads that share a large request.
+
+        Returns
+        -------
+        CorrectedSetpoints
+            Corrected targets K (mm), mirror angles (rad), focus shift (mm) and per target whether it
+            lies in the calibrated field and within the head's limits.
+
+        Raises
+        ------
+        ValueError
+            Coordinates that are not finite, do not match, or a height at the head.
+
+        Examples
+        --------
+        >>> from gls_calibration.geometry.kinematics import HeadGeometry
+        >>> answer = Correction(HeadGeometry()).correct([10.0], [20.0])     # no model: the nominal head
+        >>> print(answer.x, answer.y, answer.inside_calibrated_field, answer.within_limits)
+        [10.] [20.] [False] [ True]
         """
         single = _single_target(x, y, z)
         if single is not None and self.models:

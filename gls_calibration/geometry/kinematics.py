@@ -58,7 +58,30 @@ class JointSetpoints:
 
 
 def forward(geometry: HeadGeometry, alpha_x, alpha_y, z=0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Cartesian landing point (mm) on the plane at height ``z`` for mechanical angles (rad)."""
+    """Cartesian landing point (mm) on the plane at height ``z`` for mechanical angles (rad).
+
+    Parameters
+    ----------
+    geometry : HeadGeometry
+        The nominal head.
+    alpha_x, alpha_y : array_like
+        Mechanical mirror angles (rad); broadcast with ``z``.
+    z : array_like, optional
+        Height of the plane (mm, gls frame); 0 is the work plane.
+
+    Returns
+    -------
+    x, y : ndarray
+        Where the beam meets the plane (mm, gls frame).
+
+    Examples
+    --------
+    >>> from gls_calibration.geometry.kinematics import HeadGeometry, forward, inverse
+    >>> setpoints = inverse(HeadGeometry(), [10.0, -40.0], [20.0, 5.0])
+    >>> x, y = forward(HeadGeometry(), setpoints.alpha_x, setpoints.alpha_y)
+    >>> print(np.round(x, 9), np.round(y, 9))
+    [ 10. -40.] [20.  5.]
+    """
     alpha_x, alpha_y, z = np.broadcast_arrays(
         np.asarray(alpha_x, dtype=float), np.asarray(alpha_y, dtype=float), np.asarray(z, dtype=float))
     theta_x = 2.0 * alpha_x
@@ -72,8 +95,32 @@ def forward(geometry: HeadGeometry, alpha_x, alpha_y, z=0.0) -> tuple[np.ndarray
 def inverse(geometry: HeadGeometry, x, y, z=None) -> JointSetpoints:
     """Mechanical angles and focus shift that put the spot on (x, y, z) (mm).
 
-    ``z`` defaults to the work plane. Targets beyond the mirror limits or the focus range are
-    flagged per point in the result, never clipped.
+    Parameters
+    ----------
+    geometry : HeadGeometry
+        The nominal head.
+    x, y : array_like
+        Targets (mm, gls frame).
+    z : array_like, optional
+        Target heights (mm); None: the work plane.
+
+    Returns
+    -------
+    JointSetpoints
+        Angles (rad), focus shift (mm) and per target whether it lies within the mirror limits and
+        the focus range: targets beyond them are flagged, never clipped.
+
+    Raises
+    ------
+    ValueError
+        Coordinates that are not finite or do not match in length.
+
+    Examples
+    --------
+    >>> from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+    >>> setpoints = inverse(HeadGeometry(), [10.0], [20.0])
+    >>> print(np.round(setpoints.alpha_x, 6), np.round(setpoints.focus_shift, 4), setpoints.within_limits)
+    [0.010203] [0.4978] [ True]
     """
     x, y, z = as_coordinate_arrays(x, y, z)
     height = geometry.working_distance_mm - z

@@ -92,7 +92,39 @@ def train_correction(landed_xy, corrections, geometry: Optional[HeadGeometry] = 
     ``physics_first``: the named effects are fitted first (discrepancy workflow, needs a plate
     marked through the nominal model, which was then commanded at ``Q = P + correction``) and the
     RBF/TPS takes what they leave: one ``sum`` model. Otherwise the RBF/TPS alone, chosen by
-    cross-validation. ValueError on bad data.
+    cross-validation.
+
+    Parameters
+    ----------
+    landed_xy : array_like
+        Where the marks landed, P (N, 2), mm in the gls frame, after the rigid alignment.
+    corrections : array_like
+        What to add at P to land there, K(Q) - K(P) (N, 2), mm.
+    geometry : HeadGeometry, optional
+        The nominal head (physics first only).
+    physics_first : bool
+        Fit the named physical effects first.
+    options : TrainingOptions
+        The grid search of the data-driven part.
+
+    Returns
+    -------
+    TrainedModel
+        The model as plain numbers, its method, size and cross-validated RMS.
+
+    Raises
+    ------
+    ValueError
+        Non-finite or mismatched data, too few points, a bad option.
+
+    Examples
+    --------
+    >>> from gls_calibration.fiducials.targets import grid_targets
+    >>> landed = grid_targets(7, 120.0)[:, :2]
+    >>> corrections = np.column_stack([1e-5 * landed[:, 0] * landed[:, 1], 0.02 * np.sin(landed[:, 0] / 40.0)])
+    >>> trained = train_correction(landed, corrections)
+    >>> print(trained.method, trained.neurons, trained.cv_rms_mm < 0.01)
+    thin_plate_spline 49 True
     """
     landed, corrections = as_matching_points(landed_xy, corrections, "landed points (x, y)",
                                              "corrections (dx, dy)", 2)
