@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from gls_calibration.fiducials.targets import grid_targets
-from gls_calibration.models import rbf
+from gls_calibration.models import model_selection, rbf
 from gls_calibration.models.deviation_models import load_model_yaml, model_from_dict, save_model_yaml
 from gls_calibration.models.rbf import (CrossValidation, OLSRBFNetwork, ThinPlateSplineModel, cross_validate,
                                         select_model)
@@ -158,7 +158,7 @@ def test_thin_plate_spline_blocks_agree_with_the_kernel_formula_at_and_between_c
     # r^2 positive); at a centre itself phi(0) = 0 must still hold. Without the offset, round-off
     # makes r^2 zero or negative at the centres: those rows must be recomputed, not returned as NaN.
     if offset != "default":
-        monkeypatch.setattr("gls_calibration.models.rbf._OFFSET_PER_SQUARED_MM", offset)
+        monkeypatch.setattr("gls_calibration.models.thin_plate_spline._OFFSET_PER_SQUARED_MM", offset)
     X, Y = noisy_samples(14)
     spline = ThinPlateSplineModel(X, Y)
     query = np.vstack([X, np.random.default_rng(15).uniform(-120.0, 120.0, (2000, 2))])
@@ -282,7 +282,7 @@ def test_model_from_dict_rejects_unknown_types():
 def test_blocked_folds_hold_out_whole_blocks_and_balance_the_folds():
     axis = np.linspace(-90.0, 90.0, 19)
     points = np.column_stack([value.ravel() for value in np.meshgrid(axis, axis)])
-    split = rbf._fold_indices(len(points), 5, 0, points, block_mm=40.0)
+    split = model_selection._fold_indices(len(points), 5, 0, points, block_mm=40.0)
     assert sorted(np.concatenate(split).tolist()) == list(range(len(points)))
     block = np.floor((points - points.min(axis=0)) / 40.0)
     for fold in split:
@@ -293,7 +293,7 @@ def test_blocked_folds_hold_out_whole_blocks_and_balance_the_folds():
     sizes = [len(fold) for fold in split]
     assert max(sizes) - min(sizes) <= 40          # at most about one block apart
     with pytest.raises(ValueError, match="cannot make 5 folds"):
-        rbf._fold_indices(len(points), 5, 0, points, block_mm=500.0)
+        model_selection._fold_indices(len(points), 5, 0, points, block_mm=500.0)
 
 
 def test_blocked_cv_is_not_fooled_by_errors_correlated_between_neighbours():
