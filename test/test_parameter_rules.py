@@ -10,8 +10,7 @@ import sys
 import pytest
 
 from gls_calibration.common.config_files import config_path
-from gls_calibration.ros import parameter_rules
-from gls_calibration.ros.parameter_rules import rule_applied
+from gls_calibration.ros.parameter_rules import parameter_rules, rule_applied
 
 START_LIMIT_S = 60.0     # a node that starts instead of refusing is stopped here and the test fails
 
