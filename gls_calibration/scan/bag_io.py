@@ -261,10 +261,18 @@ def profile_points(message, limits: ReplayLimits, where: str) -> np.ndarray:
     data = np.asarray(message.data, dtype=np.uint8)
     if step < 16 or data.size < count * step:
         raise ValueError(f"{where}: the cloud's data ({data.size} bytes) is shorter than its {count} points")
-    dtype = np.dtype({"names": list(_FIELDS), "formats": ["<f4"] * 4,
-                      "offsets": [int(fields[name].offset) for name in _FIELDS], "itemsize": step})
-    points = data[:count * step].view(dtype)
-    array = np.column_stack([points[name].astype(float) for name in _FIELDS])
+    offsets = [int(fields[name].offset) for name in _FIELDS]
+    if step % 4 == 0 and all(offset % 4 == 0 and offset + 4 <= step for offset in offsets):
+        # The usual layout (float32 fields on 4-byte boundaries): the points as rows of float32
+        # words, the four columns taken at once (one copy instead of one strided pass per field).
+        words = data[:count * step].view("<f4").reshape(count, step // 4)
+        columns = [offset // 4 for offset in offsets]
+        adjacent = columns == list(range(columns[0], columns[0] + 4))
+        array = (words[:, columns[0]:columns[0] + 4] if adjacent else words[:, columns]).astype(float)
+    else:
+        dtype = np.dtype({"names": list(_FIELDS), "formats": ["<f4"] * 4, "offsets": offsets, "itemsize": step})
+        points = data[:count * step].view(dtype)
+        array = np.column_stack([points[name].astype(float) for name in _FIELDS])
     ranges = np.linalg.norm(array[:, :3], axis=1)
     ranges = ranges[np.isfinite(ranges)]
     if ranges.size and float(np.median(ranges)) > limits.max_range_m:
@@ -404,8 +412,7 @@ class StreamAssembler:
         points_m = np.stack([self.profiles[i][1] for i in inside])                    # (H, W, 4)
         poses = np.stack([_sensor_pose(self.buffer, self.layout, self.limits, int(stamps[i]), where)
                           for i in inside])
-        xyz = (np.einsum("hij,hwj->hwi", poses[:, :3, :3], points_m[..., :3] * MM_PER_M)
-               + poses[:, None, :3, 3])
+        xyz = (points_m[..., :3] * MM_PER_M) @ np.swapaxes(poses[:, :3, :3], 1, 2) + poses[:, None, :3, 3]
         return ReplayedSweep(xyz, points_m[..., 3], stamps[inside], start, end)
 
 

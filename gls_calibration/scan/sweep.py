@@ -140,13 +140,14 @@ def profile_problem(stamp_s: float, profile: np.ndarray) -> str:
             return f"profile field {name} has count {int(np.prod(profile.dtype[name].shape))}; 1 is expected"
     if profile.size == 0:
         return "profile has no points"
-    coordinates = np.stack([np.asarray(profile[name], dtype=np.float64).reshape(-1) for name in ("x", "y", "z")])
-    if np.isinf(coordinates).any():
+    # In the profile's own precision, one field at a time (no float64 copy of the profile).
+    coordinates = [np.asarray(profile[name]).reshape(-1) for name in ("x", "y", "z")]
+    if any(np.isinf(values).any() for values in coordinates):
         return "profile has infinite coordinates"
-    finite = np.isfinite(coordinates).all(axis=0)
+    finite = np.isfinite(coordinates[0]) & np.isfinite(coordinates[1]) & np.isfinite(coordinates[2])
     if not finite.any():
         return "profile has no finite point"
-    if not np.any(coordinates[:, finite]):
+    if not any(np.any(values[finite]) for values in coordinates):
         return "profile has every point at the sensor's origin (0, 0, 0): not a measurement"
     return ""
 

@@ -1,0 +1,154 @@
+"""Placing laser-line profiles in the robot base frame: CPU per profile on both acquisition paths.
+
+Issue 33 asks for at most 0.1 ms of CPU to place a profile. Measured here, in one run:
+
+- the package's own sweep contract (``scan.sweep.SweepCollector``): checking and keeping each
+  profile as it arrives (``add``), then placing the sweep by the reported poses (``assemble``);
+- the streaming path (``scan.bag_io.StreamAssembler``, the default cell and bag replay): each
+  PointCloud2 profile decoded, its sensor pose looked up in the TF buffer at its stamp, the sweep
+  placed at once; and the profile decoding alone, today's against the per-field decoding it
+  replaced (``per_field_decode``, kept below as the reference).
+
+Run: .venv/bin/python benchmarks/bench_profile_assembly.py [--profiles 2000] [--points 2000]
+Prints microseconds of CPU (process time) per profile, medians of 3 repeats.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+import statistics
+import sys
+import time
+from types import SimpleNamespace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gls_calibration.scan.bag_io import BagLayout, ReplayLimits, StreamAssembler, profile_points  # noqa: E402
+from gls_calibration.scan.sweep import XYZI_FIELDS, PoseTrack, SweepCollector, SweepMotion  # noqa: E402
+
+NS_PER_S = 1_000_000_000
+
+
+def profiles(count: int, points: int, seed: int = 0) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    x = np.linspace(-60.0, 60.0, points)
+    out = []
+    for _ in range(count):
+        profile = np.empty(points, dtype=[(name, np.float32) for name in XYZI_FIELDS])
+        profile["x"], profile["y"] = x, 0.0
+        profile["z"] = 300.0 + rng.normal(0.0, 0.01, points)
+        profile["intensity"] = rng.uniform(0.2, 1.0, points)
+        out.append(profile)
+    return out
+
+
+def per_field_decode(message) -> np.ndarray:
+    """How ``bag_io.profile_points`` decoded a profile before issue 33: one strided pass per field."""
+    fields = {field.name: field for field in message.fields}
+    dtype = np.dtype({"names": list(XYZI_FIELDS), "formats": ["<f4"] * 4,
+                      "offsets": [int(fields[name].offset) for name in XYZI_FIELDS], "itemsize": message.point_step})
+    points = np.asarray(message.data, dtype=np.uint8)[:message.width * message.point_step].view(dtype)
+    array = np.column_stack([points[name].astype(float) for name in XYZI_FIELDS])
+    ranges = np.linalg.norm(array[:, :3], axis=1)        # the metres check, as today's
+    float(np.median(ranges[np.isfinite(ranges)]))
+    return array
+
+
+def cpu_s(function) -> tuple[float, object]:
+    began = time.process_time()
+    result = function()
+    return time.process_time() - began, result
+
+
+def sweep_contract(data: list[np.ndarray], speed_mm_s: float = 15.0, step_mm: float = 0.1):
+    """(add every profile, assemble the sweep): the two phases of the package's own contract."""
+    stamps = np.arange(len(data)) * step_mm / speed_mm_s
+    poses = PoseTrack(len(data) + 1)
+    for stamp in stamps:
+        poses.add(float(stamp), [0.0, stamp * speed_mm_s, 0.0], Rotation.from_euler("z", 1e-4 * stamp).as_quat())
+    collector = SweepCollector(len(data) + 1, data[0].size)
+
+    def add_all():
+        for stamp, profile in zip(stamps, data):
+            collector.add(float(stamp), profile)
+
+    def assemble():
+        return collector.assemble(SweepMotion(direction=(0.0, 1.0, 0.0), speed_mm_s=speed_mm_s), poses=poses)[0]
+    return add_all, assemble
+
+
+def cloud_message(profile: np.ndarray, stamp_ns: int, frame: str):
+    data = np.empty(profile.size, dtype=[(name, "<f4") for name in XYZI_FIELDS])
+    for name in XYZI_FIELDS:
+        data[name] = profile[name] / (1000.0 if name in "xyz" else 1.0)
+    fields = [SimpleNamespace(name=name, offset=4 * i, datatype=7, count=1) for i, name in enumerate(XYZI_FIELDS)]
+    return SimpleNamespace(header=SimpleNamespace(frame_id=frame, stamp=stamp(stamp_ns)), fields=fields,
+                           is_bigendian=False, width=profile.size, height=1, point_step=16,
+                           data=np.frombuffer(data.tobytes(), dtype=np.uint8))
+
+
+def stamp(stamp_ns: int):
+    return SimpleNamespace(sec=stamp_ns // NS_PER_S, nanosec=stamp_ns % NS_PER_S)
+
+
+def transform(parent: str, child: str, stamp_ns: int, xyz_m, quaternion):
+    return SimpleNamespace(header=SimpleNamespace(frame_id=parent, stamp=stamp(stamp_ns)), child_frame_id=child,
+                           transform=SimpleNamespace(
+                               translation=SimpleNamespace(x=xyz_m[0], y=xyz_m[1], z=xyz_m[2]),
+                               rotation=SimpleNamespace(x=quaternion[0], y=quaternion[1], z=quaternion[2],
+                                                        w=quaternion[3])))
+
+
+def streaming(data: list[np.ndarray], profile_rate_hz: float = 150.0, tf_rate_hz: float = 250.0):
+    layout = BagLayout()
+    period_ns = int(NS_PER_S / profile_rate_hz)
+    start, end = period_ns, period_ns * (len(data) + 1)
+    tf_stamps = np.arange(0, end + 2 * period_ns, int(NS_PER_S / tf_rate_hz))
+    messages = [(layout.tf_static_topic, SimpleNamespace(transforms=[
+        transform(layout.flange_frame, layout.sensor_frame, 0, (0.0, 0.0, 0.1), (0.0, 0.0, 0.0, 1.0))]))]
+    messages += [(layout.tf_topic, SimpleNamespace(transforms=[
+        transform(layout.base_frame, layout.flange_frame, int(t), (0.5, 1e-9 * t * 0.015, 0.4),
+                  (0.0, 0.0, 0.0, 1.0))])) for t in tf_stamps]
+    messages.append((layout.motion_start_topic, SimpleNamespace(stamp=stamp(start))))
+    messages += [(layout.scan_topic, cloud_message(profile, start + row * period_ns + period_ns // 2,
+                                                   layout.sensor_frame)) for row, profile in enumerate(data)]
+    messages.append((layout.motion_end_topic, SimpleNamespace(stamp=stamp(end))))
+
+    def feed_and_assemble():
+        assembler = StreamAssembler(layout)
+        for topic, message in messages:
+            assembler.add(topic, message)
+        return assembler.take_last_sweep()
+    return feed_and_assemble
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--profiles", type=int, default=2000)
+    parser.add_argument("--points", type=int, default=2000)
+    args = parser.parse_args()
+    data = profiles(args.profiles, args.points)
+    messages = [cloud_message(profile, 0, "scanner_optical") for profile in data]
+    times: dict[str, list[float]] = {}
+    for _ in range(3):
+        add_all, assemble = sweep_contract(data)
+        for label, function in (("sweep contract: add (check, keep)", add_all),
+                                ("sweep contract: assemble (place by pose)", assemble),
+                                ("streaming: decode, TF lookup, place", streaming(data)),
+                                ("streaming: decode only (today)", lambda: [
+                                    profile_points(message, ReplayLimits(), "") for message in messages]),
+                                ("streaming: decode only (per field, before)", lambda: [
+                                    per_field_decode(message) for message in messages])):
+            times.setdefault(label, []).append(cpu_s(function)[0])
+    today = profile_points(messages[0], ReplayLimits(), "")
+    print(f"{args.profiles} profiles of {args.points} points; CPU per profile (median of 3), target 100 us:")
+    for label, values in times.items():
+        print(f"  {label:45s} {1e6 * statistics.median(values) / args.profiles:8.1f} us")
+    print(f"  decode today vs before: identical values: {np.array_equal(today, per_field_decode(messages[0]))}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
