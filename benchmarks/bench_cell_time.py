@@ -60,7 +60,8 @@ def map_for(preset: str, seed: int, passes: str):
     plan = dataclasses.replace(calibration_plan(), passes=parse_plan(passes))
     timing = procedure.ProcedureSettings().cell_time
     repeats = 2
-    return measure_chain_map(config, plan, seed=seed, repeats=repeats), repeats * len(plan.passes) * timing.plate_s(1, 0.0)
+    return (measure_chain_map(config, plan, seed=seed, repeats=repeats),
+            repeats * len(plan.passes) * timing.plate_s(1, 0.0))
 
 
 def main() -> None:

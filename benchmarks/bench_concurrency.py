@@ -128,7 +128,8 @@ def main() -> None:
         alone = concurrent_singles(singles, args.requests)
         lost_alone = len(lost_answers)
 
-        batcher = subprocess.Popen([sys.executable, __file__, "--serve-batches", batch_service, "--batch", str(args.batch)],
+        batcher = subprocess.Popen([sys.executable, __file__, "--serve-batches", batch_service,
+                                    "--batch", str(args.batch)],
                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         if batcher.stdout.readline().strip() != "started":
             raise RuntimeError("the batch client did not start")
@@ -142,7 +143,8 @@ def main() -> None:
         assert check.within_limits.all()
     p99_alone, p99_during = np.percentile(alone, 99), np.percentile(during, 99)
     print(f"single target from {CLIENTS} clients, {args.requests} requests each: p99 {1e3 * p99_alone:.2f} ms alone, "
-          f"{1e3 * p99_during:.2f} ms while {args.batch}-target batches are served on {batch_service} ({p99_during / p99_alone:.1f}x; "
+          f"{1e3 * p99_during:.2f} ms while {args.batch}-target batches are served on {batch_service} "
+          f"({p99_during / p99_alone:.1f}x; "
           f"goal <= 3x); median {1e3 * np.median(alone):.2f} / {1e3 * np.median(during):.2f} ms")
     print(f"  answers lost (given up after {LOST_AFTER_S:.0f} s, counted with that time): {lost_alone} alone, "
           f"{len(lost_answers) - lost_alone} during the batches")

@@ -30,8 +30,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 from gls_calibration.calibration import procedure
 from gls_calibration.calibration.record import build_record, save_candidate
 from gls_calibration.calibration.store import CalibrationStore

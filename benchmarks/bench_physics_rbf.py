@@ -65,7 +65,8 @@ def plate(cell: DirectCell, settings, grid_xy: np.ndarray, correction: Correctio
 
 def main() -> None:
     """Print the comparison table."""
-    # the ideal measurement chain (the algorithmic floor), as the table of docs/method-and-results.md (Algorithmic floor) was made
+    # the ideal measurement chain (the algorithmic floor), as the table of docs/method-and-results.md
+    # (Algorithmic floor) was made
     config = load_sim_config(preset="ideal")
     geometry = config.geometry
     options = TrainingOptions()

@@ -31,8 +31,6 @@ BUSY = "while True: pass"
 
 def serve_once(directory: Path, delay_s: float, timeout_s: float) -> tuple[int | str, float]:
     """One served cell, one calibration, SIGINT ``delay_s`` after the answer: (status, stop time s)."""
-    import rclpy
-    from rclpy.context import Context
     from gls_calibration.cli.client import call_and_wait, client_node
     from gls_calibration_msgs.srv import Calibrate
 

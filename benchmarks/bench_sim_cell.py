@@ -167,7 +167,8 @@ def main() -> None:
             print(f"{iterations:>4} {seed:>4} " + " ".join(f"{summary[name]:>20.4f}" for name in FIGURES)
                   + f" {summary['wall_s']:>7.1f} {summary['peak_rss_mb']:>7.0f}", flush=True)
         for label, pick in (("median", statistics.median), ("worst", max)):
-            print(f"{iterations:>4} {label:>6}" + " ".join(f"{pick(row[name] for row in rows):>20.4f}" for name in FIGURES)
+            print(f"{iterations:>4} {label:>6}"
+                  + " ".join(f"{pick(row[name] for row in rows):>20.4f}" for name in FIGURES)
                   + f" {pick(row['wall_s'] for row in rows):>7.1f} {pick(row['peak_rss_mb'] for row in rows):>7.0f}")
 
 

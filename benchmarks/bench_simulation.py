@@ -20,7 +20,8 @@ def main() -> None:
     limit = config.geometry.mirror_limit_rad
     alpha_x, alpha_y = rng.uniform(-limit, limit, (2, 100_000))
     head = PhysicalHead(config.geometry, config.effects)
-    print(f"ray trace, 1e5 points, all effects: {1e3 * median_seconds(lambda: head.land(alpha_x, alpha_y, 1.0), 9):.1f} ms")
+    print("ray trace, 1e5 points, all effects: "
+          f"{1e3 * median_seconds(lambda: head.land(alpha_x, alpha_y, 1.0), 9):.1f} ms")
 
     offsets = np.linspace(-95.0, 95.0, 19)
     angles = np.linspace(0.0, 2.0 * np.pi, 721)

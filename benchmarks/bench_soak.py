@@ -57,7 +57,8 @@ def main() -> None:
     growth = 100.0 * (after - before) / before
     print(f"soak: {args.singles} single-target + {args.large} x {args.large_size} targets, every answer equal to "
           f"the local evaluation; {total:.1f} s in all")
-    print(f"  single target: median {1e3 * statistics.median(singles):.2f} ms, p99 {1e3 * np.percentile(singles, 99):.2f} ms")
+    print(f"  single target: median {1e3 * statistics.median(singles):.2f} ms, "
+          f"p99 {1e3 * np.percentile(singles, 99):.2f} ms")
     print(f"  {args.large_size} targets: median {1e3 * statistics.median(large):.1f} ms, "
           f"max {1e3 * max(large):.1f} ms")
     print(f"  correction node RSS: {before / 2**20:.1f} MiB before, {middle / 2**20:.1f} MiB after the singles, "

@@ -56,7 +56,8 @@ def main() -> None:
     parser.add_argument("--standstill", choices=("on", "off"), default="on")
     args = parser.parse_args()
     print(f"preset {args.preset}, stand-still height {args.standstill}; validation grid, mm")
-    print(f"{'seed':>4s} {'TRUE rms':>9s} {'TRUE max':>9s} {'MEAS rms':>9s} {'scale':>10s} {'scale rms':>9s} {'wall s':>7s}")
+    print(f"{'seed':>4s} {'TRUE rms':>9s} {'TRUE max':>9s} {'MEAS rms':>9s} "
+          f"{'scale':>10s} {'scale rms':>9s} {'wall s':>7s}")
     worst = 0.0
     for seed in args.seeds:
         began = time.perf_counter()

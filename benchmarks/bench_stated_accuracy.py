@@ -46,8 +46,9 @@ def main() -> None:
             ratio = stated.rms_mm / run["true_rms"]
             rows.append((run["measured_rms"], run["true_rms"], stated.rms_mm, ratio))
             flag = "" if ratio >= 1.0 else "  STATED BELOW TRUE"
-            print(f"{preset:11s} {seed:4d} {check.sigma_mm[0]:8.4f} {check.sigma_mm[1]:8.4f} {run['measured_rms']:9.4f} "
-                  f"{run['true_rms']:8.4f} {stated.rms_mm:8.4f} {ratio:11.2f}{flag}", flush=True)
+            print(f"{preset:11s} {seed:4d} {check.sigma_mm[0]:8.4f} {check.sigma_mm[1]:8.4f} "
+                  f"{run['measured_rms']:9.4f} {run['true_rms']:8.4f} {stated.rms_mm:8.4f} {ratio:11.2f}{flag}",
+                  flush=True)
         columns = list(zip(*rows))
         print(f"{preset:11s} median {'':17s} " + " ".join(f"{statistics.median(c):8.4f}" for c in columns[:3])
               + f" {statistics.median(columns[3]):11.2f}")

@@ -108,7 +108,8 @@ def timeline(command: list[str], calls: int, warm_up: int) -> np.ndarray:
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description="request / handler / answer times of 100 000 targets")
-    parser.add_argument("--calibration", type=Path, help="calibration file the node serves (default: run the default main job)")
+    parser.add_argument("--calibration", type=Path,
+                        help="calibration file the node serves (default: run the default main job)")
     parser.add_argument("--runs", type=int, default=2, help="fresh process pairs per server")
     parser.add_argument("--sleeps-ms", type=float, nargs="*", default=[4.0, 16.0], help="echoes that sleep first")
     parser.add_argument("--calls", type=int, default=50)
@@ -129,4 +130,5 @@ if __name__ == "__main__":
                 if "echo" in name:
                     command = command + ["--ros-args", "--log-level", "warn"]
                 inbound, handler, outbound, total = timeline(command, arguments.calls, warm_up=10)
-                print(f"{name:30s} {run + 1:3d} {inbound:6.1f} {handler:8.1f} {outbound:6.1f} {total:11.1f}", flush=True)
+                print(f"{name:30s} {run + 1:3d} {inbound:6.1f} {handler:8.1f} {outbound:6.1f} {total:11.1f}",
+                      flush=True)

@@ -76,7 +76,8 @@ def main() -> None:
         ratio = np.nanmax(result["ratio"]) if np.isfinite(result["ratio"]).any() else np.nan
         rejected = measurement.rejected if isinstance(measurement.rejected, int) else len(measurement.rejected)
         print(f"{name:30s} {result['found']:4d}/{count:<4d} {rejected:4d} {rms[0]:6.2f} {rms[1]:6.2f} "
-              f"{worst:6.1f} {ratio:7.2f} {statistics.median(times):7.3f} {statistics.median(cpu_times):6.3f}", flush=True)
+              f"{worst:6.1f} {ratio:7.2f} {statistics.median(times):7.3f} {statistics.median(cpu_times):6.3f}",
+              flush=True)
 
 
 if __name__ == "__main__":

@@ -31,7 +31,6 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 # As `make test` sets it (before numpy loads OpenBLAS), so that `python -m pytest` runs alike.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from gls_calibration.ros.dds import use_fast_liveliness  # noqa: E402
-from gls_calibration.ros.runtime import with_companions
 use_fast_liveliness()  # as every node process does: a killed node leaves the graph within 1.5 s
 
 try:
@@ -85,6 +84,8 @@ def executor(ros_context: Context) -> Iterator[MultiThreadedExecutor]:
 def add_node(executor: MultiThreadedExecutor) -> Callable[[Node], Node]:
     """add_node(node) -> node: spin ``node`` and its companions (``with_companions``) in the test's
     executor (destroyed after the test)."""
+    from gls_calibration.ros.runtime import with_companions  # imports rclpy: after the environment is set
+
     def add(node: Node) -> Node:
         for member in with_companions(node):
             executor.add_node(member)

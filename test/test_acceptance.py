@@ -130,7 +130,8 @@ def store_bytes(store_dir: Path) -> tuple[bytes, list[str]]:
 
 @pytest.mark.slow
 def test_no_worse_calibration_is_activated_and_the_report_comes_before_activation(start_cell):
-    cell = start_cell(grid=3, parameters={"sweep.plain_repeats": 1, "sweep.plan": "0+"})   # one pass: see test_kill_nodes
+    # one pass: see test_kill_nodes
+    cell = start_cell(grid=3, parameters={"sweep.plain_repeats": 1, "sweep.plan": "0+"})
     first = cell.call(Calibrate, "calibrate", Calibrate.Request(), CALIBRATE_TIMEOUT_S)
     assert first.success, first.message
     active = store_bytes(cell.calibration_dir)

@@ -98,7 +98,8 @@ def test_correct_setpoints_refuses_heights_beyond_the_working_distance_and_keeps
     no request was answered again. Now refused, one target (scalar path) or many, and served after."""
     store_dir = tmp_path / "store"
     CalibrationStore(store_dir).save(trained_record()[0], activate=True)
-    add_node(CorrectionNode(context=ros_context, parameter_overrides=[Parameter("calibration_dir", value=str(store_dir))]))
+    add_node(CorrectionNode(context=ros_context,
+                            parameter_overrides=[Parameter("calibration_dir", value=str(store_dir))]))
     correct = client(CorrectSetpoints, service)
     distance = GEOMETRY.working_distance_mm
     for z in ([distance], [0.0, distance], [1e308], [-1e308]):

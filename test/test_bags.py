@@ -39,7 +39,8 @@ def _small_config(preset: str):
 
 
 def _record(folder, preset: str, storage: str):
-    """A one-iteration calibration of a 3x3 grid (plan ``PLAN``) on the direct cell, recorded into ``folder / 'bag'``."""
+    """A one-iteration calibration of a 3x3 grid (plan ``PLAN``) on the direct cell, recorded into
+    ``folder / 'bag'``."""
     config = _small_config(preset)
     with BagRecorder(folder / "bag", SIM_FLANGE_TO_SENSOR, base_to_gls(config), storage=storage) as recorder:
         cell = RecordingCell(SimulatedCell(config), CalibrationStore(folder / "store"), recorder=recorder)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gls_calibration.fiducials.measure import FiducialMeasurement
-from gls_calibration.registration.chain_map import (NO_CHAIN_MAP, ChainMap, ChainMapFit, LineMap, ReferenceSweep,
+from gls_calibration.registration.chain_map import (NO_CHAIN_MAP, ChainMap, ChainMapFit, ReferenceSweep,
                                                     chain_map_identity, correct_measurements, fit_chain_map,
                                                     load_chain_map, save_chain_map, travel_axis)
 from gls_calibration.registration.sweep_plan import parse_plan

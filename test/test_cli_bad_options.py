@@ -74,7 +74,8 @@ def test_gls_train_refuses_a_plane_outside_the_focus_range_before_training(tmp_p
     measured = measured_csv(tmp_path)
     before = files_in(tmp_path)
     assert train.main(["--measured", str(measured), "--out", str(tmp_path / "c.yaml"), "--plane-z", plane_z]) == 2
-    assert f"calibration plane z = {plane_z} mm lies outside the head's focus range (+-25 mm)" in capsys.readouterr().err
+    assert (f"calibration plane z = {plane_z} mm lies outside the head's focus range (+-25 mm)"
+            in capsys.readouterr().err)
     assert files_in(tmp_path) == before
 
 
@@ -391,7 +392,8 @@ def test_gls_sim_cell_refuses_a_manager_parameter_rule_of_the_wrong_type(tmp_pat
      "parameter scanner_to_gls.translation_mm: 3 finite numbers are needed, got [0.0, 325.0]"),
     # rcl drops these rules without a word (the files set them): the nodes check what they hold
     ("head_direction:=[]", "plate_pose: parameter head_direction: the rule -p head_direction:=[] was not applied"),
-    ("effects.galvo_gain_x:=[]", "parameter effects.galvo_gain_x: the rule -p effects.galvo_gain_x:=[] was not applied"),
+    ("effects.galvo_gain_x:=[]",
+     "parameter effects.galvo_gain_x: the rule -p effects.galvo_gain_x:=[] was not applied"),
     ("head.working_distance_mm:=480.0", "parameter head.working_distance_mm: the rule -p "
                                         "head.working_distance_mm:=480.0 was not applied"),
 ])

@@ -92,7 +92,8 @@ def bad_inputs():
         "missing column": (HEADER.replace(",y_meas", ""), [r.split(",", 4)[0] + "," + ",".join(r.split(",")[1:3]) + ","
                                                            + r.split(",")[4] for r in rows],
                            r"missing column\(s\) y_meas"),
-        "non-numeric": (HEADER, rows[:5] + ["1.0,abc,3,4,5"] + rows[6:], r"line 7, column 'y_cmd': 'abc' is not a number"),
+        "non-numeric": (HEADER, rows[:5] + ["1.0,abc,3,4,5"] + rows[6:],
+                        r"line 7, column 'y_cmd': 'abc' is not a number"),
         "too few points": (HEADER, rows[:9], r"only 9 valid point\(s\) after dropping 0 row\(s\)"),
         "too few after NaN": (HEADER, nan_rows, r"only 9 valid point\(s\) after dropping \d+ row\(s\)"),
         "duplicate targets": (HEADER, duplicate, r"1 duplicate commanded target\(s\): \(-19, -95\) first on line 6"),

@@ -30,7 +30,8 @@ def run_fiducials_csv(tmp_path, measured_xy):
     deviations = TARGETS - measured_xy
     after = 0.1 * deviations
     write_report(tmp_path / "run", ReportData(
-        targets_xy=TARGETS, deviations_before=deviations, metrics_before=deviation_metrics(TARGETS, deviations).to_dict(),
+        targets_xy=TARGETS, deviations_before=deviations,
+        metrics_before=deviation_metrics(TARGETS, deviations).to_dict(),
         targets_after=TARGETS, deviations_after=after, metrics_after=deviation_metrics(TARGETS, after).to_dict(),
         true_before=deviations))
     return tmp_path / "run" / "fiducials.csv"
@@ -132,7 +133,8 @@ def test_bad_options_exit_2_and_write_nothing(tmp_path, capsys, arguments, messa
 
 
 def test_repeats_must_hold_the_same_targets(tmp_path, capsys):
-    rows = [f"{q[0]},{q[1]},{q[0]},{q[1]},0" for q in TARGETS] + [f"{q[0]},{q[1]},{q[0]},{q[1]},1" for q in TARGETS[:-1]]
+    rows = ([f"{q[0]},{q[1]},{q[0]},{q[1]},0" for q in TARGETS]
+            + [f"{q[0]},{q[1]},{q[0]},{q[1]},1" for q in TARGETS[:-1]])
     path = tmp_path / "marks.csv"
     path.write_text("x_cmd,y_cmd,x_meas,y_meas,repeat\n" + "\n".join(rows) + "\n")
     assert main(["--measured", str(path), "--out", str(tmp_path / "out")]) == 2

@@ -145,7 +145,8 @@ def test_correct_setpoints_serves_only_the_active_calibration_throughout_a_run(r
         assert response.success, f"{response.message}; log:\n{log_path.read_text()[-3000:]}"
         new_id = record_identity(store.load(Path(response.calibration_file)))[0]
         assert new_id != previous_id
-        final = call_service(node, corrector, CorrectSetpoints.Request(x=[0.0], y=[0.0]), CALL_TIMEOUT_S, RESEND_AFTER_S)
+        final = call_service(node, corrector, CorrectSetpoints.Request(x=[0.0], y=[0.0]), CALL_TIMEOUT_S,
+                             RESEND_AFTER_S)
         assert final.calibration_id == new_id
 
         # A late RViz gets the last calibration: plate pose and markers are transient-local (metres).
@@ -188,7 +189,8 @@ def test_correct_setpoints_serves_only_the_active_calibration_throughout_a_run(r
         assert tool.returncode == 130, text
         assert "action /gls/calibrate" in text and "canceled" in text and "Traceback" not in text, text
         assert store.active_path() == Path(response.calibration_file)
-        again = call_service(node, corrector, CorrectSetpoints.Request(x=[0.0], y=[0.0]), CALL_TIMEOUT_S, RESEND_AFTER_S)
+        again = call_service(node, corrector, CorrectSetpoints.Request(x=[0.0], y=[0.0]), CALL_TIMEOUT_S,
+                             RESEND_AFTER_S)
         assert again.calibration_id == new_id
     finally:
         exit_code = stop_process(cell, STOP_TIMEOUT_S)

@@ -17,7 +17,8 @@ def test_ring_radii_set_once_reach_the_measurement(start_cell, who):
     manager's radii travel in every MeasureFiducials request, so a fiducial node left at its default
     2.5 / 2.7 mm still finds every ring (issue 29: one owner)."""
     if who == "the manager only":
-        cell = start_cell(grid=3, parameters=FAST, node_parameters={"calibration_manager": {"grid.ring_radii_mm": RADII, **LONGER_SWEEP}})
+        cell = start_cell(grid=3, parameters=FAST,
+                          node_parameters={"calibration_manager": {"grid.ring_radii_mm": RADII, **LONGER_SWEEP}})
         assert cell.nodes["fiducial_measurement"].ring_radii_mm == (2.5, 2.7)
     else:
         cell = start_cell(grid=3, parameters={**FAST, "grid.ring_radii_mm": RADII},

@@ -211,7 +211,8 @@ def small_scan():
     (lambda x, i: (x, np.full_like(i, np.nan)), r"intensity image has no finite pixels"),
     (lambda x, i: (x.reshape(-1, 3) * [1e40, 1e40, 1.0], i.ravel()),
      r"the cloud's point spacing \(0 mm\) is not between 0 and 0.5 mm for rings of 2.5 mm; check the cloud's units"),
-    (lambda x, i: (x.reshape(-1, 3) * [1e300, 1.0, 1.0], i.ravel()), r"the cloud's point spacing \(0 mm\) is not between"),
+    (lambda x, i: (x.reshape(-1, 3) * [1e300, 1.0, 1.0], i.ravel()),
+     r"the cloud's point spacing \(0 mm\) is not between"),
     (lambda x, i: (np.full((i.size, 3), np.nan), i.ravel()), r"cloud has no finite point with a finite intensity"),
 ])
 def test_bad_input(small_scan, change, message):
@@ -224,7 +225,8 @@ def test_bad_input(small_scan, change, message):
 @pytest.mark.parametrize("change, message", [
     (lambda x, i: (x.reshape(-1, 3) * [1e40, 1e40, 1.0], i.ravel()),
      r"rasterised plate image would have 9.9e\+41x9.9e\+41 pixels; check pixel_size_mm \(0.1\) and the cloud's units"),
-    (lambda x, i: (x.reshape(-1, 3) * [1e300, 1.0, 1.0], i.ravel()), r"rasterised plate image would have 102x9.9e\+301 pixels"),
+    (lambda x, i: (x.reshape(-1, 3) * [1e300, 1.0, 1.0], i.ravel()),
+     r"rasterised plate image would have 102x9.9e\+301 pixels"),
 ])
 def test_bad_input_with_a_given_pixel(small_scan, change, message):
     xyz, intensity, pose = small_scan

@@ -74,7 +74,8 @@ def imports_of(path: Path) -> set[str]:
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names if alias.name.startswith("gls_calibration."))
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("gls_calibration."):
+        elif (isinstance(node, ast.ImportFrom) and node.level == 0
+              and (node.module or "").startswith("gls_calibration.")):
             base = node.module
             for alias in node.names:   # ``from pkg import module`` names a module; else the module itself
                 candidate = f"{base}.{alias.name}"

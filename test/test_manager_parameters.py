@@ -44,7 +44,8 @@ class ParameterClient:
         return Parameter.from_parameter_msg(ParameterMsg(name=name, value=answer.values[0])).value
 
     def describe(self, name: str):
-        return call_service(self.node, self.describer, DescribeParameters.Request(names=[name]), TIMEOUT_S).descriptors[0]
+        return call_service(self.node, self.describer, DescribeParameters.Request(names=[name]),
+                            TIMEOUT_S).descriptors[0]
 
 
 def test_the_table_holds_every_parameter_the_manager_declares(ros_context, tmp_path):

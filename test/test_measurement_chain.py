@@ -288,10 +288,12 @@ def test_presets_and_their_relations():
     ({"preset": "custom", "path_wander_mm": 0.1}, None, "measurement.path_wander_correlation_mm must be positive"),
     ({"preset": "paper_like", "lateral_linearity_mm": 0.2}, None,
      "measurement.lateral_linearity_mm = 0.2 conflicts with preset 'paper_like'"),
-    ({"lateral_linearity_mm": 0.065}, "ideal", "measurement.lateral_linearity_mm = 0.065 conflicts with preset 'ideal'"),
+    ({"lateral_linearity_mm": 0.065}, "ideal",
+     "measurement.lateral_linearity_mm = 0.065 conflicts with preset 'ideal'"),
     ({"preset": "custom", "speckel": 0.1}, None, "unknown measurement parameter"),
     ({"preset": "custom", "fan_geometry": 0.5}, None, "measurement.fan_geometry is a switch"),
-    ({"preset": "custom", "marking_height_mm": 0.05}, None, "measurement.marking_height_mm needs measurement.straight_rays"),
+    ({"preset": "custom", "marking_height_mm": 0.05}, None,
+     "measurement.marking_height_mm needs measurement.straight_rays"),
 ])
 def test_bad_measurement_blocks_are_refused_naming_the_key(block, preset, message):
     with pytest.raises(ValueError, match=message):

@@ -130,7 +130,8 @@ def test_export_writes_tables_the_interpolation_error_and_the_deviations(tmp_pat
     assert export_main(["--calibration", str(calibration_file), "--out", str(finer), "--pitch", "2"]) == 0
     finer_worst = json.loads((finer / "interpolation_error.json").read_text())["worst_interpolation_error"][0]
     coarse_inside = summary["worst_interpolation_error"][0]["cells_inside_calibrated_field"]
-    assert finer_worst["whole_table"]["landing_from_interpolated_angles_mm"] < worst["landing_from_interpolated_angles_mm"]
+    assert (finer_worst["whole_table"]["landing_from_interpolated_angles_mm"]
+            < worst["landing_from_interpolated_angles_mm"])
     assert (finer_worst["cells_inside_calibrated_field"]["landing_from_interpolated_angles_mm"]
             < coarse_inside["landing_from_interpolated_angles_mm"] <= worst["landing_from_interpolated_angles_mm"])
     deviations = np.genfromtxt(out / "deviations.txt", delimiter=",", names=True)

@@ -209,7 +209,8 @@ def test_unknown_effect_is_rejected():
 
 
 def test_wrong_parameter_counts_are_rejected():
-    with pytest.raises(ValueError, match=r"effect 'plate_tilt' takes 2 parameter\(s\) \(tilt_x_rad, tilt_y_rad\), got 1"):
+    with pytest.raises(ValueError,
+                       match=r"effect 'plate_tilt' takes 2 parameter\(s\) \(tilt_x_rad, tilt_y_rad\), got 1"):
         HeadEffects({"plate_tilt": 0.01})
     with pytest.raises(ValueError, match=r"effect 'galvo_gain_x' takes 1 parameter\(s\)"):
         HeadEffects({"galvo_gain_x": (0.01, 0.02)})

@@ -34,7 +34,8 @@ def make_record(seed: int = 0, count: int = 5) -> dict:
                  "bias": rng.normal(size=2), "spread_mm": 35.0}],
         calibrated_region={"type": "box", "x_min": -95.0, "x_max": 95.0, "y_min": -95.0, "y_max": 95.0},
         hyper_parameters={"spread_mm": 35.0, "mse_goal_mm2": 0.0005},
-        metrics={"before": {"full": metrics}, "after": {"full": metrics, "50x50": {"count": 0, "rms_abs_mm": math.nan}}},
+        metrics={"before": {"full": metrics},
+                 "after": {"full": metrics, "50x50": {"count": 0, "rms_abs_mm": math.nan}}},
         fiducials={"target_x": targets[:, 0], "target_y": targets[:, 1],
                    "measured_x": targets[:, 0] + deviations[:, 0], "measured_y": targets[:, 1] + deviations[:, 1],
                    "measured_z": np.zeros(count), "dx": deviations[:, 0], "dy": deviations[:, 1]},
@@ -307,7 +308,8 @@ def test_save_stores_nan_metrics_as_null(tmp_path):
 def test_save_refuses_nan(tmp_path):
     record = make_record()
     record["fiducials"]["dx"][0] = np.float64("inf")
-    with pytest.raises(CalibrationFileError, match=r"^calibration record: NaN or infinite number at 'fiducials\.dx\[0\]'$"):
+    with pytest.raises(CalibrationFileError,
+                       match=r"^calibration record: NaN or infinite number at 'fiducials\.dx\[0\]'$"):
         CalibrationStore(tmp_path).save(record)
     assert not (tmp_path / "active.yaml").exists()
 
@@ -328,7 +330,8 @@ def test_save_refuses_nan(tmp_path):
     (lambda r: r["plate_pose"].update(normal=[0.0, 1.0]), "key 'plate_pose.normal' must hold 3 numbers, got 2"),
     (lambda r: r["plate_pose"].update(rotation=[[1.0, 0.0, 0.0]]),
      "key 'plate_pose.rotation' must be a 3x3 list of numbers, got list"),
-    (lambda r: r["plate_pose"].update(flatness_rms_mm=True), "key 'plate_pose.flatness_rms_mm' must be a number, got bool"),
+    (lambda r: r["plate_pose"].update(flatness_rms_mm=True),
+     "key 'plate_pose.flatness_rms_mm' must be a number, got bool"),
     (lambda r: r.update(models={"type": "ols_rbf"}), "key 'models' must be a list, got dict"),
     (lambda r: r["models"][0].pop("type"), "missing key 'models[0].type'"),
     (lambda r: r["models"][0].update(type=""), "key 'models[0].type' must be a non-empty string, got str"),

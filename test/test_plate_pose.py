@@ -133,13 +133,15 @@ def test_bad_parameters(scan, kwargs, message):
 
 def test_mean_plate_pose_averages_heights_and_normals():
     rng = np.random.default_rng(11)
-    base = estimate_plate_pose(rng.normal(0.0, 0.01, (5000, 3)) * [0, 0, 1] + rng.uniform(-50, 50, (5000, 3)) * [1, 1, 0])
+    base = estimate_plate_pose(rng.normal(0.0, 0.01, (5000, 3)) * [0, 0, 1]
+                               + rng.uniform(-50, 50, (5000, 3)) * [1, 1, 0])
     shifted = [PlatePose(normal=base.normal, centre=base.centre + [0.0, 0.0, dz], rotation=base.rotation,
                          flatness_rms_mm=0.01, inlier_count=100, inlier_fraction=1.0) for dz in (-0.03, 0.01, 0.05)]
     mean = mean_plate_pose(shifted)
     assert mean.centre[2] == pytest.approx(base.centre[2] + 0.01, abs=1e-12)
     assert np.allclose(mean.normal, base.normal)
-    assert np.allclose(mean.rotation @ [0, 0, 1], mean.normal) and np.allclose(mean.rotation.T @ mean.rotation, np.eye(3))
+    assert (np.allclose(mean.rotation @ [0, 0, 1], mean.normal)
+            and np.allclose(mean.rotation.T @ mean.rotation, np.eye(3)))
     assert mean.inlier_count == 300
     with pytest.raises(ValueError, match="mean_plate_pose needs at least one pose"):
         mean_plate_pose([])

@@ -211,7 +211,10 @@ def test_published_settings_also_beat_the_target():
 
 def test_cross_validation_is_seeded_and_consistent():
     X, Y = noisy_samples(11)
-    make = lambda x, y: OLSRBFNetwork(x, y, 35.0, 0.0005)
+
+    def make(x, y):
+        return OLSRBFNetwork(x, y, 35.0, 0.0005)
+
     first = cross_validate(make, X, Y, folds=4, seed=3)
     assert isinstance(first, CrossValidation)
     assert first.residuals.shape == (361, 2) and len(first.fold_rms_mm) == 4
@@ -273,7 +276,8 @@ def test_cross_validation_rejects_bad_folds(count, folds, message):
 
 
 def test_model_from_dict_rejects_unknown_types():
-    with pytest.raises(ValueError, match="unknown model type 'spline3'; known types: ols_rbf, physical, sum, thin_plate_spline"):
+    with pytest.raises(ValueError,
+                       match="unknown model type 'spline3'; known types: ols_rbf, physical, sum, thin_plate_spline"):
         model_from_dict({"type": "spline3"})
     with pytest.raises(ValueError, match="model description lacks key 'centres'"):
         model_from_dict({"type": "ols_rbf", "spread_mm": 35.0})

@@ -117,8 +117,10 @@ def test_presets_carry_the_robot_and_careful_a_third_of_it():
 
 
 @pytest.mark.parametrize("block, message", [
-    ({"robot_along_error_mm": -0.01, "robot_along_correlation_mm": 20.0}, "measurement.robot_along_error_mm must be non-negative"),
-    ({"robot_path_error_mm": float("nan"), "robot_path_correlation_mm": 20.0}, "measurement.robot_path_error_mm must be a finite number"),
+    ({"robot_along_error_mm": -0.01, "robot_along_correlation_mm": 20.0},
+     "measurement.robot_along_error_mm must be non-negative"),
+    ({"robot_path_error_mm": float("nan"), "robot_path_correlation_mm": 20.0},
+     "measurement.robot_path_error_mm must be a finite number"),
     ({"robot_along_error_mm": 0.05}, "measurement.robot_along_correlation_mm must be positive"),
     ({"robot_along_wander_mm": 0.05}, "measurement.path_wander_correlation_mm must be positive"),
     ({"robot_scale_error": -1e-4}, "measurement.robot_scale_error must be non-negative"),

@@ -54,7 +54,8 @@ def test_training_from_the_run_reports_csv_reproduces_the_saved_calibration(tmp_
 
 @pytest.mark.parametrize("text, message", [
     ("x_cmd,y_cmd,x_meas\n1,2,3\n", "missing column(s) y_meas"),
-    ("x_cmd,y_cmd,x_meas,y_meas\n" + "1,2,3,4\n" * 12 + "1,nan,3,4\n", "1 row(s) with NaN or infinite values (first: data row 13)"),
+    ("x_cmd,y_cmd,x_meas,y_meas\n" + "1,2,3,4\n" * 12 + "1,nan,3,4\n",
+     "1 row(s) with NaN or infinite values (first: data row 13)"),
     ("x_cmd,y_cmd,x_meas,y_meas\n1,2,3,4\n", "1 row(s); at least 10 measured fiducials are needed"),
     ("x_cmd,y_cmd,x_meas,y_meas\n" + "1,2,3,x\n" * 12, "non-numeric value"),
 ])

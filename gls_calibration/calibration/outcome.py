@@ -171,9 +171,9 @@ class RunSummary:
     and the run validated). ``*_kind`` say which figures are self-consistency (a calibration at its
     own training positions: the first plate through an active calibration, or a validation grid on
     the training positions) and which are independent of the training positions; every measured
-    figure comes from the same chain, which cannot see its own repeating errors; ``stated_rms_mm`` is the accuracy the cell states, on the
-    basis ``stated_basis`` (``stated_accuracy``: a reference check of the chain, or NaN with
-    ``self-consistency`` when there is none).
+    figure comes from the same chain, which cannot see its own repeating errors; ``stated_rms_mm`` is
+    the accuracy the cell states, on the basis ``stated_basis`` (``stated_accuracy``: a reference
+    check of the chain, or NaN with ``self-consistency`` when there is none).
     """
 
     message: str
@@ -267,7 +267,8 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
         scanner_share=math.hypot(first.scanner_error_rms_mm, first.motion_error_rms_mm)
         / _full(first.metrics, "rms_abs_mm"),
         **_stated(measured_after, chain_check, first.sweep_plan, placement, first.chain_map),
-        stage_wall_s=dict(outcome.stage_times.wall_s), last_sweep_to_result_s=outcome.stage_times.last_sweep_to_result_s,
+        stage_wall_s=dict(outcome.stage_times.wall_s),
+        last_sweep_to_result_s=outcome.stage_times.last_sweep_to_result_s,
         **_kinds(outcome))
 
 

@@ -132,7 +132,8 @@ class ProcedureSettings:
     max_outlying_points: int = 10       # ...and more of them than this mean the plate is not clean;
     mark_cluster_sigmas: float = 4.0    # or points this far outside it...
     max_cluster_points: int = 8         # ...more than this many within one fiducial's extent (see plate_marks)
-    measurement_uncertainty_mm: float = 0.005   # of one fiducial centre, at least (3-4 um RMS measured against the truth)
+    # of one fiducial centre, at least (3-4 um RMS measured against the truth)
+    measurement_uncertainty_mm: float = 0.005
     max_cv_factor: float = 20.0         # a CV RMS above this many uncertainties...
     max_cv_fraction: float = 0.5        # ...and above this fraction of the deviations' RMS: the model explains little
 
@@ -172,7 +173,8 @@ class ProcedureSettings:
         """Why a requested iteration count (0: the default) is refused; empty string when it is fine."""
         if iterations == 0 or 1 <= iterations <= self.max_iterations:
             return ""
-        return f"iterations must be 0 (the default, {self.default_iterations}) or 1 to {self.max_iterations}, got {iterations}"
+        return (f"iterations must be 0 (the default, {self.default_iterations}) or 1 to {self.max_iterations}, "
+                f"got {iterations}")
 
 
 def plane_height(pose: PlatePose, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -88,7 +88,8 @@ class ChainCheck:
         except ValueError as error:
             raise ValueError(f"reference_check.plan: {error}") from None
         if self.placement not in PLACEMENTS:
-            raise ValueError(f"reference_check.placement must be one of {', '.join(PLACEMENTS)}, got {self.placement!r}")
+            raise ValueError(f"reference_check.placement must be one of {', '.join(PLACEMENTS)}, "
+                             f"got {self.placement!r}")
         if not isinstance(self.reference, str) or not self.reference.strip():
             raise ValueError("reference_check.reference must name the plate with known centres it was measured on")
         if isinstance(self.centres, bool) or not isinstance(self.centres, int) or self.centres < 3:

@@ -21,9 +21,9 @@ residual itself. ``--effects`` adds a user effect (a function returning a
 or ``PYTHONPATH``).
 
 Writes DIR/discrepancy.json, DIR/report.md, DIR/residual_field.png (before, after, and the map of
-what is left unexplained) and DIR/gap_per_step.png. Every input is checked before anything is written; the files are rendered
-in a temporary directory beside DIR and moved in with atomic renames. Bad input: message on
-stderr, exit code 2, nothing written.
+what is left unexplained) and DIR/gap_per_step.png. Every input is checked before anything is
+written; the files are rendered in a temporary directory beside DIR and moved in with atomic renames.
+Bad input: message on stderr, exit code 2, nothing written.
 """
 from __future__ import annotations
 
@@ -59,7 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--effects", action="append", default=[], metavar="MODULE:FUNCTION",
                         help="add a user effect: FUNCTION() returns a gls_calibration.geometry.effect_table.UserEffect "
                              "(repeatable)")
-    parser.add_argument("--criterion", choices=("bic", "aic"), default="bic", help="information criterion (default bic)")
+    parser.add_argument("--criterion", choices=("bic", "aic"), default="bic",
+                        help="information criterion (default bic)")
     parser.add_argument("--max-steps", type=int, default=6, help="most effects to add (default 6)")
     return parser
 

@@ -77,7 +77,8 @@ def table_size_problem(correction: Correction, pitch_mm: float, heights: int) ->
                 f"while computed); choose a larger --pitch (or fewer --z heights)")
     if pitch_mm > min(width, height) + 1e-9:
         return (f"--pitch {pitch_mm:g} mm leaves no table cell inside the calibrated field "
-                f"({width:g} x {height:g} mm), where the interpolation error is checked: the pitch must not exceed the field's smaller side")
+                f"({width:g} x {height:g} mm), where the interpolation error is checked: "
+                "the pitch must not exceed the field's smaller side")
     return ""
 
 

@@ -189,8 +189,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     bag.add_argument("--base-frame", default=None, help="the robot base frame")
     bag.add_argument("--sensor-frame", default=None, help="the profiles' frame")
     args = parser.parse_args(argv)
-    bag_only = ("grid", "grid_size", "sweep_plan", "plain_sweeps", "standstill_height", "validate", "force", "scan_topic", "base_frame",
-                "sensor_frame")
+    bag_only = ("grid", "grid_size", "sweep_plan", "plain_sweeps", "standstill_height", "validate", "force",
+                "scan_topic", "base_frame", "sensor_frame")
     if args.bag is None and any(getattr(args, name) not in (None, False) for name in bag_only):
         parser.error("--grid, --grid-size, --sweep-plan, --plain-sweeps, --standstill-height, --validate, --force and "
                      "the topic and frame options go with --bag")

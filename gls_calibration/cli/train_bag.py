@@ -2,8 +2,9 @@
 
 The bag's motions, in order, feed ``procedure.calibrate`` through a
 :class:`~gls_calibration.calibration.replay_cell.ReplayCell`: per plate the plain sweeps, the stand-still profiles
-(unless ``--no-standstill-height``), then the passes of the sweep plan; the last plate is the validation plate with ``--validate``. The number of plates follows from
-the bag (it must hold whole plates). Grid, plan, plain sweeps and stand-still height default to ``config/gls.yaml`` (what
+(unless ``--no-standstill-height``), then the passes of the sweep plan; the last plate is the validation
+plate with ``--validate``. The number of plates follows from the bag (it must hold whole plates).
+Grid, plan, plain sweeps and stand-still height default to ``config/gls.yaml`` (what
 ``gls-sim-cell --record`` records with); the galvo head's mounting comes from the bag's ``/tf_static``
 (robot base -> gls). Writes the calibration to ``--out`` and the calibrate flow's report (report.md,
 summary.json, fiducials.csv, training.csv, plots) into ``<out>.report/``.

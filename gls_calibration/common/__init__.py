@@ -1,1 +1,2 @@
-"""Shared by every stage: input validation, robust statistics, config files, atomic files, parameter records, time budget."""
+"""Shared by every stage: input validation, robust statistics, config files, atomic files, parameter records,
+time budget."""

@@ -231,7 +231,8 @@ class Correction:
             first = int(np.argmax(bad))
             raise ValueError(f"the correction is unusable: at {int(np.count_nonzero(bad))} of {len(size)} points of "
                              f"its calibrated field it is not finite or exceeds {MAX_DEVIATION_MM:g} mm "
-                             f"(first at x = {points[first, 0]:.1f}, y = {points[first, 1]:.1f} mm: {size[first]:.3g} mm)")
+                             f"(first at x = {points[first, 0]:.1f}, y = {points[first, 1]:.1f} mm: "
+                             f"{size[first]:.3g} mm)")
 
     def correct(self, x, y, z=None, workers: Optional[int] = None) -> CorrectedSetpoints:
         """Corrected setpoints for targets (x, y[, z]) in mm (gls frame); z defaults to the work plane.

@@ -61,7 +61,8 @@ def average_repeats(measured) -> tuple[np.ndarray, float]:
     if not sigma > NO_SCATTER_MM:
         raise ValueError(f"repeats show no scatter: the noise floor cannot be estimated from them (the {repeats} "
                          f"repeats are identical up to a rigid motion, per-axis scatter {sigma:.3g} mm; "
-                         f"give one set without the repeat column and state the uncertainty: --sigma or a sigma column)")
+                         f"give one set without the repeat column and state the uncertainty: "
+                         f"--sigma or a sigma column)")
     return mean, sigma
 
 
@@ -80,7 +81,8 @@ def independent_noise(measured, sigma_mm=None) -> IndependentNoise:
     if sigma.ndim == 0:
         return IndependentNoise(array, np.full(len(array), float(sigma)), "stated", 1)
     if sigma.shape != (len(array),):
-        raise ValueError(f"sigma_mm must be a number or hold one value per point ({len(array)}), got shape {sigma.shape}")
+        raise ValueError(f"sigma_mm must be a number or hold one value per point ({len(array)}), "
+                         f"got shape {sigma.shape}")
     return IndependentNoise(array, sigma, "per_point", 1)
 
 

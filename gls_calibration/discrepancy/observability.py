@@ -20,7 +20,8 @@ class ObservabilityReport:
     """How much of each effect survives rigid alignment, and how alike the effects look afterwards."""
 
     effects: tuple[str, ...]
-    parameters: tuple[tuple[str, str, float, float, float], ...]  # (effect, parameter, magnitude, rms raw, rms aligned) mm
+    # (effect, parameter, magnitude, rms raw, rms aligned) mm
+    parameters: tuple[tuple[str, str, float, float, float], ...]
     similarity: np.ndarray     # (E, E) cosine of the smallest principal angle between aligned field spans
 
     def confusable_pairs(self, threshold: float = 0.95) -> list[tuple[str, str, float]]:

@@ -343,8 +343,8 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
     if not steps:
         notes.append("No missing effect named: " + stop_reason + ".")
     if implausible:
-        notes.append("Not named, physically implausible: " + "; ".join(f"{i.name} ({i.why})" for i in implausible.values())
-                     + ".")
+        notes.append("Not named, physically implausible: "
+                     + "; ".join(f"{i.name} ({i.why})" for i in implausible.values()) + ".")
     if floor.source != "residual" or "disagreement" in floor.cross_check:
         notes.append(f"Noise floor ({floor.source}): {floor.cross_check}.")
     else:

@@ -166,7 +166,8 @@ def verdict_lines(result: DiscrepancyResult) -> list[str]:
     named = naming_phrase(result)
     if verdict.verdict == "explained":
         lines = [f"**Verdict: explained.** With {named} named, the residual is {result.rms_after_mm:.4f} mm RMS "
-                 f"against a {floor.source} noise floor of {floor.noise_floor_mm:.4f} mm (ratio {verdict.ratio_to_floor:.2f})."]
+                 f"against a {floor.source} noise floor of {floor.noise_floor_mm:.4f} mm "
+                 f"(ratio {verdict.ratio_to_floor:.2f})."]
     else:
         lines = [f"**Verdict: unexplained structure.** With {named} named, {unexplained_phrase(verdict, floor)} "
                  f"(residual {result.rms_after_mm:.4f} mm vs floor "

@@ -192,7 +192,8 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         if fitting_only and refinement == PASSES:
             # What the rings' tracking found is kept: radii and coverage are measured on the
             # high-passed image, whose line shape the templates describe.
-            tracked = dict(profiles=profiles, used=used, at=at, sampled_at=sampled_at, radial=radial)
+            tracked = dict(profiles=profiles, used=used, at=at,  # noqa: F821 (set by the previous pass)
+                           sampled_at=sampled_at, radial=radial)  # noqa: F821 (set by the previous pass)
         margin = (COARSE_MARGIN_PX if refinement == 0 else FINE_MARGIN_PX) * pitch_mm
         reach = half + (margin if refinement == 0 else 2 * margin) + step
         radial = (mid + np.arange(-np.ceil(reach / step), np.ceil(reach / step) + 1) * step).astype(np.float32)
@@ -203,7 +204,8 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         score = _correlate_rows(profiles, pair_template)
         # Search window (indices along the ray): +- margin about the nominal mid radius, then about
         # the last fitted one (rings of the wrong size stay in view and fail the radius check).
-        centre_radius = np.full(count, mid) if refinement == 0 else np.clip(radius, mid - margin, mid + margin)
+        centre_radius = (np.full(count, mid) if refinement == 0
+                         else np.clip(radius, mid - margin, mid + margin))  # noqa: F821 (set by the previous pass)
         width = int(np.floor(2 * margin / step)) + 1
         low = np.clip(np.ceil((centre_radius - margin - radial[0]) / step).astype(int), 1, len(radial) - width - 1)
         index, peak_ok = _peak(score, low, width)

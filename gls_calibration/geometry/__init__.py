@@ -1,1 +1,2 @@
-"""Stage 0, the head: nominal kinematics, the physical ray-trace model and its named effects, the head configuration file."""
+"""Stage 0, the head: nominal kinematics, the physical ray-trace model and its named effects, the head
+configuration file."""

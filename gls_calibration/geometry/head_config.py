@@ -90,7 +90,8 @@ def head_config_from_dict(document: Any) -> tuple[HeadGeometry, HeadEffects]:
     if unknown:
         raise ValueError(f"unknown head parameter(s) {', '.join(map(repr, unknown))}; "
                          f"known: {', '.join(sorted(known))}")
-    values = {key: as_config_number(head.get(key, default), key, "head parameter") for key, default in HEAD_DEFAULTS.items()}
+    values = {key: as_config_number(head.get(key, default), key, "head parameter")
+              for key, default in HEAD_DEFAULTS.items()}
     geometry = HeadGeometry(
         working_distance_mm=values["working_distance_mm"],
         mirror_distance_mm=values["mirror_distance_mm"],

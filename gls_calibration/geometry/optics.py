@@ -95,7 +95,8 @@ class HeadEffects:
 
     def __post_init__(self) -> None:
         if not isinstance(self.values, Mapping):
-            raise ValueError(f"effects must be a mapping of effect name to parameters, got {type(self.values).__name__}")
+            raise ValueError(f"effects must be a mapping of effect name to parameters, "
+                             f"got {type(self.values).__name__}")
         clean: dict[str, tuple[float, ...]] = {}
         for name, parameters in self.values.items():
             _check_effect_name(name)

@@ -27,8 +27,8 @@ i.e. on minus the landing the physics does not explain, ``r = P - L``. Then
 The discrepancy workflow assumes the training plate was marked through the nominal model (at
 ``z = 0``). Commands at the measured plate height, as the calibration procedure gives them, are a
 smooth change of the same kind as a plate tilt, which the named effects and the RBF take up
-(benchmarks/bench_physics_rbf.py commands that way). After an earlier calibration the plate was not marked nominally: train the
-RBF alone then.
+(benchmarks/bench_physics_rbf.py commands that way). After an earlier calibration the plate was not
+marked nominally: train the RBF alone then.
 """
 from __future__ import annotations
 

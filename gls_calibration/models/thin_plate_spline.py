@@ -10,7 +10,8 @@ import numpy as np
 from gls_calibration.common.validation import (as_matching_points, as_non_negative_number, as_points,
                                                require_key, require_type)
 from gls_calibration.models import tps_tiles
-from gls_calibration.models.evaluation_blocks import BLOCK_ROWS, TILED_MIN_ROWS, SMALL_BATCH, TILES_LOCK, query_points, rows_of_two, scratch
+from gls_calibration.models.evaluation_blocks import (BLOCK_ROWS, TILED_MIN_ROWS, SMALL_BATCH, TILES_LOCK, query_points,
+                                                      rows_of_two, scratch)
 
 _TINY = np.finfo(float).tiny   # r = 0 in the kernel: tiny * ln(tiny) is 0
 # Offset added to every squared distance of a large batch, in units of 1 + max |c|^2 (mm^2): 64 float
@@ -182,7 +183,8 @@ class ThinPlateSplineModel:
         """
         require_type(data, "thin_plate_spline")
         if "centres" not in data and "points" in data:
-            return cls(require_key(data, "points"), require_key(data, "values"), smoothing=require_key(data, "smoothing"))
+            return cls(require_key(data, "points"), require_key(data, "values"),
+                       smoothing=require_key(data, "smoothing"))
         centres = rows_of_two(require_key(data, "centres"), "centres")
         weights = rows_of_two(require_key(data, "weights"), "weights")
         if centres.shape != weights.shape:

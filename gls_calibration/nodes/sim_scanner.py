@@ -1,9 +1,10 @@
 """sim_scanner: the simulated laser-line scanner, a drop-in for a real scanner driver.
 
 Serves ``scanner/start_sweep`` and ``scanner/start_standstill``; each sweep's profiles go out on
-``scan/points`` (PointCloud2 with x, y, z in metres and intensity, in the moving sensor frame ``frame_id``, y = 0 on the line,
-stamped with the time each profile was taken), then ``scan/sweep_done``. The plate's marks come from the simulated galvo
-(``sim/marked_paths``) at the start of each sweep, as a real scanner sees the real plate.
+``scan/points`` (PointCloud2 with x, y, z in metres and intensity, in the moving sensor frame ``frame_id``,
+y = 0 on the line, stamped with the time each profile was taken), then ``scan/sweep_done``. The plate's
+marks come from the simulated galvo (``sim/marked_paths``) at the start of each sweep, as a real scanner
+sees the real plate.
 
 Hooks for placing profiles by pose and for sweep plans (see ``simulation/scanner.py``):
 

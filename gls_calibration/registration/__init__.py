@@ -1,1 +1,2 @@
-"""Stage 3, registration: measured centres onto the targets, combination of sweeps and separation of the scanner's errors."""
+"""Stage 3, registration: measured centres onto the targets, combination of sweeps and separation of the
+scanner's errors."""

@@ -78,9 +78,9 @@ class CellTimeModel:
 class CombinedSweeps:
     """The marked plate's centres from every sweep of a plan (scanner base frame, mm).
 
-    ``centres_xy`` (K, 2) are in the base frame's plane (the caller puts them on the plate plane), ``sigma_mm`` (K,) is the standard uncertainty per
-    axis of each (ring fit and sweep spread; NaN when unknown), ``target_index`` (K,) the target each
-    belongs to. ``separation`` is None for a single sweep.
+    ``centres_xy`` (K, 2) are in the base frame's plane (the caller puts them on the plate plane),
+    ``sigma_mm`` (K,) is the standard uncertainty per axis of each (ring fit and sweep spread; NaN when
+    unknown), ``target_index`` (K,) the target each belongs to. ``separation`` is None for a single sweep.
     """
 
     centres_xy: np.ndarray
@@ -98,8 +98,9 @@ def _ring_sigma(found: FiducialMeasurement) -> np.ndarray:
     return np.sqrt(np.mean(np.asarray(sigma, dtype=float) ** 2, axis=1))
 
 
-def combine_sweeps(measurements: Sequence[FiducialMeasurement], passes: Sequence[SweepPass], targets_gls: np.ndarray, scanner_to_gls: RigidTransform,
-                   placed_by_pose: bool, settings: Optional[SeparationSettings] = None) -> CombinedSweeps:
+def combine_sweeps(measurements: Sequence[FiducialMeasurement], passes: Sequence[SweepPass], targets_gls: np.ndarray,
+                   scanner_to_gls: RigidTransform, placed_by_pose: bool,
+                   settings: Optional[SeparationSettings] = None) -> CombinedSweeps:
     """Pair every sweep's centres with the targets and separate the scanner-frame errors.
 
     ``settings`` defaults to the separation for profiles placed by pose, or by time

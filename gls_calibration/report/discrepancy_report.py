@@ -67,7 +67,8 @@ def _plot_gap(result: DiscrepancyResult, path: Path) -> None:
     gaps = result.gap_per_step_mm
     figure, axis = plt.subplots(figsize=(max(5.0, 1.4 * len(labels) + 2), 4))
     axis.bar(range(len(gaps)), gaps, color="tab:blue")
-    axis.axhline(result.noise_floor_mm, color="tab:red", linestyle="--", label=f"noise floor {result.noise_floor_mm:.4f} mm")
+    axis.axhline(result.noise_floor_mm, color="tab:red", linestyle="--",
+                 label=f"noise floor {result.noise_floor_mm:.4f} mm")
     axis.set_xticks(range(len(gaps)), labels, rotation=20, ha="right")
     axis.set_ylabel("residual RMS (mm)")
     axis.set_title("gap between model and measurement per step")
@@ -143,7 +144,8 @@ def _report_markdown(result: DiscrepancyResult, measured: Path, model: Path | No
         lines.append("")
     lines += ["## Steps", ""]
     if result.steps:
-        lines += [f"| step | effect | parameters (± 1 sigma) | indistinguishable from | {criterion} gain | RMS before → after (mm) | dropped |",
+        lines += [f"| step | effect | parameters (± 1 sigma) | indistinguishable from | {criterion} gain "
+                  "| RMS before → after (mm) | dropped |",
                   "|---|---|---|---|---|---|---|"]
         for number, step in enumerate(result.steps, start=1):
             lines.append(f"| {number} | {step.name} | {_format_parameters(step)} | "
@@ -167,7 +169,8 @@ def _report_markdown(result: DiscrepancyResult, measured: Path, model: Path | No
                 label = f"{name}.{parameter}"
                 corr = result.rigid_correlation.get(label, {})
                 lines.append(f"  - {label} = {values[i]:.4g} ± {result.model_uncertainty[name][i]:.2g} {unit} "
-                             f"(correlation {corr.get('rotation', math.nan):+.2f} / {corr.get('translation_x', math.nan):+.2f}"
+                             f"(correlation {corr.get('rotation', math.nan):+.2f}"
+                             f" / {corr.get('translation_x', math.nan):+.2f}"
                              f" / {corr.get('translation_y', math.nan):+.2f})")
             lines.append(f"  - definition: {spec.doc}")
         for number, step in enumerate(result.steps, start=1):
@@ -180,7 +183,8 @@ def _report_markdown(result: DiscrepancyResult, measured: Path, model: Path | No
         lines.append("No missing effect named.")
     if result.implausible:
         lines += ["", "## Not named: physically implausible fits", ""]
-        lines += [f"- step {i.step}: {i.name} ({_format_values(i.parameters, {})}): {i.why}" for i in result.implausible]
+        lines += [f"- step {i.step}: {i.name} ({_format_values(i.parameters, {})}): {i.why}"
+                  for i in result.implausible]
     lines += ["", "## Where the residual lives", ""]
     for label, location in (("before", result.location_before), ("after", result.location_after)):
         lines.append(f"- {label}: RMS x {location.rms_x_mm:.4f} mm, y {location.rms_y_mm:.4f} mm; centre "

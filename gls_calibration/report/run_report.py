@@ -46,8 +46,10 @@ def measurement_lines(summary: RunSummary) -> tuple[str, ...]:
     chain = ([f"Simulated cell, measurement chain preset **{summary.measurement_preset}**: `post_rms_mm` / "
               "`post_max_mm` are MEASURED (as a real cell sees them), `true_post_*` are TRUE (simulation ground "
               "truth)."] if summary.measurement_preset else [])
-    lines = [*chain, *accuracy_lines(summary), *figure_kind_lines(summary), f"sweep plan of the marked plate: {summary.sweep_plan}; simulated cell time of the whole "
-             f"calibration (sweeps at the configured speed, robot moves, marking): {summary.cell_time_s / 60.0:.1f} min",
+    lines = [*chain, *accuracy_lines(summary), *figure_kind_lines(summary),
+             f"sweep plan of the marked plate: {summary.sweep_plan}; simulated cell time of the whole "
+             f"calibration (sweeps at the configured speed, robot moves, marking): "
+             f"{summary.cell_time_s / 60.0:.1f} min",
              f"measurement uncertainty per fiducial (standard, per axis, first plate): median "
              f"{summary.fiducial_sigma_median_mm:.4f} mm, max {summary.fiducial_sigma_max_mm:.4f} mm"]
     if np.isfinite(summary.scanner_share):

@@ -165,7 +165,8 @@ def nominal_start_pose(length_mm: float, direction: int = 1, orientation_deg: fl
     cos, sin = round(math.cos(angle), 15), round(math.sin(angle), 15)
     pose = np.eye(4)
     pose[:3, :3] = [[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]]
-    pose[:3, 3] = np.array([0.0, 0.5 * length_mm, 0.0]) - pose[:3, :3] @ np.array([0.0, direction * 0.5 * length_mm, 0.0])
+    pose[:3, 3] = (np.array([0.0, 0.5 * length_mm, 0.0])
+                   - pose[:3, :3] @ np.array([0.0, direction * 0.5 * length_mm, 0.0]))
     return pose
 
 
@@ -196,7 +197,8 @@ class PoseTrack:
         """True when every stamp lies within the reported poses' time span."""
         if len(self._stamps) < 2:
             return len(self._stamps) == 1 and bool(np.all(np.abs(stamps_s - self._stamps[0]) <= tolerance_s))
-        return bool(stamps_s.min() >= min(self._stamps) - tolerance_s and stamps_s.max() <= max(self._stamps) + tolerance_s)
+        return bool(stamps_s.min() >= min(self._stamps) - tolerance_s
+                    and stamps_s.max() <= max(self._stamps) + tolerance_s)
 
     def at(self, stamps_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rotations (n, 3, 3) and positions (n, 3) interpolated at ``stamps_s`` (inside the span)."""

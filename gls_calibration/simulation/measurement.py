@@ -240,7 +240,8 @@ def smooth_field(rng: np.random.Generator, std: float, correlation_mm: float):
     filtered = gaussian_filter(rng.standard_normal((count, count)), kernel_sigma, mode="wrap")
     impulse = np.zeros(int(2 * math.ceil(4.0 * kernel_sigma) + 1))
     impulse[impulse.size // 2] = 1.0
-    norm = float(np.sum(gaussian_filter1d(impulse, kernel_sigma, mode="constant") ** 2))   # 2-D: product of two 1-D norms
+    # 2-D: product of two 1-D norms
+    norm = float(np.sum(gaussian_filter1d(impulse, kernel_sigma, mode="constant") ** 2))
     values = std / norm * filtered
     axis = -FIELD_HALF_SPAN_MM + spacing * np.arange(count)
     interpolate = RegularGridInterpolator((axis, axis), values, method="linear", bounds_error=True)

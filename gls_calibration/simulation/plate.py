@@ -104,8 +104,8 @@ class Plate:
         bowl_saddle = draws[4:6]
         self._warp = None
         if c.plate_warp_mm > 0.0:
-            corners = self._warp_shape(np.array([[1.0, 1.0], [1.0, -1.0], [1.0, 0.0], [0.0, 1.0]]) * 0.5 * self.settings.size_mm,
-                                       bowl_saddle)
+            corners = self._warp_shape(
+                np.array([[1.0, 1.0], [1.0, -1.0], [1.0, 0.0], [0.0, 1.0]]) * 0.5 * self.settings.size_mm, bowl_saddle)
             peak = max(np.abs(corners).max(), 1e-12)
             self._warp = bowl_saddle * c.plate_warp_mm / peak
         return self.plate_id

@@ -1,15 +1,15 @@
 """The direct simulated cell recording what a real cell's drivers would stream into a rosbag2 bag.
 
 Each sweep, and each stand-still acquisition (profiles taken with the robot standing at the marking
-pose: a motion without travel), becomes, in the bag (:mod:`gls_calibration.scan.bag_io`): its motion's start and end stamps,
-one PointCloud2 per profile in the scanner's optical frame in metres, and the flange pose the robot
-reports (encoder pose, robot base -> flange) on ``/tf`` at each profile's stamp. The robot base frame
-of the recording is the simulation's scanner base frame B (see :mod:`gls_calibration.simulation.scanner`),
-so the calibration flow sees the same clouds live and on replay. What the cell itself measures is
-placed from exactly the messages it writes (float32 metres; TF in metres and quaternions), so that a
-replay can be compared with the live run: the cell measures what a subscriber to its own streams assembles
-(:class:`~gls_calibration.scan.bag_io.StreamAssembler`, fed every message as it is written), the same code
-a replay runs on the bag.
+pose: a motion without travel), becomes, in the bag (:mod:`gls_calibration.scan.bag_io`): its motion's
+start and end stamps, one PointCloud2 per profile in the scanner's optical frame in metres, and the
+flange pose the robot reports (encoder pose, robot base -> flange) on ``/tf`` at each profile's stamp.
+The robot base frame of the recording is the simulation's scanner base frame B (see
+:mod:`gls_calibration.simulation.scanner`), so the calibration flow sees the same clouds live and on
+replay. What the cell itself measures is placed from exactly the messages it writes (float32 metres; TF
+in metres and quaternions), so that a replay can be compared with the live run: the cell measures what a
+subscriber to its own streams assembles (:class:`~gls_calibration.scan.bag_io.StreamAssembler`, fed
+every message as it is written), the same code a replay runs on the bag.
 """
 from __future__ import annotations
 

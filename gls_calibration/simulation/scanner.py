@@ -98,7 +98,8 @@ class ScannerSettings:
         for name in ("depth_min_mm", "z_noise_mm", "linearity_mm", "speckle", "path_repeatability_mm"):
             as_non_negative_number(getattr(self, name), f"scanner {name}")
         if self.depth_min_mm >= self.depth_max_mm:
-            raise ValueError(f"scanner depth_min_mm ({self.depth_min_mm}) must be below depth_max_mm ({self.depth_max_mm})")
+            raise ValueError(f"scanner depth_min_mm ({self.depth_min_mm}) must be below "
+                             f"depth_max_mm ({self.depth_max_mm})")
         if not 0.0 <= self.dropout_fraction < 1.0:
             raise ValueError(f"scanner dropout_fraction must be in [0, 1), got {self.dropout_fraction!r}")
         if not (isinstance(self.intensity_bits, int) and 1 <= self.intensity_bits <= 24):
@@ -196,7 +197,8 @@ class LaserLineScanner:
         rotation = _turn(orientation_deg)
         pose = np.eye(4)
         pose[:3, :3] = rotation
-        pose[:3, 3] = np.array([0.0, 0.5 * length_mm, 0.0]) - rotation @ np.array([0.0, direction * 0.5 * length_mm, 0.0])
+        pose[:3, 3] = (np.array([0.0, 0.5 * length_mm, 0.0])
+                       - rotation @ np.array([0.0, direction * 0.5 * length_mm, 0.0]))
         return pose
 
     def _path_error(self, seed: int) -> np.ndarray:

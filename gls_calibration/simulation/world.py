@@ -144,8 +144,10 @@ def sim_config_from_dict(document: Any, preset: str | None = None) -> SimConfig:
     plate = PlateSettings(**{key: _number(value, f"plate.{key}") for key, value in plate.items()})
     scanner = _block(parameters, "scanner", _SCANNER_KEYS + _MOUNTING_KEYS)
     mounting = {key: _triple(scanner.pop(key), f"scanner.{key}") for key in _MOUNTING_KEYS if key in scanner}
-    scanner_values = {key: (int(value) if key == "intensity_bits" and isinstance(value, int) and not isinstance(value, bool)
-                            else _number(value, f"scanner.{key}")) for key, value in scanner.items()}
+    scanner_values = {key: (int(value)
+                            if key == "intensity_bits" and isinstance(value, int) and not isinstance(value, bool)
+                            else _number(value, f"scanner.{key}"))
+                      for key, value in scanner.items()}
     scanner = ScannerSettings(**scanner_values)
     sweep = {key: _number(value, f"sweep.{key}") for key, value in _block(parameters, "sweep", _SWEEP_KEYS).items()}
     length = sweep.get("length_mm", 200.0)
