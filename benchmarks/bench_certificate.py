@@ -63,13 +63,58 @@ def certify_once(preset: str, seed: int, grid: int, store_dir: Path, with_check:
             "true_rms": float(np.sqrt(np.mean(true_error ** 2)))}
 
 
+def serving_cost(repeats: int = 15) -> None:
+    """Correction time with the U map against without it (the same 19x19 TPS calibration), in process:
+    one batch of 100 000 targets and 2 000 single-target calls; best of ``repeats``."""
+    from gls_calibration.calibration.uncertainty import TrainingData, uncertainty_budget
+    from gls_calibration.correction.setpoints import CalibratedRegion, Correction
+    from gls_calibration.fiducials.targets import grid_targets
+    from gls_calibration.geometry.kinematics import HeadGeometry
+    from gls_calibration.models.rbf import ThinPlateSplineModel
+
+    rng = np.random.default_rng(0)
+    xy = grid_targets(19, 190.0) + rng.normal(0.0, 0.3, (361, 2))
+    values = 1e-3 * xy[:, ::-1] + rng.normal(0.0, 0.004, xy.shape)
+    model = ThinPlateSplineModel(xy, values, 10.0)
+    region = CalibratedRegion(-97.7, 97.7, -97.7, 97.7)
+    grid = uncertainty_budget([TrainingData(xy, values, np.full(361, 0.004), model.to_dict())], region.to_dict(),
+                              490.0, None, False).grid
+    plain, certified = Correction(HeadGeometry(), [model], region), Correction(HeadGeometry(), [model], region,
+                                                                               uncertainty=grid)
+    x, y, z = rng.uniform(-100.0, 100.0, 100_000), rng.uniform(-100.0, 100.0, 100_000), rng.uniform(-5, 5, 100_000)
+
+    def paired(call_plain, call_certified) -> tuple[float, float]:
+        # interleaved, best of each: a loaded host slows both alike
+        times: list[list[float]] = [[], []]
+        for _ in range(repeats):
+            for slot, call in enumerate((call_plain, call_certified)):
+                began = time.perf_counter()
+                call()
+                times[slot].append(time.perf_counter() - began)
+        return min(times[0]), min(times[1])
+
+    for correction in (plain, certified):
+        correction.correct(x, y, z, workers=1)     # tiles built before timing
+    batch = paired(lambda: plain.correct(x, y, z, workers=1), lambda: certified.correct(x, y, z, workers=1))
+    one = [(x[i:i + 1], y[i:i + 1], z[i:i + 1]) for i in range(2000)]     # as a service passes one target
+    single = paired(lambda: [plain.correct(*target) for target in one],
+                    lambda: [certified.correct(*target) for target in one])
+    print(f"serving cost, in process: batch of 100000 {batch[0] * 1e3:.1f} -> {batch[1] * 1e3:.1f} ms "
+          f"(ratio {batch[1] / batch[0]:.3f}); 2000 single targets {single[0] * 1e3:.1f} -> {single[1] * 1e3:.1f} ms "
+          f"(ratio {single[1] / single[0]:.3f}); target <= 1.10", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--presets", nargs="+", default=["careful", "paper_like"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3, 4, 5])
     parser.add_argument("--grid", type=int, default=19)
     parser.add_argument("--no-check", action="store_true", help="no reference check: the chain term is assumed")
+    parser.add_argument("--cost", action="store_true", help="only the serving cost of U (no calibration)")
     args = parser.parse_args()
+    if args.cost:
+        serving_cost()
+        return
     print(f"grid {args.grid}x{args.grid}, plan {calibration_plan().label}, validation {args.grid - 1}x{args.grid - 1} "
           f"half a pitch off; reference check {'none' if args.no_check else FIELD_PLATE.label}; mm")
     print(f"{'preset':11s} {'seed':>4s} {'coverage':>8s} {'median U':>8s} {'TRUE rms':>8s} {'U/TRUE':>6s} "

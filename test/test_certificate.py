@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from gls_calibration.calibration.stated_accuracy import ChainCheck
-from gls_calibration.calibration.uncertainty import (COVERAGE_FACTOR, CertificateSettings, TrainingData,
-                                                     UncertaintyGrid, bilinear, uncertainty_budget)
+from gls_calibration.calibration.uncertainty import CertificateSettings, TrainingData, uncertainty_budget
+from gls_calibration.correction.uncertainty_grid import COVERAGE_FACTOR, UncertaintyGrid, bilinear
 from gls_calibration.models.linear_response import response_matrix
 from gls_calibration.models.rbf import OLSRBFNetwork, ThinPlateSplineModel
 
@@ -119,3 +119,102 @@ def test_bilinear_is_exact_on_a_plane_and_nan_outside():
     np.testing.assert_allclose(bilinear(x, y, values, points[:, 0], points[:, 1] + 1.0),
                                1.0 + 2.0 * points[:, 0] + 3.0 * (points[:, 1] + 1.0), atol=1e-12)
     assert np.isnan(bilinear(x, y, values, np.array([2.1]), np.array([0.0]))).all()
+
+
+# --- stored and served -----------------------------------------------------------------------------
+
+def _stored(tmp_path, with_grid: bool = True, grid_override=None):
+    """A 9x9 TPS calibration with its U map, saved to a store; (store, path, parsed record)."""
+    from gls_calibration.calibration.record_file import new_record
+    from gls_calibration.calibration.store import CalibrationStore
+    from gls_calibration.geometry.kinematics import HeadGeometry
+
+    xy, _, noisy = grid_data()
+    model = ThinPlateSplineModel(xy, noisy, 10.0)
+    region = {"type": "box", **REGION}
+    budget = uncertainty_budget([TrainingData(xy, noisy, np.full(len(xy), 0.004), model.to_dict())],
+                                REGION, 490.0, None, False)
+    grid = budget.to_dict() if grid_override is None else grid_override
+    zeros = np.zeros(len(xy))
+    record = new_record(head=HeadGeometry(), plate_pose={"normal": [0, 0, 1], "centre": [0, 0, 0],
+                                                         "rotation": np.eye(3), "flatness_rms_mm": 0.0},
+                        models=[model.to_dict()], calibrated_region={**region, "taper_mm": 10.0},
+                        hyper_parameters={}, metrics={},
+                        fiducials={"target_x": xy[:, 0], "target_y": xy[:, 1], "measured_x": xy[:, 0],
+                                   "measured_y": xy[:, 1], "measured_z": zeros, "dx": zeros, "dy": zeros},
+                        uncertainty=grid if with_grid else None)
+    store = CalibrationStore(tmp_path)
+    return store, store.save(record), budget
+
+
+def test_correction_serves_u_from_the_stored_grid_and_nan_outside(tmp_path):
+    from gls_calibration.calibration.record import correction_from_record
+    from gls_calibration.geometry.kinematics import HeadGeometry
+
+    store, path, budget = _stored(tmp_path)
+    correction = correction_from_record(store.load(path), HeadGeometry())
+    x = np.array([0.0, 12.3, -59.0, 61.0, 200.0])
+    y = np.array([0.0, -40.0, 59.0, 0.0, 0.0])
+    answer = correction.correct(x, y, np.zeros(5))
+    np.testing.assert_allclose(answer.uncertainty_k2_mm[:3], budget.grid.at(x[:3], y[:3]), rtol=1e-12)
+    assert np.all(answer.uncertainty_k2_mm[:3] > 0.0)
+    assert np.isnan(answer.uncertainty_k2_mm[3:]).all() and not answer.inside_calibrated_field[3:].any()
+    for index in range(5):     # the one-target path answers the same
+        one = correction.correct(x[index], y[index], 0.0).uncertainty_k2_mm[0]
+        np.testing.assert_allclose(one, answer.uncertainty_k2_mm[index], rtol=1e-12, equal_nan=True)
+
+
+def test_the_documented_evaluator_gives_the_served_u(tmp_path):
+    import yaml
+
+    from gls_calibration.calibration.record import correction_from_record
+    from gls_calibration.geometry.kinematics import HeadGeometry
+    from test_calibration_format import doc_evaluator
+
+    store, path, _ = _stored(tmp_path)
+    record = store.load(path)
+    rng = np.random.default_rng(4)
+    x, y, z = rng.uniform(-70.0, 70.0, 300), rng.uniform(-70.0, 70.0, 300), rng.uniform(-20.0, 20.0, 300)
+    served = correction_from_record(record, HeadGeometry()).correct(x, y, z).uncertainty_k2_mm
+    documented = doc_evaluator()["uncertainty"](yaml.safe_load(yaml.safe_dump(record)), x, y, z)
+    np.testing.assert_allclose(documented, served, rtol=0.0, atol=1e-9, equal_nan=True)
+    assert np.isnan(served).any() and np.isfinite(served).any()
+
+
+def test_an_older_file_without_the_grid_serves_nan_and_warns_once(tmp_path, caplog):
+    import logging
+
+    from gls_calibration.calibration import record as record_module
+    from gls_calibration.calibration.record import correction_from_record
+    from gls_calibration.geometry.kinematics import HeadGeometry
+
+    record_module._warned.clear()
+    store, path, _ = _stored(tmp_path, with_grid=False)
+    with caplog.at_level(logging.WARNING, logger=record_module.__name__):
+        first = correction_from_record(store.load(path), HeadGeometry())
+        correction_from_record(store.load(path), HeadGeometry())
+    warnings = [entry for entry in caplog.records if "without an uncertainty map" in entry.getMessage()]
+    assert len(warnings) == 1
+    answer = first.correct([0.0, 10.0], [0.0, 5.0], [0.0, 0.0])
+    assert np.isnan(answer.uncertainty_k2_mm).all() and answer.inside_calibrated_field.all()
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda g: g["u_k2_mm"][3].__setitem__(2, -0.01), "key 'uncertainty.u_k2_mm' holds negative values"),
+    (lambda g: g["x_mm"].reverse(), "key 'uncertainty.x_mm' must increase strictly"),
+    (lambda g: g["y_mm"].__setitem__(1, g["y_mm"][0]), "key 'uncertainty.y_mm' must increase strictly"),
+    (lambda g: g["u_k2_mm"][0].__setitem__(0, float("nan")), "key 'uncertainty.u_k2_mm' holds NaN"),
+])
+def test_a_bad_grid_is_refused_at_load_naming_the_key(tmp_path, change, message):
+    import yaml
+
+    from gls_calibration.calibration.record_file import CalibrationFileError, validate_record
+
+    store, path, budget = _stored(tmp_path)
+    record = store.load(path)
+    change(record["uncertainty"])
+    with pytest.raises(CalibrationFileError, match=message):
+        validate_record(record, path)
+    path.write_text(yaml.safe_dump(record))     # the file itself, as the nodes load it
+    with pytest.raises(CalibrationFileError, match="key 'uncertainty"):
+        store.load(path)

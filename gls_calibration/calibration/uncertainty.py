@@ -43,11 +43,10 @@ import numpy as np
 
 from gls_calibration.calibration.stated_accuracy import ChainCheck
 from gls_calibration.common.validation import as_positive_number
+from gls_calibration.correction.uncertainty_grid import COVERAGE_FACTOR, UncertaintyGrid
 from gls_calibration.models import rbf
 from gls_calibration.models.linear_response import response_matrix
 
-COVERAGE_PROBABILITY = 0.95
-COVERAGE_FACTOR = math.sqrt(-2.0 * math.log(1.0 - COVERAGE_PROBABILITY))   # 2.4477: 2-D radius, see above
 CONTRIBUTIONS = ("measurement", "chain", "model", "plate_height")
 CHAIN_FROM_CHECK = "reference check"
 CHAIN_ASSUMED = "assumed: no reference check of this plan"
@@ -77,75 +76,6 @@ class Contribution:
     rms_mm: float
     max_mm: float
     basis: str
-
-
-@dataclass(frozen=True)
-class UncertaintyGrid:
-    """U (k = 2.448, 95 % radius, mm) on the nodes ``x_mm`` (nx) x ``y_mm`` (ny), rows along y."""
-
-    x_mm: np.ndarray
-    y_mm: np.ndarray
-    u_k2_mm: np.ndarray     # (ny, nx)
-
-    def __post_init__(self) -> None:
-        check_grid(self.x_mm, self.y_mm, self.u_k2_mm, "uncertainty")
-
-    def at(self, x, y) -> np.ndarray:
-        """U at points (x, y) by bilinear interpolation; NaN outside the grid (1e-9 mm tolerance)."""
-        return bilinear(self.x_mm, self.y_mm, self.u_k2_mm, np.asarray(x, float), np.asarray(y, float))
-
-    def to_dict(self) -> dict:
-        return {"coverage_probability": COVERAGE_PROBABILITY, "coverage_factor": COVERAGE_FACTOR,
-                "x_mm": self.x_mm.tolist(), "y_mm": self.y_mm.tolist(), "u_k2_mm": self.u_k2_mm.tolist()}
-
-    @classmethod
-    def from_dict(cls, data: Any, key: str = "uncertainty") -> "UncertaintyGrid":
-        """The grid of a record's ``uncertainty`` mapping; ValueError naming ``key`` and the field."""
-        if not isinstance(data, Mapping):
-            raise ValueError(f"key '{key}' must be a mapping")
-        for name in ("x_mm", "y_mm", "u_k2_mm"):
-            if name not in data:
-                raise ValueError(f"missing key '{key}.{name}'")
-        try:
-            x = np.asarray(data["x_mm"], dtype=float)
-            y = np.asarray(data["y_mm"], dtype=float)
-            u = np.asarray(data["u_k2_mm"], dtype=float)
-        except (TypeError, ValueError):
-            raise ValueError(f"key '{key}': x_mm, y_mm and u_k2_mm must be numbers") from None
-        return cls(x, y, u)
-
-
-def check_grid(x: np.ndarray, y: np.ndarray, u: np.ndarray, key: str) -> None:
-    """ValueError naming ``key`` when the axes are not increasing finite lists of 2+ nodes or U is
-    not a finite non-negative (ny, nx) array."""
-    for name, axis in (("x_mm", x), ("y_mm", y)):
-        if axis.ndim != 1 or axis.size < 2 or not np.all(np.isfinite(axis)):
-            raise ValueError(f"key '{key}.{name}' must be a list of 2 or more finite numbers")
-        if np.any(np.diff(axis) <= 0.0):
-            raise ValueError(f"key '{key}.{name}' must increase strictly (monotonic axis)")
-    if u.shape != (y.size, x.size):
-        raise ValueError(f"key '{key}.u_k2_mm' must have shape ({y.size}, {x.size}) (rows along y), got {u.shape}")
-    if not np.all(np.isfinite(u)):
-        raise ValueError(f"key '{key}.u_k2_mm' holds NaN or infinite values")
-    if np.any(u < 0.0):
-        raise ValueError(f"key '{key}.u_k2_mm' holds negative values")
-
-
-def bilinear(x_nodes: np.ndarray, y_nodes: np.ndarray, values: np.ndarray, x: np.ndarray,
-             y: np.ndarray) -> np.ndarray:
-    """``values`` (ny, nx) interpolated bilinearly at (x, y); NaN outside the nodes' box."""
-    tolerance = 1e-9
-    inside = (x >= x_nodes[0] - tolerance) & (x <= x_nodes[-1] + tolerance) \
-        & (y >= y_nodes[0] - tolerance) & (y <= y_nodes[-1] + tolerance)
-    xc = np.clip(x, x_nodes[0], x_nodes[-1])
-    yc = np.clip(y, y_nodes[0], y_nodes[-1])
-    i = np.clip(np.searchsorted(x_nodes, xc, side="right") - 1, 0, x_nodes.size - 2)
-    j = np.clip(np.searchsorted(y_nodes, yc, side="right") - 1, 0, y_nodes.size - 2)
-    tx = (xc - x_nodes[i]) / (x_nodes[i + 1] - x_nodes[i])
-    ty = (yc - y_nodes[j]) / (y_nodes[j + 1] - y_nodes[j])
-    result = (values[j, i] * (1.0 - tx) * (1.0 - ty) + values[j, i + 1] * tx * (1.0 - ty)
-              + values[j + 1, i] * (1.0 - tx) * ty + values[j + 1, i + 1] * tx * ty)
-    return np.where(inside, result, np.nan)
 
 
 @dataclass(frozen=True)
