@@ -218,3 +218,35 @@ def test_a_bad_grid_is_refused_at_load_naming_the_key(tmp_path, change, message)
     path.write_text(yaml.safe_dump(record))     # the file itself, as the nodes load it
     with pytest.raises(CalibrationFileError, match="key 'uncertainty"):
         store.load(path)
+
+
+# --- in the calibrate flow and the report ----------------------------------------------------------
+
+def test_a_small_calibration_reports_its_certificate_and_coverage_that_can_fail(tmp_path):
+    import csv
+
+    from gls_calibration.calibration.outcome import summarise
+    from gls_calibration.report.certificate import coverage
+    from gls_calibration.report.run_report import write_outcome_report
+    from test_procedure import FAST, new_cell, run_calibrate
+
+    cell = new_cell(tmp_path)
+    outcome = run_calibrate(cell, cell.settings(**FAST), validate=True, force=True)
+    summary = summarise(outcome)
+    grid = outcome.candidate.correction.uncertainty
+    assert grid is not None and summary.certificate_u95_full_mm >= summary.certificate_u95_central_mm > 0.0
+    validation = outcome.validation
+    u = grid.at(validation.paired_targets_xy[:, 0], validation.paired_targets_xy[:, 1])
+    assert summary.certificate_coverage == pytest.approx(coverage(u, validation.true_deviations))
+    # the check can fail: a U five times too small leaves most true errors outside it
+    assert coverage(0.2 * u, validation.true_deviations) < 0.9
+    assert "assumed" in summary.certificate_reference or "none" in summary.certificate_reference
+
+    write_outcome_report(tmp_path / "report", outcome, summary)
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "## Certificate" in text and "| measurement |" in text and "uncertainty_map.png" in text
+    with (tmp_path / "report" / "validation.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert list(rows[0]) == ["x_mm", "y_mm", "true_dx_mm", "true_dy_mm", "u_k2_mm"]
+    assert len(rows) == len(validation.paired_targets_xy)
+    np.testing.assert_allclose([float(row["u_k2_mm"]) for row in rows], u)

@@ -99,6 +99,15 @@ class UncertaintyGrid:
         y = np.clip(np.asarray(y, float), self.y_mm[0], self.y_mm[-1])
         return bilinear(self.x_mm, self.y_mm, self.u_k2_mm, x, y)
 
+    def field_figures(self, central_mm: float = 150.0) -> tuple[float, float, float]:
+        """(largest U over the grid, largest U over the centred ``central_mm`` square, median U), mm."""
+        gx, gy = np.meshgrid(self.x_mm, self.y_mm)
+        centre_x, centre_y = 0.5 * (self.x_mm[0] + self.x_mm[-1]), 0.5 * (self.y_mm[0] + self.y_mm[-1])
+        half = central_mm / 2.0 + 1e-9
+        central = (np.abs(gx - centre_x) <= half) & (np.abs(gy - centre_y) <= half)
+        u = self.u_k2_mm
+        return float(u.max()), float(u[central].max()) if central.any() else math.nan, float(np.median(u))
+
     def to_dict(self) -> dict:
         return {"coverage_probability": COVERAGE_PROBABILITY, "coverage_factor": COVERAGE_FACTOR,
                 "x_mm": self.x_mm.tolist(), "y_mm": self.y_mm.tolist(), "u_k2_mm": self.u_k2_mm.tolist()}
