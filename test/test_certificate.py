@@ -250,3 +250,64 @@ def test_a_small_calibration_reports_its_certificate_and_coverage_that_can_fail(
     assert list(rows[0]) == ["x_mm", "y_mm", "true_dx_mm", "true_dy_mm", "u_k2_mm"]
     assert len(rows) == len(validation.paired_targets_xy)
     np.testing.assert_allclose([float(row["u_k2_mm"]) for row in rows], u)
+
+
+# --- served by the correction node ---------------------------------------------------------------
+
+def test_both_correction_services_answer_u_and_a_bad_grid_keeps_the_served_calibration(ros_context, add_node,
+                                                                                       tmp_path):
+    import yaml
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+
+    from gls_calibration.calibration.record import correction_from_record
+    from gls_calibration.geometry.kinematics import HeadGeometry
+    from gls_calibration.nodes.correction import CorrectionNode
+    from gls_calibration_msgs.srv import CorrectSetpoints, LoadCalibration
+    from ros_helpers import call_service
+
+    if "uncertainty_k2_mm" not in CorrectSetpoints.Response.get_fields_and_field_types():
+        pytest.skip("gls_calibration_msgs was built before issue 30: rebuild msg_defs (make setup)")
+    store, path, _ = _stored(tmp_path / "store")
+    add_node(CorrectionNode(context=ros_context, parameter_overrides=[
+        Parameter("calibration_dir", value=str(tmp_path / "store"))]))
+    node = add_node(Node("certificate_client", namespace="gls", context=ros_context))
+    x, y = np.array([0.0, 20.0, -55.0, 80.0]), np.array([0.0, -30.0, 50.0, 0.0])
+    expected = correction_from_record(store.load(path), HeadGeometry()).correct(x, y).uncertainty_k2_mm
+    for service in ("correct_setpoints", "correct_setpoints_batch"):
+        response = call_service(node, node.create_client(CorrectSetpoints, service),
+                                CorrectSetpoints.Request(x=x.tolist(), y=y.tolist()), 10.0)
+        assert response.success, response.message
+        np.testing.assert_allclose(np.asarray(response.uncertainty_k2_mm), expected, rtol=1e-12, equal_nan=True)
+        assert np.isfinite(response.uncertainty_k2_mm[:3]).all() and math.isnan(response.uncertainty_k2_mm[3])
+
+    record = store.load(path)
+    record["uncertainty"]["x_mm"].reverse()
+    path.write_text(yaml.safe_dump(record))
+    answer = call_service(node, node.create_client(LoadCalibration, "correction/load"),
+                          LoadCalibration.Request(file=str(path)), 10.0)
+    assert not answer.success and "uncertainty.x_mm" in answer.message, answer.message
+    kept = call_service(node, node.create_client(CorrectSetpoints, "correct_setpoints"),
+                        CorrectSetpoints.Request(x=x.tolist(), y=y.tolist()), 10.0)
+    np.testing.assert_allclose(np.asarray(kept.uncertainty_k2_mm), expected, rtol=1e-12, equal_nan=True)
+
+
+def test_gls_export_and_gls_correct_write_the_uncertainty_column(tmp_path):
+    from gls_calibration.calibration.record import correction_from_record
+    from gls_calibration.cli.correct import main as correct_main
+    from gls_calibration.cli.export import main as export_main
+    from gls_calibration.geometry.kinematics import HeadGeometry
+
+    store, path, _ = _stored(tmp_path / "store")
+    correction = correction_from_record(store.load(path), HeadGeometry())
+    targets = tmp_path / "targets.csv"
+    targets.write_text("x,y\n0,0\n20,-30\n80,0\n")
+    assert correct_main(["--calibration", str(path), str(targets), "--out", str(tmp_path / "out.csv")]) == 0
+    table = np.genfromtxt(tmp_path / "out.csv", delimiter=",", names=True)
+    np.testing.assert_allclose(table["uncertainty_k2_mm"], correction.correct([0, 20, 80], [0, -30, 0]).uncertainty_k2_mm,
+                               rtol=1e-12, equal_nan=True)
+    assert export_main(["--calibration", str(path), "--out", str(tmp_path / "export"), "--pitch", "20"]) == 0
+    exported = np.genfromtxt(tmp_path / "export" / "table.csv", delimiter=",", names=True)
+    expected = correction.correct(exported["x"], exported["y"], exported["z"]).uncertainty_k2_mm
+    np.testing.assert_allclose(exported["uncertainty_k2_mm"], expected, rtol=1e-12, equal_nan=True)
+    assert np.isfinite(exported["uncertainty_k2_mm"]).any()
