@@ -99,6 +99,8 @@ def serving_cost(repeats: int = 15) -> None:
     one = [(x[i:i + 1], y[i:i + 1], z[i:i + 1]) for i in range(2000)]     # as a service passes one target
     single = paired(lambda: [plain.correct(*target) for target in one],
                     lambda: [certified.correct(*target) for target in one])
+    lookup = paired(lambda: None, lambda: grid.inside_at(np.clip(x, -97.7, 97.7), np.clip(y, -97.7, 97.7)))[1]
+    print(f"U lookup alone for 100000 targets {lookup * 1e3:.1f} ms ({lookup / batch[0]:.1%} of the plain batch)")
     print(f"serving cost, in process: batch of 100000 {batch[0] * 1e3:.1f} -> {batch[1] * 1e3:.1f} ms "
           f"(ratio {batch[1] / batch[0]:.3f}); 2000 single targets {single[0] * 1e3:.1f} -> {single[1] * 1e3:.1f} ms "
           f"(ratio {single[1] / single[0]:.3f}); target <= 1.10", flush=True)

@@ -206,6 +206,10 @@ class Correction:
         if not self.models:
             zeros = np.zeros_like(x)
             return zeros, zeros.copy(), np.zeros(x.shape, dtype=bool)
+        return self._deviation(x, y)[:3]
+
+    def _deviation(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
+        """:meth:`deviation` of validated arrays with models, and the clamped points it evaluated."""
         region = self.calibrated_region
         inside = region.contains(x, y)
         clamped_x, clamped_y = region.clamp(x, y)
@@ -214,7 +218,7 @@ class Correction:
         total = np.zeros_like(points)
         for model in self.models:
             total += as_finite_array(model(points), "model output", ndim=2)
-        return weight * total[:, 0], weight * total[:, 1], inside
+        return weight * total[:, 0], weight * total[:, 1], inside, clamped_x, clamped_y
 
     def check_field(self, samples_per_side: int = FIELD_CHECK_SAMPLES) -> None:
         """ValueError unless the summed correction is finite and within ``MAX_DEVIATION_MM`` on a
@@ -290,7 +294,7 @@ class Correction:
                                       np.full(x.shape, np.nan))
         plane_z = self.calibrated_region.plane_z_mm
         on_plane_x, on_plane_y = transfer_along_ray(self.geometry, x, y, z, plane_z)
-        delta_x, delta_y, inside = self.deviation(on_plane_x, on_plane_y)
+        delta_x, delta_y, inside, clamped_x, clamped_y = self._deviation(on_plane_x, on_plane_y)
         commanded_x, commanded_y = transfer_along_ray(self.geometry, on_plane_x + delta_x, on_plane_y + delta_y,
                                                       plane_z, z)
         joints = inverse(self.geometry, commanded_x, commanded_y, z)
@@ -303,7 +307,7 @@ class Correction:
                 uncertainty = np.array([grid.at_point(px, py) if flag else math.nan
                                         for px, py, flag in zip(on_plane_x.tolist(), on_plane_y.tolist(), inside)])
             else:
-                uncertainty = grid.inside_at(*self.calibrated_region.clamp(on_plane_x, on_plane_y))
+                uncertainty = grid.inside_at(clamped_x, clamped_y)
                 uncertainty[~inside] = np.nan
         return CorrectedSetpoints(commanded_x, commanded_y, joints.alpha_x, joints.alpha_y, joints.focus_shift,
                                   inside, joints.within_limits & height_ok, uncertainty)

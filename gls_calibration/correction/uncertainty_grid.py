@@ -37,9 +37,11 @@ class UncertaintyGrid:
         object.__setattr__(self, "_y_list", self.y_mm.tolist())
         object.__setattr__(self, "_u_rows", self.u_k2_mm.tolist())
         spacing = (np.diff(self.x_mm), np.diff(self.y_mm))
-        object.__setattr__(self, "_uniform", all(np.allclose(step, step.mean(), rtol=1e-9, atol=0.0) for step in spacing))
-        object.__setattr__(self, "_scale", ((self.x_mm.size - 1) / (self.x_mm[-1] - self.x_mm[0]),
-                                            (self.y_mm.size - 1) / (self.y_mm[-1] - self.y_mm[0])))
+        object.__setattr__(self, "_uniform",
+                           bool(all(np.allclose(step, step.mean(), rtol=1e-9, atol=0.0) for step in spacing)))
+        # Python floats: numpy scalars would make every step of the one-target path ~10x slower
+        object.__setattr__(self, "_scale", (float((self.x_mm.size - 1) / (self.x_mm[-1] - self.x_mm[0])),
+                                            float((self.y_mm.size - 1) / (self.y_mm[-1] - self.y_mm[0]))))
         object.__setattr__(self, "_flat", np.ascontiguousarray(self.u_k2_mm).ravel())
 
     def _uniform_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
