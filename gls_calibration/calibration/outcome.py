@@ -277,7 +277,8 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
 
 def _certificate(outcome: CalibrationOutcome, check: Optional[ChainCheck]) -> dict:
     """The certificate's figures of the candidate's U map, and its coverage where the truth is known."""
-    grid = outcome.candidate.correction.uncertainty if outcome.candidate is not None else None
+    correction = outcome.candidate.correction if outcome.candidate is not None else None
+    grid = getattr(correction, "uncertainty", None)
     if grid is None:
         return {}
     full, central, median = grid.field_figures(150.0)

@@ -84,7 +84,7 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: Ru
         return metrics.to_dict() if metrics is not None else None
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    grid = correction.uncertainty if correction is not None else None
+    grid = getattr(correction, "uncertainty", None)
     map_name, certificate_files = write_certificate_files(out_dir, grid, validation)
     data = ReportData(
         targets_xy=first.paired_targets_xy, deviations_before=first.deviations,
