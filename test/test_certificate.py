@@ -311,3 +311,11 @@ def test_gls_export_and_gls_correct_write_the_uncertainty_column(tmp_path):
     expected = correction.correct(exported["x"], exported["y"], exported["z"]).uncertainty_k2_mm
     np.testing.assert_allclose(exported["uncertainty_k2_mm"], expected, rtol=1e-12, equal_nan=True)
     assert np.isfinite(exported["uncertainty_k2_mm"]).any()
+
+
+def test_a_physics_first_model_gets_no_certificate_rather_than_a_wrong_one():
+    xy, _, noisy = grid_data()
+    training = TrainingData(xy, noisy, np.full(len(xy), 0.004), {"type": "sum", "models": []})
+    with pytest.raises(ValueError, match="the certificate covers OLS RBF networks and thin-plate splines trained on "
+                                         "the corrections, not a model of type 'sum'"):
+        uncertainty_budget([training], REGION, 490.0, None, False)

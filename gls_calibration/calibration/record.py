@@ -43,8 +43,8 @@ def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequ
                  chain_check: Optional[ChainCheck] = None) -> dict:
     """The record of a run whose ``models`` were trained on ``runs`` (after ``existing_models``),
     with its certificate's U map (``uncertainty``; its chain term from ``chain_check`` when that
-    was made with the run's plan, assumed otherwise). A model U cannot be computed for (physics first:
-    its data-driven part is not trained at the landed points) leaves the map out: the file then serves NaN, as an older file does."""
+    was made with the run's plan, assumed otherwise). A model the certificate does not cover (physics
+    first) leaves the map out: the file then serves NaN, as an older file does."""
     first = runs[0]
     region = calibrated_region(settings, float(np.mean(first.targets[:, 2]))).to_dict()
     try:

@@ -143,6 +143,11 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
     """
     if not trainings:
         raise ValueError("uncertainty_budget needs at least one trained model and its training data")
+    for training in trainings:
+        if training.model.get("type") not in ("ols_rbf", "thin_plate_spline"):
+            # physics first: its data-driven part is trained at the targets on what the physics leaves
+            raise ValueError(f"the certificate covers OLS RBF networks and thin-plate splines trained on the "
+                             f"corrections, not a model of type {training.model.get('type')!r}")
     x_min, x_max, y_min, y_max = (float(region[key]) for key in ("x_min", "x_max", "y_min", "y_max"))
     if not (x_max > x_min and y_max > y_min):
         raise ValueError(f"calibrated region is empty: x {x_min:g}..{x_max:g}, y {y_min:g}..{y_max:g} mm")
@@ -249,8 +254,6 @@ def blocked_cv_model_error(landed: np.ndarray, corrections: np.ndarray, sigma: n
 
 def _refit(model: Mapping[str, Any]):
     """A function (X, Y) -> model refitted with ``model``'s hyper-parameters."""
-    if model.get("type") == "sum" and model.get("models"):
-        model = model["models"][-1]
     kind = model.get("type")
     if kind == "ols_rbf":
         spread, goal, limit = float(model["spread_mm"]), float(model.get("mse_goal_mm2", 0.0)), model.get("max_neurons")

@@ -29,8 +29,7 @@ def response_matrix(model: Mapping[str, Any], training_xy, points) -> np.ndarray
     Parameters
     ----------
     model : mapping
-        A model's ``to_dict()`` form, type ``ols_rbf`` or ``thin_plate_spline`` (a ``sum`` model:
-        its last part, the data-driven one, trained on the same points).
+        A model's ``to_dict()`` form, type ``ols_rbf`` or ``thin_plate_spline``.
     training_xy : array_like (N, 2)
         Where the model was trained (mm).
     points : array_like (M, 2)
@@ -43,8 +42,6 @@ def response_matrix(model: Mapping[str, Any], training_xy, points) -> np.ndarray
     """
     training = as_points(training_xy, "training_xy", 2)
     points = as_points(points, "points", 2, min_length=0)
-    if model.get("type") == "sum" and model.get("models"):
-        model = model["models"][-1]
     kind = model.get("type")
     if kind == "ols_rbf":
         centres = np.asarray(model["centres"], dtype=float).reshape(-1, 2)
