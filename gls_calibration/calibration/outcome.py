@@ -217,7 +217,7 @@ class RunSummary:
     stage_wall_s: Mapping[str, float] = field(default_factory=dict)   # wall time per stage (time_budget)
     last_sweep_to_result_s: float = math.nan    # end of the last marked-plate sweep to the flow's result
     # the certificate (calibration.uncertainty): U (95 % radius of the 2-D landing, mm) of the candidate,
-    # largest over its field and over the central 150 x 150 mm, median; in simulation the fraction of
+    # largest over the centred 190 x 190 mm and over the central 150 x 150 mm, median over its grid; in simulation the fraction of
     # validation fiducials whose TRUE landing error is within U; what the chain term rests on
     certificate_u95_full_mm: float = math.nan
     certificate_u95_central_mm: float = math.nan
@@ -281,7 +281,8 @@ def _certificate(outcome: CalibrationOutcome, check: Optional[ChainCheck]) -> di
     grid = getattr(correction, "uncertainty", None)
     if grid is None:
         return {}
-    full, central, median = grid.field_figures(150.0)
+    full = grid.field_figures(190.0)[1]         # the grid's 190 x 190 mm (it spans the rings' margin too)
+    _, central, median = grid.field_figures(150.0)
     values: dict[str, Any] = {"certificate_u95_full_mm": full, "certificate_u95_central_mm": central,
                               "certificate_u95_median_mm": median,
                               "certificate_reference": (f"reference check: {check.reference}" if check is not None

@@ -76,7 +76,7 @@ def certificate_lines(stored: Optional[Mapping[str, Any]], summary: Any, map_nam
         return ["No uncertainty map: the calibration was not trained in this run, or its model admits none "
                 "(the file then serves NaN)."]
     lines = [f"**A corrected target lands within U = {summary.certificate_u95_full_mm:.4f} mm of its target with "
-             f"95 % probability over the calibrated field (190 x 190 mm and the rings' margin); within "
+             f"95 % probability over 190 x 190 mm; within "
              f"{summary.certificate_u95_central_mm:.4f} mm over the central 150 x 150 mm** (largest U of each; "
              f"median U {summary.certificate_u95_median_mm:.4f} mm). Position relative to the best-fit rigid frame "
              "of the field (a rigid motion of the whole field is not observable on one plate).", "",
