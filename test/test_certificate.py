@@ -68,9 +68,13 @@ def test_budget_names_every_contribution_and_expands_by_the_2d_factor():
     per_axis = np.sqrt(sum(item.max_mm ** 2 for item in budget.contributions))
     assert budget.u95_full_mm <= COVERAGE_FACTOR * per_axis + 1e-12
     assert budget.u95_full_mm >= budget.u95_central_mm > 0.0
-    # without a matching check the chain term is assumed, never zero
-    assumed = uncertainty_budget([training], REGION, 490.0, check, False).contribution("chain")
-    assert assumed.rms_mm == pytest.approx(0.004) and assumed.basis.startswith("assumed")
+    # without a matching check the chain term is assumed, never zero: what the plan removed, else one
+    # centre's random part, flagged
+    assumed = uncertainty_budget([training], REGION, 490.0, check, False, removed_chain_rms_mm=0.05)
+    assert assumed.contribution("chain").rms_mm == pytest.approx(0.05 / math.sqrt(2.0))
+    assert assumed.contribution("chain").basis.startswith("assumed")
+    bare = uncertainty_budget([training], REGION, 490.0, check, False).contribution("chain")
+    assert bare.rms_mm == pytest.approx(0.004) and "NOT supported" in bare.basis
 
 
 def test_model_term_grows_with_the_distance_to_the_nearest_fiducial():

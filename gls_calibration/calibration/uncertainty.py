@@ -16,8 +16,9 @@ The budget (all from what the cell knows; no simulation truth):
     the model learns as if it were the head's: from the reference check of the same plan
     (``ChainCheck``), its per-axis sigma with the random part of one centre taken out (the check's
     sigma holds both; the random part is in (a), averaged). Without a matching check nothing
-    independent is known: the term is then ASSUMED equal to the random part of one centre (the
-    budget names the basis), never zero.
+    independent is known: the term is then ASSUMED equal to the chain error the plan's separation
+    removed (scanner frame and per-sweep motion; conservative), or, with a plan that separates
+    nothing, to one centre's random part, flagged as unsupported (the budget names the basis).
 (c) ``model``: the model's error between fiducials from spatially blocked cross-validation: blocks
     of 2x2 and 3x3 fiducials held out give held-out points one and two pitches from the nearest
     training fiducial; their mean squared residual beyond the held-out points' own measurement
@@ -121,7 +122,8 @@ class UncertaintyBudget:
 
 def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, float], working_distance_mm: float,
                        check: Optional[ChainCheck], check_matches: bool,
-                       settings: CertificateSettings = CertificateSettings()) -> UncertaintyBudget:
+                       settings: CertificateSettings = CertificateSettings(),
+                       removed_chain_rms_mm: Optional[float] = None) -> UncertaintyBudget:
     """The budget and U grid of a calibration trained on ``trainings`` (one per iteration).
 
     Parameters
@@ -134,7 +136,9 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
         The head's d: h = d - plane_z_mm scales the plate-height term.
     check : ChainCheck or None
         The reference check of the chain; ``check_matches`` says it was made with the calibration's
-        plan, placement and chain map (``stated_accuracy``'s test); otherwise term (b) is assumed.
+        plan, placement and chain map (``stated_accuracy``'s test); otherwise term (b) is assumed:
+        the 2-D RMS of the chain error the sweep plan's separation removed (``removed_chain_rms_mm``,
+        scanner frame and per-sweep motion) when given, else one centre's random part (flagged).
 
     Raises
     ------
@@ -173,9 +177,16 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
         chain_var = max(0.0, float(np.mean(np.square(check.sigma_mm))) - one_centre_var)
         chain_basis = (f"{CHAIN_FROM_CHECK} ({check.reference}): per-axis {check.sigma_mm[0]:.4f} / "
                        f"{check.sigma_mm[1]:.4f} mm less one centre's random {math.sqrt(one_centre_var):.4f} mm")
+    elif removed_chain_rms_mm is not None and math.isfinite(removed_chain_rms_mm) and removed_chain_rms_mm > 0.0:
+        # Nothing independent: the error the plan's separation removed stands in for what it may leave
+        # (conservative: one centre's random part alone covered 34 % in simulation, careful seed 1)
+        chain_var = max(removed_chain_rms_mm ** 2 / 2.0, one_centre_var)
+        chain_basis = (f"{CHAIN_ASSUMED}: taken as the chain error the sweep plan removed, "
+                       f"{removed_chain_rms_mm:.4f} mm 2-D (conservative)")
     else:
         chain_var = one_centre_var
-        chain_basis = f"{CHAIN_ASSUMED}: taken equal to one centre's random part {math.sqrt(one_centre_var):.4f} mm"
+        chain_basis = (f"{CHAIN_ASSUMED} and no separation: taken equal to one centre's random part "
+                       f"{math.sqrt(one_centre_var):.4f} mm (NOT supported: may be far too small)")
 
     pitch, model_rms_at_pitch, exponent = blocked_cv_model_error(landed, corrections, sigma, first.model, settings)
     from scipy.spatial import cKDTree   # well-kept nearest-neighbour search
@@ -313,4 +324,7 @@ def run_budget(runs: Sequence[Any], models: Sequence[Any], settings: Any, region
         placement = "pose" if settings.profiles_placed_by_pose else "time"
         matches = (check.plan == runs[0].sweep_plan and check.placement == placement
                    and check.chain_map == runs[0].chain_map)
-    return uncertainty_budget(trainings, region, working_distance_mm, check, matches, certificate)
+    first = runs[0]
+    removed = math.hypot(first.scanner_error_rms_mm, first.motion_error_rms_mm)
+    return uncertainty_budget(trainings, region, working_distance_mm, check, matches, certificate,
+                              removed if math.isfinite(removed) else None)
