@@ -23,7 +23,7 @@ def doc_evaluator() -> dict:
     text = DOC.read_text(encoding="utf-8")
     section = text.split("## Standalone evaluator", 1)[1]
     code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
-    assert len(code.strip().splitlines()) <= 60
+    assert len(code.strip().splitlines()) <= 65   # correct() and, since issue 30, uncertainty()
     assert "gls_calibration" not in code.replace("needs the gls_calibration ray trace", "")
     namespace: dict = {}
     exec(compile(code, str(DOC), "exec"), namespace)

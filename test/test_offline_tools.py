@@ -51,7 +51,7 @@ def test_offline_correction_matches_the_package_and_keeps_unreachable_rows(tmp_p
     assert "2 of 5 target(s) beyond the mirror limits or the focus range (first: data row 3)" in message
     table = np.genfromtxt(out, delimiter=",", names=True)
     assert table.dtype.names == ("x", "y", "z", "k_x", "k_y", "alpha_x_rad", "alpha_y_rad", "focus_shift_mm",
-                                 "inside_calibrated_field", "within_limits")
+                                 "inside_calibrated_field", "within_limits", "uncertainty_k2_mm")
     assert table.shape == (5,)
     record = load_record(calibration_file)
     expected = correction_from_record(record, head_geometry(record)).correct(*np.array(rows).T)

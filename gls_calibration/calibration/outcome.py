@@ -219,6 +219,14 @@ class RunSummary:
     stage_wall_s: Mapping[str, float] = field(default_factory=dict)   # wall time per stage (time_budget)
     last_sweep_to_result_s: float = math.nan    # end of the last marked-plate sweep to the flow's result
     measurement_preset: str = ""                # the simulated measurement chain's preset; empty: a real cell
+    # the certificate (calibration.uncertainty): U (95 % radius of the 2-D landing, mm) of the candidate,
+    # largest over the centred 190 x 190 mm and over the central 150 x 150 mm, median over its grid; in simulation the fraction of
+    # validation fiducials whose TRUE landing error is within U; what the chain term rests on
+    certificate_u95_full_mm: float = math.nan
+    certificate_u95_central_mm: float = math.nan
+    certificate_u95_median_mm: float = math.nan
+    certificate_coverage: float = math.nan
+    certificate_reference: str = ""
 
     def to_dict(self) -> dict:
         """The summary as plain values, in field order (``summary.json``)."""
@@ -269,7 +277,28 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
         **_stated(measured_after, chain_check, first.sweep_plan, placement, first.chain_map),
         stage_wall_s=dict(outcome.stage_times.wall_s),
         last_sweep_to_result_s=outcome.stage_times.last_sweep_to_result_s,
-        **_kinds(outcome))
+        **_kinds(outcome), **_certificate(outcome, chain_check))
+
+
+
+def _certificate(outcome: CalibrationOutcome, check: Optional[ChainCheck]) -> dict:
+    """The certificate's figures of the candidate's U map, and its coverage where the truth is known."""
+    correction = outcome.candidate.correction if outcome.candidate is not None else None
+    grid = getattr(correction, "uncertainty", None)
+    if grid is None:
+        return {}
+    full = grid.field_figures(190.0)[1]         # the grid's 190 x 190 mm (it spans the rings' margin too)
+    _, central, median = grid.field_figures(150.0)
+    values: dict[str, Any] = {"certificate_u95_full_mm": full, "certificate_u95_central_mm": central,
+                              "certificate_u95_median_mm": median,
+                              "certificate_reference": (f"reference check: {check.reference}" if check is not None
+                                                        else "none (no reference check: the chain term is assumed "
+                                                             "and the scale is the scanner's own)")}
+    validation = outcome.validation
+    if validation is not None and validation.true_deviations is not None:
+        u = grid.at(validation.paired_targets_xy[:, 0], validation.paired_targets_xy[:, 1])
+        values["certificate_coverage"] = float(np.mean(np.hypot(*validation.true_deviations.T) <= u))
+    return values
 
 
 def _kinds(outcome: CalibrationOutcome) -> dict:

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from datetime import datetime, timezone
 import hashlib
-from typing import Mapping, Sequence
+import logging
+from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -16,13 +17,17 @@ from gls_calibration.calibration.outcome import Candidate
 from gls_calibration.calibration.outcome import PlateRun
 from gls_calibration.calibration.procedure import ProcedureSettings
 from gls_calibration.calibration.record_file import CalibrationRecord, dump_record, new_record
+from gls_calibration.calibration.stated_accuracy import ChainCheck
 from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.calibration.uncertainty import run_budget
 from gls_calibration.correction.setpoints import CalibratedRegion, Correction
+from gls_calibration.correction.uncertainty_grid import UNCERTAINTY_KEY, UncertaintyGrid
 from gls_calibration.geometry.kinematics import HeadGeometry
 from gls_calibration.models.deviation_models import model_from_dict
 from gls_calibration.models.training import TrainedModel
 
 
+_LOG = logging.getLogger(__name__)
 TAPER_MM = 10.0   # fade of the correction beyond the calibrated region (correction.taper_weight)
 
 
@@ -44,14 +49,16 @@ def calibrated_region(settings: ProcedureSettings, plane_z_mm: float = 0.0) -> C
 def calibration_record(geometry: HeadGeometry, *, plate_pose, models: Sequence[Mapping],
                        trained: Sequence[TrainedModel], region: CalibratedRegion, targets_xy: np.ndarray,
                        measured_xyz: np.ndarray, deviations_xy: np.ndarray, through_nominal_model: bool,
-                       metrics: Mapping, source: Mapping | None = None) -> CalibrationRecord:
+                       metrics: Mapping, source: Mapping | None = None,
+                       uncertainty: Mapping | None = None) -> CalibrationRecord:
     """The record of a calibration, built the same way by the calibrate flow and by ``gls-train``.
 
     ``models``: every model in order of application (earlier calibrations' first); ``trained``: the
     ones trained now (their hyper-parameters are recorded); the first plate's ``targets_xy`` (N, 2),
     ``measured_xyz`` (N, 3, gls frame, aligned) and ``deviations_xy`` Q - P (N, 2); whether that
     plate was marked through the nominal model (what the discrepancy workflow assumes) or an earlier
-    calibration; ``source`` says where the data came from (an offline tool's inputs).
+    calibration; ``source`` says where the data came from (an offline tool's inputs); ``uncertainty``
+    the certificate's U map (``correction.uncertainty_grid``), when there is one.
     """
     hyper_parameters = {"trained_models": [
         {"method": model.method, "neurons": model.neurons, "spread_mm": model.spread_mm,
@@ -65,21 +72,33 @@ def calibration_record(geometry: HeadGeometry, *, plate_pose, models: Sequence[M
         fiducials={"target_x": targets_xy[:, 0], "target_y": targets_xy[:, 1],
                    "measured_x": measured_xyz[:, 0], "measured_y": measured_xyz[:, 1],
                    "measured_z": measured_xyz[:, 2], "dx": deviations_xy[:, 0], "dy": deviations_xy[:, 1],
-                   "commanded_through_nominal_model": bool(through_nominal_model)})
+                   "commanded_through_nominal_model": bool(through_nominal_model)},
+        uncertainty=uncertainty)
 
 
 def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequence[PlateRun],
-                 models: Sequence[TrainedModel], existing_models: Sequence[Mapping]) -> CalibrationRecord:
-    """The record of a run whose ``models`` were trained on ``runs`` (after ``existing_models``)."""
+                 models: Sequence[TrainedModel], existing_models: Sequence[Mapping],
+                 chain_check: Optional[ChainCheck] = None) -> CalibrationRecord:
+    """The record of a run whose ``models`` were trained on ``runs`` (after ``existing_models``),
+    with its certificate's U map (``uncertainty``; its chain term from ``chain_check`` when that
+    was made with the run's plan, assumed otherwise). A model the certificate does not cover (physics
+    first) leaves the map out: the file then serves NaN, as an older file does."""
     first = runs[0]
+    region = calibrated_region(settings, float(np.mean(first.targets[:, 2])))
+    try:
+        uncertainty = run_budget(runs, models, settings, region.to_dict(), geometry.working_distance_mm,
+                                 chain_check).to_dict()
+    except (ValueError, KeyError) as error:
+        _LOG.warning("no uncertainty map for this calibration: %s", error)
+        uncertainty = None
     return calibration_record(
         geometry, plate_pose=runs[-1].plate_pose_gls,
         models=list(existing_models) + [model.model for model in models], trained=models,
         # The calibration plane: the mean height the first plate's targets were commanded at (the
         # plate's plane); targets off it are corrected through Q'.
-        region=calibrated_region(settings, float(np.mean(first.targets[:, 2]))),
-        targets_xy=first.paired_targets_xy, measured_xyz=first.measured_gls, deviations_xy=first.deviations,
-        through_nominal_model=not existing_models, metrics={"iterations": [run.metrics.to_dict() for run in runs]})
+        region=region, targets_xy=first.paired_targets_xy, measured_xyz=first.measured_gls,
+        deviations_xy=first.deviations, through_nominal_model=not existing_models,
+        metrics={"iterations": [run.metrics.to_dict() for run in runs]}, uncertainty=uncertainty)
 
 
 def save_candidate(store: CalibrationStore, record: CalibrationRecord, geometry: HeadGeometry) -> Candidate:
@@ -98,9 +117,26 @@ def correction_from_record(record: Mapping, geometry: HeadGeometry) -> Correctio
     when its field is not finite or beyond the physical limit: :meth:`Correction.check_field`)."""
     models = [model_from_dict(model) for model in record["models"]]
     region = CalibratedRegion.from_dict(record["calibrated_region"]) if models else None
-    correction = Correction(geometry, models, region, record["calibrated_region"].get("taper_mm", TAPER_MM))
+    grid = None
+    if UNCERTAINTY_KEY in record:
+        grid = UncertaintyGrid.from_dict(record[UNCERTAINTY_KEY])
+    elif models:
+        _warn_no_uncertainty_once()
+    correction = Correction(geometry, models, region, record["calibrated_region"].get("taper_mm", TAPER_MM),
+                            uncertainty=grid)
     correction.check_field()
     return correction
+
+
+_warned: list[bool] = []
+
+
+def _warn_no_uncertainty_once() -> None:
+    """One warning per process for calibrations without a U map (older files): served with NaN."""
+    if not _warned:
+        _warned.append(True)
+        _LOG.warning("calibration without an uncertainty map (written before the certificate): "
+                     "uncertainty_k2_mm is served as NaN")
 
 
 def record_fiducials(record: Mapping) -> tuple[np.ndarray, np.ndarray]:

@@ -21,6 +21,7 @@ import yaml
 
 import gls_calibration
 from gls_calibration.common.files import nan_to_none, to_plain
+from gls_calibration.correction.uncertainty_grid import UNCERTAINTY_KEY, UncertaintyGrid
 from gls_calibration.geometry.kinematics import HeadGeometry
 
 FORMAT_VERSION = 2
@@ -80,7 +81,7 @@ class CalibrationFileError(ValueError):
 
 def new_record(*, head: HeadGeometry | Mapping, plate_pose: Any, models: list, calibrated_region: Mapping,
                hyper_parameters: Mapping, metrics: Mapping, fiducials: Mapping,
-               created_utc: str | None = None) -> CalibrationRecord:
+               created_utc: str | None = None, uncertainty: Mapping | None = None) -> CalibrationRecord:
     """Build a calibration record from the run's objects and fill the version and time stamp.
 
     ``head`` is a HeadGeometry or its dict; ``plate_pose`` a PlatePose (or any object/mapping with
@@ -106,6 +107,8 @@ def new_record(*, head: HeadGeometry | Mapping, plate_pose: Any, models: list, c
         "metrics": nan_to_none(to_plain(metrics)),
         "fiducials": dict(fiducials),
     }
+    if uncertainty is not None:
+        record[UNCERTAINTY_KEY] = dict(uncertainty)     # optional: older files have none
     return CalibrationRecord(to_plain(record))
 
 
@@ -219,6 +222,12 @@ def validate_record(record: Any, source: str | os.PathLike | None = None) -> Non
     if len(set(lengths.values())) > 1:
         listed = ", ".join(f"{key}: {length}" for key, length in lengths.items())
         fail(f"fiducial lists must have equal lengths, got {listed}")
+
+    if UNCERTAINTY_KEY in record:
+        try:
+            UncertaintyGrid.from_dict(record[UNCERTAINTY_KEY])
+        except ValueError as error:
+            fail(str(error))
 
     bad_path = _first_non_finite(record, "")
     if bad_path is not None:

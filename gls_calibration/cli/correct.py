@@ -19,7 +19,7 @@ import numpy as np
 from gls_calibration.common.files import atomic_write_text, require_regular_output
 
 OUTPUT_COLUMNS = ("x", "y", "z", "k_x", "k_y", "alpha_x_rad", "alpha_y_rad", "focus_shift_mm",
-                  "inside_calibrated_field", "within_limits")
+                  "inside_calibrated_field", "within_limits", "uncertainty_k2_mm")
 
 
 def read_targets(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -44,17 +44,20 @@ def read_targets(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return values[:, 0], values[:, 1], values[:, 2] if "z" in columns else np.empty(0)
 
 
-def corrected_csv_text(x, y, z, k_x, k_y, alpha_x, alpha_y, focus_shift, inside, within) -> str:
-    """The output table: OUTPUT_COLUMNS, floats at full precision, flags as 0/1."""
+def corrected_csv_text(x, y, z, k_x, k_y, alpha_x, alpha_y, focus_shift, inside, within, uncertainty) -> str:
+    """The output table: OUTPUT_COLUMNS, floats at full precision, flags as 0/1; the uncertainty
+    (mm, 95 % radius) ``nan`` outside the calibrated field or without the calibration's map."""
     lines = [",".join(OUTPUT_COLUMNS)]
     floats = np.column_stack([x, y, z, k_x, k_y, alpha_x, alpha_y, focus_shift]).tolist()
-    for row, inside_flag, within_flag in zip(floats, np.asarray(inside, bool), np.asarray(within, bool)):
-        lines.append(",".join(map(repr, row)) + f",{int(inside_flag)},{int(within_flag)}")
+    uncertainty = np.full(len(floats), np.nan) if uncertainty is None else np.asarray(uncertainty, dtype=float)
+    for row, inside_flag, within_flag, u in zip(floats, np.asarray(inside, bool), np.asarray(within, bool),
+                                                uncertainty.tolist()):
+        lines.append(",".join(map(repr, row)) + f",{int(inside_flag)},{int(within_flag)},{u!r}")
     return "\n".join(lines) + "\n"
 
 
 def correct_offline(calibration: Path, x, y, z):
-    """(k_x, k_y, alpha_x, alpha_y, focus_shift, inside, within, note) from a calibration file."""
+    """(k_x, k_y, alpha_x, alpha_y, focus_shift, inside, within, uncertainty, note) from a calibration file."""
     from gls_calibration.calibration.record import correction_from_record
     from gls_calibration.calibration.record_file import head_geometry, load_record
     record = load_record(calibration)
@@ -64,7 +67,7 @@ def correct_offline(calibration: Path, x, y, z):
         raise ValueError(f"calibration file {calibration}: {error}") from None
     result = correction.correct(x, y, z if len(z) else None)
     return (result.x, result.y, result.alpha_x, result.alpha_y, result.focus_shift,
-            result.inside_calibrated_field, result.within_limits, f"calibration {calibration}")
+            result.inside_calibrated_field, result.within_limits, result.uncertainty_k2_mm, f"calibration {calibration}")
 
 
 SERVICE = "correct_setpoints_batch"
@@ -102,7 +105,8 @@ def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: S
         raise RuntimeError(f"{SERVICE}: {response.message}")
     result = setpoints_from_response(response)
     return (result.x, result.y, result.alpha_x, result.alpha_y, result.focus_shift,
-            result.inside_calibrated_field, result.within_limits, f"service: {response.message}")
+            result.inside_calibrated_field, result.within_limits, result.uncertainty_k2_mm,
+            f"service: {response.message}")
 
 
 def main(argv: Optional[list[str]] = None) -> int:
@@ -142,9 +146,10 @@ def main(argv: Optional[list[str]] = None) -> int:
     except OSError as error:
         print(f"cannot write {args.out}: {error.strerror or error}", file=sys.stderr)
         return 2
-    unreachable = int(np.count_nonzero(~np.asarray(columns[-1], bool)))
+    within = columns[OUTPUT_COLUMNS.index("within_limits") - 3]     # the answers start at k_x
+    unreachable = int(np.count_nonzero(~np.asarray(within, bool)))
     if unreachable:
-        first = int(np.argmin(columns[-1]))
+        first = int(np.argmin(within))
         print(f"{unreachable} of {len(x)} target(s) beyond the mirror limits or the focus range (first: data row "
               f"{first + 1}); all {len(x)} written to {args.out} with within_limits flags", file=sys.stderr)
         return 1

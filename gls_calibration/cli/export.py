@@ -4,7 +4,9 @@ Writes into ``--out``:
 
 - ``table.csv`` / ``table.npz``: a regular grid at ``--pitch`` mm over the calibrated region at each
   height ``--z`` (gls frame): target x, y, z, corrected target k_x, k_y (mm), mechanical mirror
-  angles (rad), focus shift (mm) and the flags; the NPZ holds the same as arrays (z, y, x).
+  angles (rad), focus shift (mm), the flags and ``uncertainty_k2_mm`` (the calibration's expanded
+  uncertainty U, mm, 95 % radius; nan outside the field or for a file without a U map); the NPZ
+  holds the same as arrays (z, y, x).
 - ``interpolation_error.json``: the worst error of bilinear interpolation in that table, found by
   evaluating the calibration exactly at 3 x 3 points inside every cell: of the corrected target
   (mm), of the angles (rad), of the landing those interpolated angles give (mm) and of the focus
@@ -36,6 +38,7 @@ from gls_calibration.geometry.kinematics import forward
 
 TABLE_COLUMNS = ("x", "y", "z", "k_x", "k_y", "alpha_x_rad", "alpha_y_rad", "focus_shift_mm",
                  "inside_calibrated_field", "within_limits")
+UNCERTAINTY_COLUMN = "uncertainty_k2_mm"   # last column: U (mm, 95 % radius), nan outside the field or without a map
 _SUBCELL_FRACTIONS = (0.25, 0.5, 0.75)
 MAX_TABLE_POINTS = 1_000_000
 """Most table points (over every height) an export computes: each costs about 2.5 kB of memory while
@@ -137,6 +140,7 @@ def export(calibration: Path, pitch_mm: float, heights_mm: Sequence[float]) -> d
     axis_x, axis_y = table_axes(correction, pitch_mm)
     grid_x, grid_y = np.meshgrid(axis_x, axis_y)
     arrays = {name: [] for name in TABLE_COLUMNS}
+    uncertainty = []
     errors = []
     for z in heights_mm:
         result = correction.correct(grid_x.ravel(), grid_y.ravel(), np.full(grid_x.size, z))
@@ -146,16 +150,19 @@ def export(calibration: Path, pitch_mm: float, heights_mm: Sequence[float]) -> d
                   "within_limits": result.within_limits}
         for name in TABLE_COLUMNS:
             arrays[name].append(values[name].reshape(grid_x.shape))
+        uncertainty.append(result.uncertainty_k2_mm.reshape(grid_x.shape))
         errors.append(interpolation_errors(correction, axis_x, axis_y, z,
                                            {name: arrays[name][-1] for name in TABLE_COLUMNS}))
     stacked = {name: np.stack(arrays[name]) for name in TABLE_COLUMNS}
-    lines = [",".join(TABLE_COLUMNS)]
+    stacked_u = np.stack(uncertainty)
+    lines = [",".join(TABLE_COLUMNS + (UNCERTAINTY_COLUMN,))]
     floats = np.column_stack([stacked[name].ravel() for name in TABLE_COLUMNS[:8]]).tolist()
     flags = np.column_stack([stacked[name].ravel() for name in TABLE_COLUMNS[8:]]).astype(int).tolist()
-    lines += [",".join(map(repr, row)) + f",{flag[0]},{flag[1]}" for row, flag in zip(floats, flags)]
+    lines += [",".join(map(repr, row)) + f",{flag[0]},{flag[1]},{u!r}"
+              for row, flag, u in zip(floats, flags, stacked_u.ravel().tolist())]
     archive = io.BytesIO()
     np.savez(archive, axis_x_mm=axis_x, axis_y_mm=axis_y, z_mm=np.asarray(heights_mm, float),
-             **{name: stacked[name] for name in TABLE_COLUMNS[3:]})
+             **{name: stacked[name] for name in TABLE_COLUMNS[3:]}, **{UNCERTAINTY_COLUMN: stacked_u})
     fiducials = record["fiducials"]
     deviations = ["x,y,dx,dy"] + [f"{x!r},{y!r},{dx!r},{dy!r}" for x, y, dx, dy in zip(
         fiducials["target_x"], fiducials["target_y"], fiducials["dx"], fiducials["dy"])]

@@ -34,6 +34,7 @@ from threadpoolctl import threadpool_limits
 from gls_calibration.common.validation import (as_coordinate_arrays, as_finite_array, as_integer_at_least,
                                                as_non_negative_number, as_points)
 from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+from gls_calibration.correction.uncertainty_grid import UncertaintyGrid
 from gls_calibration.models.rbf import BLOCK_ROWS, TILED_MIN_ROWS, DeviationModel
 
 
@@ -42,7 +43,8 @@ _INSIDE_TOLERANCE_MM = 1e-9
 #: ~190 mm field. The effect table's plausible extremes stay below it (the largest, a 0.05 rad galvo
 #: zero offset, moves the spot ~55 mm); a model predicting more is broken (e.g. weights of 1e308).
 MAX_DEVIATION_MM = 100.0
-FIELD_CHECK_SAMPLES = 41   # per side of the grid on which a loaded correction's field is checked
+FIELD_CHECK_SAMPLES = 41
+_SMALL_REQUEST = 16        # up to this many targets, U is looked up point by point   # per side of the grid on which a loaded correction's field is checked
 
 
 @dataclass(frozen=True)
@@ -116,6 +118,10 @@ class CorrectedSetpoints:
     focus_shift: np.ndarray
     inside_calibrated_field: np.ndarray
     within_limits: np.ndarray
+    # expanded uncertainty (95 % radius, mm) of the landing, NaN outside the calibrated field or
+    # when the calibration holds no U grid (``uncertainty_grid``); None only where a client
+    # rebuilt setpoints from an answer that had none
+    uncertainty_k2_mm: Optional[np.ndarray] = None
 
 
 def check_calibration_plane(geometry: HeadGeometry, plane_z_mm: float) -> None:
@@ -146,10 +152,13 @@ class Correction:
     ``models`` are callables ``(M, 2) -> (M, 2)`` (e.g. :class:`gls_calibration.models.rbf.OLSRBFNetwork`);
     ``calibrated_region`` is required when there is at least one model. Without models the
     correction is the nominal kinematics and no point counts as inside the calibrated field.
+    ``uncertainty``: the calibration's U map (``uncertainty_grid``); each answer carries U at Q'
+    (NaN outside the calibrated field, and everywhere without a map).
     """
 
     def __init__(self, geometry: HeadGeometry, models: Sequence[DeviationModel] = (),
-                 calibrated_region: Optional[CalibratedRegion] = None, taper_mm: float = 10.0) -> None:
+                 calibrated_region: Optional[CalibratedRegion] = None, taper_mm: float = 10.0,
+                 uncertainty: Optional[UncertaintyGrid] = None) -> None:
         if not isinstance(geometry, HeadGeometry):
             raise ValueError(f"geometry must be a HeadGeometry, got {type(geometry).__name__}")
         models = tuple(models)
@@ -166,12 +175,15 @@ class Correction:
         self.models = models
         self.calibrated_region = calibrated_region
         self.taper_mm = as_non_negative_number(taper_mm, "taper_mm")
+        if uncertainty is not None and not isinstance(uncertainty, UncertaintyGrid):
+            raise ValueError(f"uncertainty must be an UncertaintyGrid, got {type(uncertainty).__name__}")
+        self.uncertainty = uncertainty if models else None     # U describes these models only
 
     def with_model(self, model: DeviationModel, region: Optional[CalibratedRegion] = None) -> "Correction":
         """A new correction with ``model`` added after the existing ones.
 
         The region becomes the overlap of the current one and ``region`` (either may be absent,
-        not both when this is the first model).
+        not both when this is the first model). The U map describes the old models only: it is dropped.
         """
         if region is None:
             combined = self.calibrated_region
@@ -195,6 +207,10 @@ class Correction:
         if not self.models:
             zeros = np.zeros_like(x)
             return zeros, zeros.copy(), np.zeros(x.shape, dtype=bool)
+        return self._deviation(x, y)[:3]
+
+    def _deviation(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
+        """:meth:`deviation` of validated arrays with models, and the clamped points it evaluated."""
         region = self.calibrated_region
         inside = region.contains(x, y)
         clamped_x, clamped_y = region.clamp(x, y)
@@ -203,7 +219,7 @@ class Correction:
         total = np.zeros_like(points)
         for model in self.models:
             total += as_finite_array(model(points), "model output", ndim=2)
-        return weight * total[:, 0], weight * total[:, 1], inside
+        return weight * total[:, 0], weight * total[:, 1], inside, clamped_x, clamped_y
 
     def check_field(self, samples_per_side: int = FIELD_CHECK_SAMPLES) -> None:
         """ValueError unless the summed correction is finite and within ``MAX_DEVIATION_MM`` on a
@@ -303,15 +319,27 @@ class Correction:
         if not self.models:
             joints = inverse(self.geometry, x, y, z)
             return CorrectedSetpoints(x, y, joints.alpha_x, joints.alpha_y, joints.focus_shift,
-                                      np.zeros(x.shape, dtype=bool), joints.within_limits & height_ok)
+                                      np.zeros(x.shape, dtype=bool), joints.within_limits & height_ok,
+                                      np.full(x.shape, np.nan))
         plane_z = self.calibrated_region.plane_z_mm
         on_plane_x, on_plane_y = transfer_along_ray(self.geometry, x, y, z, plane_z)
-        delta_x, delta_y, inside = self.deviation(on_plane_x, on_plane_y)
+        delta_x, delta_y, inside, clamped_x, clamped_y = self._deviation(on_plane_x, on_plane_y)
         commanded_x, commanded_y = transfer_along_ray(self.geometry, on_plane_x + delta_x, on_plane_y + delta_y,
                                                       plane_z, z)
         joints = inverse(self.geometry, commanded_x, commanded_y, z)
+        if self.uncertainty is None:
+            uncertainty = np.full(x.shape, np.nan)
+        else:
+            # at the clamped point (the grid spans the region), NaN where Q' is outside
+            grid = self.uncertainty
+            if x.size <= _SMALL_REQUEST:     # numpy's per-call cost outweighs a few scalar lookups
+                uncertainty = np.array([grid.at_point(px, py) if flag else math.nan
+                                        for px, py, flag in zip(on_plane_x.tolist(), on_plane_y.tolist(), inside)])
+            else:
+                uncertainty = grid.inside_at(clamped_x, clamped_y)
+                uncertainty[~inside] = np.nan
         return CorrectedSetpoints(commanded_x, commanded_y, joints.alpha_x, joints.alpha_y, joints.focus_shift,
-                                  inside, joints.within_limits & height_ok)
+                                  inside, joints.within_limits & height_ok, uncertainty)
 
     def _correct_one(self, x: float, y: float, z: float) -> CorrectedSetpoints:
         """:meth:`correct` for one target in scalar arithmetic (same formulas; numpy per call costs ~1 us)."""
@@ -351,9 +379,11 @@ class Correction:
         tolerance = _INSIDE_TOLERANCE_MM
         inside = (region.x_min - tolerance <= on_plane_x <= region.x_max + tolerance
                   and region.y_min - tolerance <= on_plane_y <= region.y_max + tolerance)
+        grid = self.uncertainty
+        uncertainty = grid.at_point(on_plane_x, on_plane_y) if grid is not None and inside else math.nan
         return CorrectedSetpoints(np.array([commanded_x]), np.array([commanded_y]), np.array([alpha_x]),
                                   np.array([alpha_y]), np.array([focus_shift]), np.array([inside]),
-                                  np.array([within]))
+                                  np.array([within]), np.array([uncertainty]))
 
 
 # Below this a thread's hand-over costs more than it saves; and no part may fall below the size from

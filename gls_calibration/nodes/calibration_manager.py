@@ -382,7 +382,7 @@ class CalibrationManager(GlsNode):
             report_dir = report_dir / time.strftime("calibration_%Y%m%dT%H%M%SZ", time.gmtime())
 
         def save(runs, models):
-            record = build_record(self.geometry, settings, runs, models, existing_models)
+            record = build_record(self.geometry, settings, runs, models, existing_models, chain_check)
             return save_candidate(self.store, record, self.geometry)
 
         outcome = await procedure.calibrate(

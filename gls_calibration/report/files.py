@@ -69,6 +69,7 @@ class ReportData:
     correction_field: Callable[[np.ndarray], np.ndarray] | CorrectionGrid | None = None
     extra_lines: tuple[str, ...] = ()
     extra_files: tuple[str, ...] = ()    # further '- `name`: what it is' lines of the Files section
+    certificate_lines: tuple[str, ...] = ()   # the "Certificate" section (report.certificate); none when empty
     title: str = "Galvo laser scanner calibration report"
     full_field_label: str = "190x190 (full)"
 
@@ -218,6 +219,8 @@ def _markdown(data: ReportData, figures: list[tuple[str, str]]) -> str:
     lines += ["", "## Published reference", "",
               "Figures reported for the published set-up (19 x 19 grid over 190 x 190 mm):", ""]
     lines += reference_markdown(data)
+    if data.certificate_lines:
+        lines += ["", "## Certificate", ""] + list(data.certificate_lines)
     lines += ["", "## Figures", ""]
     for title, name in figures:
         lines += [f"### {title}", "", f"![{title}]({name})", ""]

@@ -8,6 +8,9 @@ import numpy as np
 from gls_calibration.calibration.outcome import CalibrationOutcome, RunSummary
 from gls_calibration.calibration.stated_accuracy import SELF_CONSISTENCY
 from gls_calibration.discrepancy import run_verdict_lines
+from gls_calibration.calibration.record_file import load_record
+from gls_calibration.correction.uncertainty_grid import UNCERTAINTY_KEY
+from gls_calibration.report.certificate import certificate_lines, write_certificate_files
 from gls_calibration.report.files import ReportData, write_report
 
 
@@ -84,6 +87,10 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: Ru
 
     def plain(metrics):
         return metrics.to_dict() if metrics is not None else None
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    grid = getattr(correction, "uncertainty", None)
+    map_name, certificate_files = write_certificate_files(out_dir, grid, validation)
     data = ReportData(
         targets_xy=first.paired_targets_xy, deviations_before=first.deviations,
         metrics_before=plain(first.metrics), summary=summary.to_dict(),
@@ -102,11 +109,21 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: Ru
         extra_files=("- `training.csv`: the first plate's fiducials as `gls-train` reads them "
                      "(`x_cmd,y_cmd,z_cmd,x_meas,y_meas`).",)
         + (("- `calibrations/`: the calibration store (history and the active calibration).",)
-           if (Path(out_dir) / "calibrations").is_dir() else ()),
+           if (Path(out_dir) / "calibrations").is_dir() else ()) + certificate_files,
+        certificate_lines=tuple(certificate_lines(_stored_uncertainty(outcome), summary, map_name))
+        if outcome.candidate is not None else (),
     )
     write_report(out_dir, data)
     (out_dir / "training.csv").write_text(training_csv_text(first), encoding="utf-8")
     return out_dir
+
+
+def _stored_uncertainty(outcome: CalibrationOutcome):
+    """The candidate file's ``uncertainty`` mapping (the budget), or None."""
+    try:
+        return load_record(outcome.candidate.path).get(UNCERTAINTY_KEY)
+    except (OSError, ValueError):
+        return None
 
 
 def training_csv_text(run) -> str:

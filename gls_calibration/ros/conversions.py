@@ -405,6 +405,7 @@ def fiducials_from_response(response, pose: PlatePose) -> FiducialMeasurement:
 
 
 SETPOINT_FLAGS = ("inside_calibrated_field", "within_limits")   # uint8[] fields, 1 = true
+OPTIONAL_SETPOINT_FIELDS = ("uncertainty_k2_mm",)     # filled where the message type has them (issue 30)
 
 
 def start_setpoints_response(response) -> dict[str, array.array]:
@@ -413,6 +414,8 @@ def start_setpoints_response(response) -> dict[str, array.array]:
     size is allocated, concatenated or converted at once while the interpreter lock is held."""
     sequences = {}
     for field in fields(CorrectedSetpoints):
+        if field.name in OPTIONAL_SETPOINT_FIELDS and not hasattr(response, field.name):
+            continue     # message definitions built before the field existed
         setattr(response, field.name, array.array("B" if field.name in SETPOINT_FLAGS else "d"))
         sequences[field.name] = getattr(response, field.name)   # the setter copies: extend the stored one
     return sequences
@@ -422,7 +425,10 @@ def append_setpoints(sequences: dict[str, array.array], part: CorrectedSetpoints
     """Append a ``CorrectedSetpoints`` (flags as 0/1) to the arrays of ``start_setpoints_response``."""
     for name, sequence in sequences.items():
         dtype = np.uint8 if name in SETPOINT_FLAGS else np.float64
-        sequence.frombytes(np.ascontiguousarray(getattr(part, name), dtype=dtype).tobytes())
+        values = getattr(part, name)
+        if values is None:           # setpoints made without an uncertainty: NaN, as a calibration without a map
+            values = np.full(len(part.x), np.nan)
+        sequence.frombytes(np.ascontiguousarray(values, dtype=dtype).tobytes())
 
 
 def setpoints_to_response(result, response) -> None:
@@ -436,7 +442,9 @@ def setpoints_from_response(response) -> CorrectedSetpoints:
                               alpha_x=float64_array(response.alpha_x), alpha_y=float64_array(response.alpha_y),
                               focus_shift=float64_array(response.focus_shift),
                               inside_calibrated_field=flag_array(response.inside_calibrated_field),
-                              within_limits=flag_array(response.within_limits))
+                              within_limits=flag_array(response.within_limits),
+                              uncertainty_k2_mm=float64_array(response.uncertainty_k2_mm)
+                              if hasattr(response, "uncertainty_k2_mm") else None)
 
 
 def trained_model_from_response(response) -> TrainedModel:
