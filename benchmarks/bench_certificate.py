@@ -9,7 +9,8 @@ as every figure of the package) is compared with U at its target. Prints per see
 preset: coverage (fraction with |true error| <= U; target 0.92-0.985), median U, TRUE RMS and
 median U / TRUE RMS (target <= 3), and the budget's contributions (per-axis k = 1 RMS over the field).
 
-Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_certificate.py [--presets careful paper_like] [--seeds 1 2 3 4 5] [--grid 19]
+Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_certificate.py [--presets careful paper_like]
+     [--seeds 1 2 3 4 5] [--grid 19]
 """
 from __future__ import annotations
 

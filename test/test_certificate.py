@@ -308,7 +308,8 @@ def test_gls_export_and_gls_correct_write_the_uncertainty_column(tmp_path):
     targets.write_text("x,y\n0,0\n20,-30\n80,0\n")
     assert correct_main(["--calibration", str(path), str(targets), "--out", str(tmp_path / "out.csv")]) == 0
     table = np.genfromtxt(tmp_path / "out.csv", delimiter=",", names=True)
-    np.testing.assert_allclose(table["uncertainty_k2_mm"], correction.correct([0, 20, 80], [0, -30, 0]).uncertainty_k2_mm,
+    np.testing.assert_allclose(table["uncertainty_k2_mm"],
+                               correction.correct([0, 20, 80], [0, -30, 0]).uncertainty_k2_mm,
                                rtol=1e-12, equal_nan=True)
     assert export_main(["--calibration", str(path), "--out", str(tmp_path / "export"), "--pitch", "20"]) == 0
     exported = np.genfromtxt(tmp_path / "export" / "table.csv", delimiter=",", names=True)

@@ -220,8 +220,9 @@ class RunSummary:
     last_sweep_to_result_s: float = math.nan    # end of the last marked-plate sweep to the flow's result
     measurement_preset: str = ""                # the simulated measurement chain's preset; empty: a real cell
     # the certificate (calibration.uncertainty): U (95 % radius of the 2-D landing, mm) of the candidate,
-    # largest over the centred 190 x 190 mm and over the central 150 x 150 mm, median over its grid; in simulation the fraction of
-    # validation fiducials whose TRUE landing error is within U; what the chain term rests on
+    # largest over the centred 190 x 190 mm and over the central 150 x 150 mm, median over its grid; in
+    # simulation the fraction of validation fiducials whose TRUE landing error is within U; what the
+    # chain term rests on
     certificate_u95_full_mm: float = math.nan
     certificate_u95_central_mm: float = math.nan
     certificate_u95_median_mm: float = math.nan
@@ -278,7 +279,6 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
         stage_wall_s=dict(outcome.stage_times.wall_s),
         last_sweep_to_result_s=outcome.stage_times.last_sweep_to_result_s,
         **_kinds(outcome), **_certificate(outcome, chain_check))
-
 
 
 def _certificate(outcome: CalibrationOutcome, check: Optional[ChainCheck]) -> dict:

@@ -67,7 +67,8 @@ def correct_offline(calibration: Path, x, y, z):
         raise ValueError(f"calibration file {calibration}: {error}") from None
     result = correction.correct(x, y, z if len(z) else None)
     return (result.x, result.y, result.alpha_x, result.alpha_y, result.focus_shift,
-            result.inside_calibrated_field, result.within_limits, result.uncertainty_k2_mm, f"calibration {calibration}")
+            result.inside_calibrated_field, result.within_limits, result.uncertainty_k2_mm,
+            f"calibration {calibration}")
 
 
 SERVICE = "correct_setpoints_batch"

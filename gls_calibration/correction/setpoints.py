@@ -43,8 +43,8 @@ _INSIDE_TOLERANCE_MM = 1e-9
 #: ~190 mm field. The effect table's plausible extremes stay below it (the largest, a 0.05 rad galvo
 #: zero offset, moves the spot ~55 mm); a model predicting more is broken (e.g. weights of 1e308).
 MAX_DEVIATION_MM = 100.0
-FIELD_CHECK_SAMPLES = 41
-_SMALL_REQUEST = 16        # up to this many targets, U is looked up point by point   # per side of the grid on which a loaded correction's field is checked
+FIELD_CHECK_SAMPLES = 41   # per side of the grid on which a loaded correction's field is checked
+_SMALL_REQUEST = 16        # up to this many targets, U is looked up point by point
 
 
 @dataclass(frozen=True)
