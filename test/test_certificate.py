@@ -176,7 +176,7 @@ def test_the_documented_evaluator_gives_the_served_u(tmp_path):
     from test_calibration_format import doc_evaluator
 
     store, path, _ = _stored(tmp_path)
-    record = store.load(path)
+    record = store.load(path).to_dict()
     rng = np.random.default_rng(4)
     x, y, z = rng.uniform(-70.0, 70.0, 300), rng.uniform(-70.0, 70.0, 300), rng.uniform(-20.0, 20.0, 300)
     served = correction_from_record(record, HeadGeometry()).correct(x, y, z).uncertainty_k2_mm
@@ -215,7 +215,7 @@ def test_a_bad_grid_is_refused_at_load_naming_the_key(tmp_path, change, message)
     from gls_calibration.calibration.record_file import CalibrationFileError, validate_record
 
     store, path, budget = _stored(tmp_path)
-    record = store.load(path)
+    record = store.load(path).to_dict()      # a plain copy to break
     change(record["uncertainty"])
     with pytest.raises(CalibrationFileError, match=message):
         validate_record(record, path)
@@ -285,7 +285,7 @@ def test_both_correction_services_answer_u_and_a_bad_grid_keeps_the_served_calib
         np.testing.assert_allclose(np.asarray(response.uncertainty_k2_mm), expected, rtol=1e-12, equal_nan=True)
         assert np.isfinite(response.uncertainty_k2_mm[:3]).all() and math.isnan(response.uncertainty_k2_mm[3])
 
-    record = store.load(path)
+    record = store.load(path).to_dict()      # a plain copy to break
     record["uncertainty"]["x_mm"].reverse()
     path.write_text(yaml.safe_dump(record))
     answer = call_service(node, node.create_client(LoadCalibration, "correction/load"),

@@ -8,7 +8,6 @@ import numpy as np
 from gls_calibration.calibration.outcome import CalibrationOutcome, RunSummary
 from gls_calibration.calibration.stated_accuracy import SELF_CONSISTENCY
 from gls_calibration.discrepancy import run_verdict_lines
-from gls_calibration.calibration.record_file import load_record
 from gls_calibration.correction.uncertainty_grid import UNCERTAINTY_KEY
 from gls_calibration.report.certificate import certificate_lines, write_certificate_files
 from gls_calibration.report.files import ReportData, write_report
@@ -119,11 +118,10 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: Ru
 
 
 def _stored_uncertainty(outcome: CalibrationOutcome):
-    """The candidate file's ``uncertainty`` mapping (the budget), or None."""
-    try:
-        return load_record(outcome.candidate.path).get(UNCERTAINTY_KEY)
-    except (OSError, ValueError):
-        return None
+    """The candidate record's ``uncertainty`` mapping (the budget), or None (the record in hand, not
+    its file read back)."""
+    record = outcome.candidate.record
+    return None if record is None else record.get(UNCERTAINTY_KEY)
 
 
 def training_csv_text(run) -> str:
