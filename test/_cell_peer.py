@@ -13,6 +13,8 @@ docs/interfaces.md), against the package's default cell frames (those of _stream
   ``linspace(-size / 2, size / 2, grid)`` in gls x and y) moved by a KNOWN smooth field
   ``d(x, y) = a * (x * y, (x^2 - y^2) / 2)`` mm (``--field-a`` in 1/mm), as marks a galvo with that
   distortion burns;
+- ``--fault mm|stops`` breaks the first marked line as a broken driver would: its profiles in
+  millimetres, or no profile after the middle of the line;
 - a ring darkens the steel with a Gaussian profile across it of full width at half maximum
   ``--line-fwhm-mm``; the laser line has points every ``POINT_SPACING_M`` over ``--line-width-mm``.
 
@@ -66,6 +68,7 @@ class CellPeer(Node):
         self.radii_mm = np.asarray(args.radii_mm)
         self.sigma_mm = args.line_fwhm_mm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
         self.marked = False
+        self.fault, self.faulted = args.fault, False
         self.next_start_ns = self.get_clock().now().nanoseconds
         self.tf = self.create_publisher(TFMessage, "/tf", RELIABLE)
         self.static = self.create_publisher(TFMessage, "/tf_static", LATCHED)
@@ -117,12 +120,16 @@ class CellPeer(Node):
         for k in range(-BEFORE * 50, int(duration_ns / tf_period_ns) + 50):
             ns = int(start_ns + round(k * tf_period_ns))
             self.tf.publish(TFMessage(transforms=[transform("robot_base", "flange", flange_at(ns), ns)]))
+        fault = self.fault if self.marked and not self.faulted else None
+        self.faulted = self.faulted or fault is not None
         for k in range(-BEFORE, round(duration_ns / period_ns) + 1 + AFTER):
             ns = int(start_ns + round(k * period_ns))
             if k == 0:
                 self.starts.publish(Header(stamp=stamp(start_ns), frame_id="robot_base"))
+            if fault == "stops" and ns > start_ns + duration_ns // 2:
+                continue
             points = self.profile(flange_at(ns) @ HAND_EYE)
-            message = cloud(points[:, :3], ns)
+            message = cloud(points[:, :3] * (1000.0 if fault == "mm" else 1.0), ns)
             data = np.frombuffer(message.data, dtype="<f4").reshape(-1, 4).copy()
             data[:, 3] = points[:, 3]
             message.data = data.tobytes()
@@ -143,6 +150,7 @@ def main() -> int:
     parser.add_argument("--field-a", type=float, required=True, help="the distortion's coefficient (1/mm)")
     parser.add_argument("--line-width-mm", type=float, default=60.0)
     parser.add_argument("--line-fwhm-mm", type=float, default=0.1)
+    parser.add_argument("--fault", choices=("mm", "stops"), default=None)
     parser.add_argument("--lifetime", type=float, default=300.0)
     args = parser.parse_args()
     assert not any(name.startswith("gls_calibration") for name in sys.modules), "the peer imported gls_calibration"

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from rclpy.action import ActionClient
 
+from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
@@ -75,12 +76,13 @@ def _fiducial_rows(report_dir: Path, stage: str) -> list[dict]:
         return [row for row in csv.DictReader(handle) if row["stage"] == stage]
 
 
-@pytest.mark.slow
-def test_calibrate_action_against_a_peer_robot_and_scanner(start_cell, tmp_path):
+def _calibrate(start_cell, tmp_path, fault: list[str]):
+    """Start the peer (``fault``: its extra options) and the package's nodes; send calibrate as
+    gls-calibrate does; the result, the peer's log and the cell."""
     log = tmp_path / "peer.log"
     with log.open("w") as handle:
         peer = subprocess.Popen([sys.executable, str(PEER), "--rate", str(RATE_HZ), "--grid", str(GRID),
-                                 "--size-mm", str(SIZE_MM), "--field-a", str(FIELD_A), "--lifetime", "300"],
+                                 "--size-mm", str(SIZE_MM), "--field-a", str(FIELD_A), "--lifetime", "300"] + fault,
                                 stdout=handle, stderr=subprocess.STDOUT, preexec_fn=default_sigint)
     try:
         cell = start_cell(grid=GRID, node_types=(SimGalvoNode, StreamAcquisitionNode, PlatePoseNode,
@@ -97,10 +99,16 @@ def test_calibrate_action_against_a_peer_robot_and_scanner(start_cell, tmp_path)
         assert handle.accepted
         result = handle.get_result_async()
         wait_for(result.done, 240.0, what="the calibration's result")
-        answer = result.result().result
-        assert answer.success, f"{answer.message}\npeer log:\n{log.read_text()}"
+        return result.result().result, log.read_text(), cell
     finally:
         stop_process(peer)
+
+
+@pytest.mark.slow
+def test_calibrate_action_against_a_peer_robot_and_scanner(start_cell, tmp_path):
+    answer, log, cell = _calibrate(start_cell, tmp_path, [])
+    assert answer.success, f"{answer.message}\npeer log:\n{log}"
+    assert CalibrationStore(cell.calibration_dir).active_path() is not None
 
     assert answer.fiducials_found == GRID * GRID and answer.neurons > 0
     rows = _fiducial_rows(Path(answer.report_dir), "before")
@@ -113,3 +121,17 @@ def test_calibrate_action_against_a_peer_robot_and_scanner(start_cell, tmp_path)
     assert error.max() <= TOLERANCE_MM, (error.max(), np.column_stack([targets, measured, expected]))
     rms = np.sqrt(np.mean(np.sum(expected ** 2, axis=1)))
     assert answer.pre_rms_mm == pytest.approx(rms, abs=TOLERANCE_MM)
+
+
+@pytest.mark.parametrize("fault, problem", [
+    ("mm", "median point distance 325.3 m exceeds 10 m: the cloud is not in metres (millimetres?)"),
+    ("stops", "the profile stream stops"),
+])
+def test_a_broken_stream_fails_the_calibration_and_activates_nothing(start_cell, tmp_path, fault, problem):
+    """The first marked sweep broken by the peer's driver: the action answers success=false naming the
+    problem, no fiducial is measured from that sweep and no calibration becomes active."""
+    answer, log, cell = _calibrate(start_cell, tmp_path, ["--fault", fault])
+    assert not answer.success and problem in answer.message, f"{answer.message}\npeer log:\n{log}"
+    assert answer.fiducials_found == 0
+    store = CalibrationStore(cell.calibration_dir)
+    assert store.active_path() is None and store.history() == []
