@@ -123,6 +123,7 @@ def test_calibrate_action_against_a_peer_robot_and_scanner(start_cell, tmp_path)
     assert answer.pre_rms_mm == pytest.approx(rms, abs=TOLERANCE_MM)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault, problem", [
     ("mm", "median point distance 325.3 m exceeds 10 m: the cloud is not in metres (millimetres?)"),
     ("stops", "the profile stream stops"),
