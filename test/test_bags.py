@@ -221,6 +221,32 @@ def test_gls_measure_refuses_bad_bags_and_writes_nothing(tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("build, options, message", [
+    (dict(), ["--scan-topic", "/laser"], "topic /laser is not in the bag"),
+    (dict(), ["--base-frame", "world"], "frame world is not in the transform tree"),
+    (dict(flange_every=10), [], r"is 0.06 s older than \d+ ns \(limit 0.05 s\)"),
+    (dict(drop_profiles=range(20, 30)), [], "before the motion ends"),
+    (dict(profiles_scale=1000.0), [], r"median point distance 300.2 m exceeds 10 m: the cloud is not in metres"),
+    (dict(), ["TRUNCATE"], "unreadable bag"),
+    (dict(), ["MISSING"], "no such bag"),
+])
+def test_gls_train_refuses_bad_bags_and_writes_nothing(tmp_path, capsys, build, options, message):
+    """Each bad input of a recording (issue 28) is exit 2 with the problem named; no calibration, no report."""
+    from gls_calibration.cli.train import main as train_main
+
+    bag = _synthetic_bag(tmp_path / "bag", **build)
+    if "TRUNCATE" in options:
+        db = next(bag.glob("*.db3"))
+        db.write_bytes(db.read_bytes()[: db.stat().st_size // 3])
+    if "MISSING" in options:
+        bag = tmp_path / "none"
+    out = tmp_path / "calibration.yaml"
+    given = [option for option in options if option not in ("TRUNCATE", "MISSING")]
+    assert train_main(["--bag", str(bag), "--out", str(out), "--force"] + given) == 2
+    assert re.search(message, capsys.readouterr().err)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["bag"]
+
+
 def test_a_failed_recording_leaves_nothing(tmp_path):
     with pytest.raises(RuntimeError):
         with BagRecorder(tmp_path / "bag", np.eye(4), np.eye(4)):

@@ -36,7 +36,8 @@ from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
 from gls_calibration.ros import conversions
-from gls_calibration.ros.conversions import cloud_from_msg, cloud_to_msg, pointcloud2_to_array, xyzi_array
+from gls_calibration.ros.conversions import (array_to_pointcloud2, cloud_from_msg, cloud_to_msg, pointcloud2_to_array,
+                                             xyzi_array)
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, Calibrate, CorrectSetpoints, LoadCalibration, StartSweep
 
@@ -387,7 +388,7 @@ class FakeScanner:
         return 1.02 * SPEED_MM_S * PROFILE_PERIOD_S * index + 0.05 * math.sin(index)
 
     def stream(self) -> None:
-        count = PROFILES if self.script in ("complete", "posed") else 5
+        count = PROFILES if self.script in ("complete", "posed", "millimetres") else 5
         for index in range(count):
             stamp = Time(nanoseconds=int(round((FIRST_STAMP_S + index * PROFILE_PERIOD_S) * 1e9)))
             if self.script == "posed":
@@ -396,14 +397,18 @@ class FakeScanner:
                 pose.pose.position.y = self.reported_y_mm(index) * 1e-3         # metres on the wire
                 pose.pose.orientation.w = 1.0
                 self.poses.publish(pose)
-            self.points.publish(cloud_to_msg(self.profiles[index], "scanner_sensor", stamp))   # metres
+            if self.script == "millimetres":     # a driver that publishes millimetres
+                self.points.publish(array_to_pointcloud2(self.profiles[index], "scanner_sensor", stamp.to_msg()))
+            else:
+                self.points.publish(cloud_to_msg(self.profiles[index], "scanner_sensor", stamp))   # metres
         self.done.publish(SweepDone(sweep_id=7, profiles=count, step_mm=SPEED_MM_S * PROFILE_PERIOD_S,
                                     speed_mm_s=SPEED_MM_S, direction=[0.0, 1.0, 0.0],
-                                    complete=self.script in ("complete", "posed")))
+                                    complete=self.script in ("complete", "posed", "millimetres")))
 
 
-def acquire(ros_context, add_node, script: str, timeout_s: float) -> tuple[AcquireSweep.Response, float, FakeScanner]:
-    add_node(ScanAcquisitionNode(context=ros_context))
+def acquire(ros_context, add_node, script: str, timeout_s: float,
+            overrides: tuple = ()) -> tuple[AcquireSweep.Response, float, FakeScanner]:
+    add_node(ScanAcquisitionNode(context=ros_context, parameter_overrides=list(overrides)))
     scanner = FakeScanner(add_node(Node("fake_scanner", namespace=NAMESPACE, context=ros_context)), script)
     node = client_node(ros_context, add_node)
     client = node.create_client(AcquireSweep, "scan/acquire")
@@ -427,6 +432,27 @@ def test_scan_acquisition_fails_on_a_sweep_cut_short(ros_context, add_node):
     response, _, _ = acquire(ros_context, add_node, "cut_short", timeout_s=TIMEOUT_S)
     assert not response.success
     assert response.message == "the sweep was cut short after 5 profiles"
+
+
+@pytest.mark.parametrize("script, unit, message", [
+    ("millimetres", "m", r"median point distance 3\.25\d*e\+05 mm is outside 10 to 10000 mm: the profiles are not "
+                         r"in m \(profile_unit; millimetres\?\)"),
+    ("complete", "mm", r"median point distance 0\.325\d* mm is outside 10 to 10000 mm: the profiles are not in mm "
+                       r"\(profile_unit; metres\?\)"),
+])
+def test_scan_acquisition_refuses_profiles_not_in_its_unit(ros_context, add_node, script, unit, message):
+    """Millimetres where metres are expected, and the reverse (issue 28): the sweep refused, the unit named."""
+    response, _, _ = acquire(ros_context, add_node, script, timeout_s=TIMEOUT_S,
+                             overrides=(Parameter("profile_unit", value=unit),))
+    assert not response.success
+    assert re.fullmatch("sweep refused: profile at 1000.000000 s: " + message, response.message), response.message
+
+
+def test_scan_acquisition_takes_a_driver_in_millimetres_when_told(ros_context, add_node):
+    response, _, _ = acquire(ros_context, add_node, "millimetres", timeout_s=TIMEOUT_S,
+                             overrides=(Parameter("profile_unit", value="mm"),))
+    assert response.success, response.message
+    assert 0.32 < float(np.nanmedian(pointcloud2_to_array(response.cloud)["z"])) < 0.33     # metres on the wire
 
 
 def test_scan_acquisition_assembles_an_organized_cloud(ros_context, add_node):

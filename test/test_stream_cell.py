@@ -105,32 +105,59 @@ def test_scanner_off_and_a_line_the_robot_refuses_fail_the_sweep(stream_cell):
     assert not bad.success and bad.message == "direction must be +1, -1 or 0 (+1), got 2"
 
 
-@pytest.mark.parametrize("extra", [["--placement", "time"], ["--reference-plate"], ["--record", "BAG"]])
-def test_sim_cell_streaming_refuses_what_it_cannot_do(tmp_path, extra, capsys):
+@pytest.mark.parametrize("extra, message", [
+    ([], "--placement time needs --sweep-contract: the split cell places every profile through TF"),
+    (["--streaming"], "--placement time needs --sweep-contract: the split cell places every profile through TF"),
+    (["--sweep-contract", "--streaming"], "not allowed with argument"),
+])
+def test_sim_cell_places_by_time_only_on_the_sweep_contract(tmp_path, extra, message, capsys):
+    from gls_calibration.cli.sim_cell import main as sim_cell_main
+
+    with pytest.raises(SystemExit) as exit_:
+        sim_cell_main(["--out", str(tmp_path / "out"), "--placement", "time"] + extra)
+    assert exit_.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("cell", ["--sweep-contract", "--streaming"])
+@pytest.mark.parametrize("extra", [["--reference-plate"], ["--record", "BAG"]])
+def test_sim_cell_refuses_a_cell_choice_where_no_ros_cell_runs(tmp_path, cell, extra, capsys):
     from gls_calibration.cli.sim_cell import main as sim_cell_main
 
     extra = [str(tmp_path / "bag") if item == "BAG" else item for item in extra]
     with pytest.raises(SystemExit) as exit_:
-        sim_cell_main(["--out", str(tmp_path / "out"), "--streaming"] + extra)
+        sim_cell_main(["--out", str(tmp_path / "out"), cell] + extra)
     assert exit_.value.code == 2
-    assert ("--streaming places profiles through TF: not with --record, --reference-plate or --placement time"
-            in capsys.readouterr().err)
+    assert ("--sweep-contract and --streaming pick the ROS cell's scanner: not with --record or --reference-plate, "
+            "which run no ROS cell") in capsys.readouterr().err
     assert not (tmp_path / "out").exists() and not (tmp_path / "bag").exists()
 
 
+def test_sim_cell_runs_the_split_cell_by_default(tmp_path):
+    """Without an option the ROS cell is the split one: its -p overrides ask sim_robot for the plate's marks."""
+    from gls_calibration.cli import sim_cell
+
+    split = sim_cell.parse_args(["--out", str(tmp_path / "out")])
+    contract = sim_cell.parse_args(["--out", str(tmp_path / "out"), "--sweep-contract"])
+    assert not split.sweep_contract and contract.sweep_contract
+    assert '-p marks_service:="sim/marked_paths"' in " ".join(sim_cell.ros_arguments(split, tmp_path, tmp_path))
+    assert "marks_service" not in " ".join(sim_cell.ros_arguments(contract, tmp_path, tmp_path))
+
+
 @pytest.mark.slow
-def test_sim_cell_streaming_calibrates_as_the_default_cell(tmp_path):
-    """A whole (small) calibration through the split cell measures what today's cell measures: the two
-    differ by the float32 rounding of their streams only (3.4e-5 mm in RMS when written). Each cell runs
-    as a user runs it, in a process of its own."""
+def test_sim_cell_split_cell_calibrates_as_the_sweep_contract_cell(tmp_path):
+    """A whole (small) calibration through the split cell (the default) measures what the sweep-contract
+    cell measures: the two differ by the float32 rounding of their streams only (3.4e-5 mm in RMS when
+    written). Each cell runs as a user runs it, in a process of its own."""
     options = ["--grid", "3", "--no-validate", "--sweep-plan", "0+", "--measurement", "ideal", "--no-reference-check"]
     summaries = {}
-    for name, extra in (("today", []), ("streaming", ["--streaming"])):
+    for name, extra in (("contract", ["--sweep-contract"]), ("split", [])):
         run = subprocess.run([sys.executable, "-m", "gls_calibration.cli.sim_cell", "--out", str(tmp_path / name)]
                              + options + extra, capture_output=True, text=True, timeout=240)
         assert run.returncode == 0, run.stderr[-3000:]
         summaries[name] = json.loads((tmp_path / name / "summary.json").read_text())
-    today, streaming = summaries["today"], summaries["streaming"]
+    today, streaming = summaries["contract"], summaries["split"]
     assert streaming["fiducials_found"] == today["fiducials_found"] == 9
     for key in ("pre_rms_mm", "pre_max_mm", "cv_rms_mm"):
         assert abs(streaming[key] - today[key]) < 1e-3, (key, streaming[key], today[key])

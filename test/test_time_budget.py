@@ -73,8 +73,9 @@ def test_gls_sim_cell_writes_and_prints_the_time_budget(tmp_path):
     assert budget["last_sweep_to_result_s"] == summary["last_sweep_to_result_s"] > 0.0
     cpu = budget["cpu_s_by_node"]
     # every node of the cell has its thread's CPU; the ones that did work have some
-    assert {"calibration_manager", "scan_acquisition", "fiducial_measurement", "sim_scanner"} <= set(cpu)
-    assert cpu["fiducial_measurement"] > 0.0 and cpu["sim_scanner"] > 0.0
+    assert {"calibration_manager", "stream_acquisition", "fiducial_measurement", "sim_robot",
+            "sim_line_scanner"} <= set(cpu)     # the split cell, gls-sim-cell's default
+    assert cpu["fiducial_measurement"] > 0.0 and cpu["sim_robot"] > 0.0 and cpu["sim_line_scanner"] > 0.0
     pipeline = sum(value for name, value in cpu.items() if not name.startswith("sim_"))
     assert budget["compute_cpu_s"] == pytest.approx(pipeline)
     assert budget["process_cpu_s"] >= budget["compute_cpu_s"] + budget["simulation_cpu_s"]

@@ -1,5 +1,10 @@
 """gls-sim-cell: the headless simulated cell, every node in one process; calls ``calibrate``.
 
+The cell is split as a real one is (:mod:`gls_calibration.cli.sim_streaming`): a simulated robot
+that runs commanded lines and reports the flange on ``/tf``, a line scanner that streams profiles,
+and ``stream_acquisition``, which places them through TF. ``--sweep-contract`` runs the package's
+own sweep contract instead (``sim_scanner`` + ``scan_acquisition``: StartSweep, ``scan/pose``,
+SweepDone), the only cell that can place profiles by time (``--placement time``).
 With ``--serve`` it only starts the nodes and serves until interrupted, so that external clients
 (``gls-calibrate``, ``gls-correct``, other machines on the same ROS_DOMAIN_ID) drive the cell.
 ``--measurement ideal|careful|paper_like|custom`` picks the simulated measurement chain (default:
@@ -53,6 +58,7 @@ from gls_calibration.cli.client import (ProgressBar, call_and_wait, ros_rules, s
 from gls_calibration_msgs.msg import CalibrationProgress
 from gls_calibration_msgs.srv import Calibrate
 
+# the cell of --sweep-contract (the split cell's nodes: sim_streaming.streaming_nodes)
 NODE_TYPES = (SimGalvoNode, SimScannerNode, ScanAcquisitionNode, PlatePoseNode, FiducialMeasurementNode,
               RbfTrainerNode, CorrectionNode, CalibrationManager)
 
@@ -160,7 +166,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                              "(reversed and sensor turned: scanner-frame errors separated); default: config/gls.yaml")
     parser.add_argument("--placement", choices=("pose", "time"), default="pose",
                         help="place profiles by the robot's reported pose (default) or by time at the nominal "
-                             "speed (a driver without a pose stream)")
+                             "speed (a driver without a pose stream; with --sweep-contract only)")
     parser.add_argument("--reference-plate", action="store_true",
                         help="run the simulated reference-plate check (no calibration) and write DIR/summary.json "
                              "and DIR/reference_check.yaml")
@@ -181,9 +187,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                              "in DIR (a new folder); replay with gls-measure --bag DIR")
     parser.add_argument("--record-storage", choices=("sqlite3", "mcap"), default="sqlite3",
                         help="storage of the recorded bag (default sqlite3)")
-    parser.add_argument("--streaming", action="store_true",
-                        help="the split cell: simulated robot (TF, motion contract), streaming line scanner and "
-                             "stream_acquisition instead of sim_scanner and scan_acquisition")
+    cells = parser.add_mutually_exclusive_group()
+    cells.add_argument("--sweep-contract", action="store_true",
+                       help="the cell on the package's own sweep contract (sim_scanner and scan_acquisition: "
+                            "StartSweep, scan/pose, SweepDone) instead of the split cell (simulated robot with TF "
+                            "and the motion contract, streaming line scanner, stream_acquisition)")
+    cells.add_argument("--streaming", action="store_true",
+                       help="the split cell, which is the default (kept so that older command lines run)")
     parser.add_argument("--namespace", default=None,
                         help="namespace of the cell's nodes (default: 'gls' with --serve; otherwise a private "
                              "one, so that concurrent one-shot cells on the same ROS domain never meet)")
@@ -236,8 +246,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
             parser.error(f"--record {args.record}: exists already; a bag is written only into a new folder")
         if not args.record.parent.is_dir():
             parser.error(f"--record {args.record}: no such folder {args.record.parent}")
-    if args.streaming and (args.record is not None or args.reference_plate or args.placement != "pose"):
-        parser.error("--streaming places profiles through TF: not with --record, --reference-plate or --placement time")
+    if args.placement != "pose" and not args.sweep_contract and args.record is None and not args.reference_plate:
+        parser.error("--placement time needs --sweep-contract: the split cell places every profile through TF")
+    if (args.sweep_contract or args.streaming) and (args.record is not None or args.reference_plate):
+        parser.error("--sweep-contract and --streaming pick the ROS cell's scanner: not with --record or "
+                     "--reference-plate, which run no ROS cell")
     if args.measurement is not None and args.measurement not in PRESETS:
         parser.error(f"--measurement: unknown measurement preset {args.measurement!r}; known: {', '.join(PRESETS)}")
     try:
@@ -289,7 +302,7 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
     }
     if args.sweep_plan is not None:
         overrides["sweep.plan"] = args.sweep_plan
-    if args.streaming:
+    if not args.sweep_contract:
         overrides["marks_service"] = "sim/marked_paths"
     if args.reference_check is not None:
         overrides["reference_check_file"] = str(args.reference_check.resolve())
@@ -345,7 +358,7 @@ def main(argv: list[str] | None = None) -> int:
     status = 1
     try:
         try:
-            if args.streaming:
+            if not args.sweep_contract:
                 from gls_calibration.cli.sim_streaming import streaming_nodes
 
                 built = streaming_nodes(context, namespace)

@@ -34,6 +34,9 @@ from gls_calibration_msgs.srv import AcquireSweep, StartSweep
 
 
 PROFILE_UNITS_MM = {"m": conversions.MM_PER_M, "mm": 1.0}
+# a profile's median point distance from the sensor outside this window (mm) is not in profile_unit:
+# metres read as millimetres give ~0.3 "mm", millimetres read as metres ~300 m (no line scanner ranges so)
+RANGE_WINDOW_MM = (10.0, 10000.0)
 MAX_TIMEOUT_S = 3600.0     # an hour: longer than any sweep; bounds what a caller can make the node wait
 MAX_LENGTH_MM = 10000.0
 MAX_SPEED_MM_S = 10000.0
@@ -73,6 +76,9 @@ class ScanAcquisitionNode(GlsNode):
         if unit not in PROFILE_UNITS_MM:
             raise ValueError(f"profile_unit must be one of {', '.join(PROFILE_UNITS_MM)}, got {unit!r}")
         self.mm_per_unit = PROFILE_UNITS_MM[unit]
+        self.unit = unit
+        self.unit_problem = ""                 # the first profile of the sweep not in profile_unit...
+        self.wrong_unit = 0                    # ...and how many were not (dropped)
         self.frame_id = self.declare("frame_id", "scanner",
                                      "frame of the assembled cloud: the sensor's nominal pose at the start of a sweep")
         self.use_poses = self.declare("use_pose_stream", True,
@@ -131,7 +137,10 @@ class ScanAcquisitionNode(GlsNode):
             stamp_s = stamp.sec + stamp.nanosec * 1e-9
             layout = (tuple((field.name, field.offset, field.datatype, field.count) for field in message.fields),
                       bool(message.is_bigendian), int(message.point_step))
-            kept = collector.add(stamp_s, conversions.cloud_from_msg(message, self.mm_per_unit), layout)
+            points = conversions.cloud_from_msg(message, self.mm_per_unit)
+            if self._unit_problem(points, stamp_s):
+                return
+            kept = collector.add(stamp_s, points, layout)
         except (ValueError, TypeError, AttributeError) as error:
             self.malformed += 1
             self.get_logger().warning(f"malformed profile dropped ({self.malformed} in this sweep): {error}",
@@ -222,7 +231,8 @@ class ScanAcquisitionNode(GlsNode):
         collector = self.collector
         members = int(np.count_nonzero(self._members(done)))
         accounted = members + collector.dropped
-        junk = self.malformed + self.wrong_format + collector.too_wide + len(collector) - members
+        junk = (self.malformed + self.wrong_format + self.wrong_unit + collector.too_wide + len(collector)
+                - members)
         return accounted >= done.profiles or (
             accounted + junk >= done.profiles and time.monotonic() - arrived >= MALFORMED_GRACE_S)
 
@@ -257,7 +267,7 @@ class ScanAcquisitionNode(GlsNode):
             return response
         await self._wait_for_unfinished(timeout_s)
         self.collector, self.sweep_id, self.malformed = SweepCollector(self.max_profiles, self.max_points), None, 0
-        self.wrong_format = 0
+        self.wrong_format, self.wrong_unit, self.unit_problem = 0, 0, ""
         self.poses = PoseTrack(self.max_profiles) if self.use_poses else None
         self.ends.clear()
         self.stamps, self.ignored_end, self.expected_profiles, self.end = {}, "", 0, None
@@ -282,6 +292,8 @@ class ScanAcquisitionNode(GlsNode):
                                 self._timeout_message(timeout_s, started.expected_profiles),
                                 watch=[start_client])
             done, collector = self.done, self.collector
+            if self.unit_problem:
+                raise ServiceCallError(f"sweep refused: {self.unit_problem}")
             if not done.complete:
                 raise ServiceCallError(f"the sweep was cut short after {done.profiles} profiles")
             if done.profiles != started.expected_profiles:
@@ -347,6 +359,25 @@ class ScanAcquisitionNode(GlsNode):
             finally:
                 self.waiting = False
         self.unfinished = None
+
+    def _unit_problem(self, points: np.ndarray, stamp_s: float) -> bool:
+        """True (the first such profile's problem kept for the answer) when the profile's median point
+        distance from the sensor lies outside ``RANGE_WINDOW_MM``: not in ``profile_unit``."""
+        distance = np.sqrt(points["x"].astype(float) ** 2 + points["y"] ** 2 + points["z"] ** 2)
+        distance = distance[np.isfinite(distance)]
+        if not distance.size:
+            return False
+        median = float(np.median(distance))
+        low, high = RANGE_WINDOW_MM
+        if low <= median <= high:
+            return False
+        self.wrong_unit += 1
+        if not self.unit_problem:
+            other = "metres" if self.unit == "mm" else "millimetres"
+            self.unit_problem = (f"profile at {stamp_s:.6f} s: median point distance {median:.4g} mm is outside "
+                                 f"{low:g} to {high:g} mm: the profiles are not in {self.unit} (profile_unit; "
+                                 f"{other}?)")
+        return True
 
     def _junk_phrase(self, foreign: int) -> str:
         """The profiles dropped from the sweep, by reason ('' when none)."""

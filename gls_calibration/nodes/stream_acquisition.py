@@ -83,7 +83,9 @@ class StreamAcquisitionNode(GlsNode):
                                                "step nor speed", minimum=0.01, maximum=10000.0)
         self.default_timeout_s = self.declare("default_timeout_s", 120.0, "time limit of a sweep when a request "
                                               "says 0", minimum=0.1, maximum=3600.0)
-        self.end_grace_s = self.declare("end_grace_s", 1.0, "after the motion's end: how long the streams may be "
+        # Only a stream that sends nothing after the end waits this long; 1 s closed sweeps early on a
+        # loaded 2-core host (the subscriptions' thread starved while the TF of the line was still queued).
+        self.end_grace_s = self.declare("end_grace_s", 5.0, "after the motion's end: how long the streams may be "
                                         "quiet before the sweep is taken without a profile and a pose stamped after "
                                         "the end", minimum=0.0, maximum=60.0)
         self.max_profiles = self.declare("max_profiles", 30000, "most profiles kept during one acquisition",

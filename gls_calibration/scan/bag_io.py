@@ -276,7 +276,7 @@ def profile_points(message, limits: ReplayLimits, where: str) -> np.ndarray:
     ranges = np.linalg.norm(array[:, :3], axis=1)
     ranges = ranges[np.isfinite(ranges)]
     if ranges.size and float(np.median(ranges)) > limits.max_range_m:
-        raise ValueError(f"{where}: median point distance {float(np.median(ranges)):.4g} exceeds "
+        raise ValueError(f"{where}: median point distance {float(np.median(ranges)):.4g} m exceeds "
                          f"{limits.max_range_m:g} m: the cloud is not in metres (millimetres?)")
     return array
 
