@@ -41,7 +41,8 @@ BUSY = "while True: pass"
 # at load 9 (the sweep-contract cell took 17 min there, its last calibrate also over 300 s). The stop
 # under test is the shared NodeThreads/StopSignals path; the split cell's stop on SIGINT after a
 # calibration is tested by test_cross_process.py.
-FAST_ARGUMENTS = ["--sweep-contract", "--ros-args", "-p", "sweep.plain_repeats:=1", "-p", "sweep.plan:=0+", "-p", "deadline_factor:=10.0"]
+FAST_ARGUMENTS = ["--sweep-contract", "--ros-args", "-p", "sweep.plain_repeats:=1", "-p", "sweep.plan:=0+",
+                  "-p", "deadline_factor:=10.0"]
 ABORT = "terminate called"
 
 # The in-process cell (every node in one context, spun by NodeThreads, as gls-sim-cell and the tests'
