@@ -175,8 +175,9 @@ class StreamAcquisitionNode(GlsNode):
         self._add(session, LAYOUT.motion_start_topic, message)
 
     def on_end(self, message: Header) -> None:
+        # The end may come before the start: DDS keeps the order within a topic, not across topics.
         session = self.session
-        if session is None or not session.started or session.end_ns is not None:
+        if session is None or session.end_ns is not None:
             return
         session.end_ns = stamp_ns(message.stamp)
         session.last_arrival_s = time.monotonic()
@@ -222,7 +223,7 @@ class StreamAcquisitionNode(GlsNode):
         """The motion ended and a profile and a flange pose stamped after its end came, or the streams have
         been quiet for ``end_grace_s`` since."""
         session = self.session
-        if session.end_ns is None:
+        if session.end_ns is None or not session.started:
             return False
         if time.monotonic() - session.last_arrival_s >= self.end_grace_s:
             return True
