@@ -35,7 +35,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
-from _stream_peer import AFTER, BEFORE, HAND_EYE, LATCHED, RELIABLE, TF_RATE_HZ, cloud, pose, stamp, transform
+from _stream_peer import AFTER, BEFORE, HAND_EYE, LATCHED, RELIABLE, TF_RATE_HZ, cloud, pose, serve, stamp, transform
 
 GLS_IN_BASE = pose((0.0, 0.1, 0.325), Rotation.from_euler("x", np.pi))   # the package's cell frames file's
 POINT_SPACING_M = 1e-4
@@ -156,17 +156,7 @@ def main() -> int:
     assert not any(name.startswith("gls_calibration") for name in sys.modules), "the peer imported gls_calibration"
     rclpy.init()
     node = CellPeer(args)
-    print("peer ready", flush=True)
-    deadline = time.monotonic() + args.lifetime
-    try:
-        while rclpy.ok() and time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.1)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return serve(node, args.lifetime)
 
 
 if __name__ == "__main__":

@@ -164,6 +164,21 @@ class Peer(Node):
             self.profiles.publish(cloud(profile_points_m(flange_at(ns) @ HAND_EYE), ns))
 
 
+def serve(node: Node, lifetime_s: float) -> int:
+    """Say ready, spin ``node`` until the lifetime is over or it is interrupted, then shut down."""
+    print("peer ready", flush=True)
+    deadline = time.monotonic() + lifetime_s
+    try:
+        while rclpy.ok() and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("--rate", type=float, required=True)
@@ -175,17 +190,7 @@ def main() -> int:
     assert not any(name.startswith("gls_calibration") for name in sys.modules), "the peer imported gls_calibration"
     rclpy.init()
     node = Peer(args.rate, modes)
-    print("peer ready", flush=True)
-    deadline = time.monotonic() + args.lifetime
-    try:
-        while rclpy.ok() and time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.1)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return serve(node, args.lifetime)
 
 
 if __name__ == "__main__":

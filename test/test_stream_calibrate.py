@@ -6,7 +6,6 @@ galvo with a KNOWN smooth distortion would have put them, so the deviations the 
 must be that distortion, in closed form."""
 from __future__ import annotations
 
-import ast
 import csv
 import subprocess
 import sys
@@ -27,6 +26,7 @@ from gls_calibration.nodes.stream_acquisition import StreamAcquisitionNode
 from gls_calibration_msgs.action import Calibrate
 
 from ros_helpers import default_sigint, stop_process, wait_for
+from test_stream_peer import imported_modules
 
 PEER = Path(__file__).with_name("_cell_peer.py")
 GRID, SIZE_MM = 5, 40.0
@@ -49,12 +49,7 @@ def peer_field_mm(xy_mm: np.ndarray) -> np.ndarray:
 def test_the_cell_peer_imports_nothing_of_the_package():
     """Its imports name no module of the package (and at run time it asserts none got loaded); the
     helpers it takes from the acquisition's peer are held to the same rule (test_stream_peer.py)."""
-    modules = set()
-    for statement in ast.walk(ast.parse(PEER.read_text())):
-        if isinstance(statement, ast.Import):
-            modules.update(alias.name for alias in statement.names)
-        elif isinstance(statement, ast.ImportFrom):
-            modules.add(statement.module or "")
+    modules = imported_modules(PEER)
     ours = ("gls_calibration", "gls_calibration_msgs", "ros_helpers")
     assert "rclpy" in modules and not any(name.split(".")[0] in ours for name in modules)
     assert {name for name in modules if name.startswith("_") and name != "__future__"} == {"_stream_peer"}

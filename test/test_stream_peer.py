@@ -33,14 +33,20 @@ def _plate_z_mm(x_mm: np.ndarray) -> np.ndarray:
     return np.where((x_mm > 2.25) & (x_mm < 6.25), 290.0, 300.0)
 
 
-def test_the_peer_imports_nothing_of_the_package():
-    """Its imports name no module of the package (and at run time it asserts none got loaded)."""
+def imported_modules(path: Path) -> set[str]:
+    """Every module a Python file names in an import statement."""
     modules = set()
-    for statement in ast.walk(ast.parse(PEER.read_text())):
+    for statement in ast.walk(ast.parse(path.read_text())):
         if isinstance(statement, ast.Import):
             modules.update(alias.name for alias in statement.names)
         elif isinstance(statement, ast.ImportFrom):
             modules.add(statement.module or "")
+    return modules
+
+
+def test_the_peer_imports_nothing_of_the_package():
+    """Its imports name no module of the package (and at run time it asserts none got loaded)."""
+    modules = imported_modules(PEER)
     ours = ("gls_calibration", "gls_calibration_msgs", "ros_helpers")
     assert "rclpy" in modules and not any(name.split(".")[0] in ours for name in modules)
 
