@@ -13,11 +13,11 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 import numpy as np
 
 from gls_calibration.common.files import atomic_write_text
+from gls_calibration.report.files import save_figure
 
 MAP_FILE = "uncertainty_map.png"
 VALIDATION_FILE = "validation.csv"
@@ -64,10 +64,7 @@ def plot_u_map(path: Path, grid, targets_xy: Optional[np.ndarray]) -> Path:
     axes.set_ylabel("y (mm)")
     axes.set_title("expanded uncertainty of a corrected target", fontsize=10)
     figure.tight_layout()
-    FigureCanvasAgg(figure)
-    figure.savefig(path, dpi=100)
-    figure.clear()
-    return path
+    return save_figure(figure, path)
 
 
 def certificate_lines(stored: Optional[Mapping[str, Any]], summary: Any, map_name: Optional[str]) -> list[str]:

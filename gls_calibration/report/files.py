@@ -259,7 +259,8 @@ def _write_fiducials_csv(path: Path, data: ReportData) -> None:
 # ---------------------------------------------------------------------------------------- plots
 
 
-def _save(figure: Figure, path: Path) -> Path:
+def save_figure(figure: Figure, path: Path) -> Path:
+    """Render ``figure`` to the PNG ``path`` at the report's resolution; the path."""
     FigureCanvasAgg(figure)  # attaches the Agg canvas: rendering never touches a display backend
     figure.savefig(path, dpi=_DPI)
     figure.clear()
@@ -324,7 +325,7 @@ def _plot_deviation_arrows(path: Path, data: ReportData) -> Path:
         axes.set_xlabel("x (mm)")
     axes_list[0].set_ylabel("y (mm)")
     figure.tight_layout()
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def _plot_cumulative_histogram(path: Path, data: ReportData) -> Path:
@@ -348,7 +349,7 @@ def _plot_cumulative_histogram(path: Path, data: ReportData) -> Path:
     axes.grid(True, alpha=0.3)
     axes.legend(loc="lower right", fontsize=8)
     figure.tight_layout()
-    return _save(figure, path)
+    return save_figure(figure, path)
 
 
 def _correction_grid(data: ReportData) -> CorrectionGrid:
@@ -394,4 +395,4 @@ def _plot_correction_field(path: Path, data: ReportData) -> Path:
     axes.set_ylabel("y (mm)")
     axes.set_title("fitted correction (arrows: direction, colour: magnitude)", fontsize=10)
     figure.tight_layout()
-    return _save(figure, path)
+    return save_figure(figure, path)
