@@ -22,16 +22,17 @@ print(json.dumps(roots))
 """
 
 
+def module_name_of(path: Path) -> str:
+    """The dotted module name of a file of the package."""
+    parts = path.relative_to(PACKAGE).with_suffix("").parts
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(("gls_calibration",) + parts)
+
+
 def module_names(include_nodes: bool) -> list[str]:
-    names = []
-    for path in sorted(PACKAGE.rglob("*.py")):
-        parts = path.relative_to(PACKAGE).with_suffix("").parts
-        if not include_nodes and parts[0] in ("ros", "nodes", "cli"):
-            continue
-        if parts[-1] == "__init__":
-            parts = parts[:-1]
-        names.append(".".join(("gls_calibration",) + parts))
-    return names
+    return [module_name_of(path) for path in sorted(PACKAGE.rglob("*.py"))
+            if include_nodes or path.relative_to(PACKAGE).parts[0] not in ("ros", "nodes", "cli")]
 
 
 def loaded_ros_packages(modules: list[str]) -> list[str]:
@@ -94,7 +95,7 @@ def test_every_module_lives_in_a_stage_folder():
 def test_no_stage_imports_a_later_stage():
     offenders = []
     for path in sorted(PACKAGE.rglob("*.py")):
-        module = module_names_of(path)
+        module = module_name_of(path)
         if module == "gls_calibration":
             continue
         for imported in imports_of(path):
@@ -103,15 +104,8 @@ def test_no_stage_imports_a_later_stage():
     assert offenders == []
 
 
-def module_names_of(path: Path) -> str:
-    parts = path.relative_to(PACKAGE).with_suffix("").parts
-    if parts[-1] == "__init__":
-        parts = parts[:-1]
-    return ".".join(("gls_calibration",) + parts)
-
-
 def test_no_import_circle():
-    graph = {module_names_of(path): imports_of(path) for path in PACKAGE.rglob("*.py")}
+    graph = {module_name_of(path): imports_of(path) for path in PACKAGE.rglob("*.py")}
     circles = []
 
     def visit(module, trail):
