@@ -6,8 +6,7 @@ Issue 33 asks for at most 0.1 ms of CPU to place a profile. Measured here, in on
   profile as it arrives (``add``), then placing the sweep by the reported poses (``assemble``);
 - the streaming path (``scan.bag_io.StreamAssembler``, the default cell and bag replay): each
   PointCloud2 profile decoded, its sensor pose looked up in the TF buffer at its stamp, the sweep
-  placed at once; and the profile decoding alone, today's against the per-field decoding it
-  replaced (``per_field_decode``, kept below as the reference).
+  placed at once; and the profile decoding alone (with its metres check).
 
 Run: .venv/bin/python benchmarks/bench_profile_assembly.py [--profiles 2000] [--points 2000]
 Prints microseconds of CPU (process time) per profile, medians of 3 repeats.
@@ -15,7 +14,6 @@ Prints microseconds of CPU (process time) per profile, medians of 3 repeats.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 import statistics
 import sys
 import time
@@ -24,9 +22,8 @@ from types import SimpleNamespace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from gls_calibration.scan.bag_io import BagLayout, ReplayLimits, StreamAssembler, profile_points  # noqa: E402
-from gls_calibration.scan.sweep import XYZI_FIELDS, PoseTrack, SweepCollector, SweepMotion  # noqa: E402
+from gls_calibration.scan.bag_io import BagLayout, ReplayLimits, StreamAssembler, profile_points
+from gls_calibration.scan.sweep import XYZI_FIELDS, PoseTrack, SweepCollector, SweepMotion
 
 NS_PER_S = 1_000_000_000
 
@@ -42,18 +39,6 @@ def profiles(count: int, points: int, seed: int = 0) -> list[np.ndarray]:
         profile["intensity"] = rng.uniform(0.2, 1.0, points)
         out.append(profile)
     return out
-
-
-def per_field_decode(message) -> np.ndarray:
-    """How ``bag_io.profile_points`` decoded a profile before issue 33: one strided pass per field."""
-    fields = {field.name: field for field in message.fields}
-    dtype = np.dtype({"names": list(XYZI_FIELDS), "formats": ["<f4"] * 4,
-                      "offsets": [int(fields[name].offset) for name in XYZI_FIELDS], "itemsize": message.point_step})
-    points = np.asarray(message.data, dtype=np.uint8)[:message.width * message.point_step].view(dtype)
-    array = np.column_stack([points[name].astype(float) for name in XYZI_FIELDS])
-    ranges = np.linalg.norm(array[:, :3], axis=1)        # the metres check, as today's
-    float(np.median(ranges[np.isfinite(ranges)]))
-    return array
 
 
 def cpu_s(function) -> tuple[float, object]:
@@ -137,16 +122,12 @@ def main() -> int:
         for label, function in (("sweep contract: add (check, keep)", add_all),
                                 ("sweep contract: assemble (place by pose)", assemble),
                                 ("streaming: decode, TF lookup, place", streaming(data)),
-                                ("streaming: decode only (today)", lambda: [
-                                    profile_points(message, ReplayLimits(), "") for message in messages]),
-                                ("streaming: decode only (per field, before)", lambda: [
-                                    per_field_decode(message) for message in messages])):
+                                ("streaming: decode only", lambda: [
+                                    profile_points(message, ReplayLimits(), "") for message in messages])):
             times.setdefault(label, []).append(cpu_s(function)[0])
-    today = profile_points(messages[0], ReplayLimits(), "")
     print(f"{args.profiles} profiles of {args.points} points; CPU per profile (median of 3), target 100 us:")
     for label, values in times.items():
         print(f"  {label:45s} {1e6 * statistics.median(values) / args.profiles:8.1f} us")
-    print(f"  decode today vs before: identical values: {np.array_equal(today, per_field_decode(messages[0]))}")
     return 0
 
 

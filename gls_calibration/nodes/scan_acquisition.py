@@ -28,7 +28,8 @@ from gls_calibration.ros.base import GlsNode
 from gls_calibration.ros.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
 from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import ServiceCallError
-from gls_calibration.scan.sweep import PoseTrack, ProfileRules, SweepCollector, SweepMotion, nominal_start_pose
+from gls_calibration.scan.sweep import (PoseTrack, ProfileRules, SweepCollector, SweepMotion, median_point_distance,
+                                        nominal_start_pose)
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, StartSweep
 
@@ -363,13 +364,9 @@ class ScanAcquisitionNode(GlsNode):
     def _unit_problem(self, points: np.ndarray, stamp_s: float) -> bool:
         """True (the first such profile's problem kept for the answer) when the profile's median point
         distance from the sensor lies outside ``RANGE_WINDOW_MM``: not in ``profile_unit``."""
-        distance = np.sqrt(points["x"].astype(float) ** 2 + points["y"] ** 2 + points["z"] ** 2)
-        distance = distance[np.isfinite(distance)]
-        if not distance.size:
-            return False
-        median = float(np.median(distance))
+        median = median_point_distance(np.stack([points["x"], points["y"], points["z"]], axis=-1))
         low, high = RANGE_WINDOW_MM
-        if low <= median <= high:
+        if math.isnan(median) or low <= median <= high:     # no finite point says nothing of the unit
             return False
         self.wrong_unit += 1
         if not self.unit_problem:

@@ -31,6 +31,8 @@ from scipy.spatial.transform import Rotation
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from gls_calibration.scan.sweep import median_point_distance
+
 MM_PER_M = 1000.0
 NS_PER_S = 1_000_000_000
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -261,22 +263,13 @@ def profile_points(message, limits: ReplayLimits, where: str) -> np.ndarray:
     data = np.asarray(message.data, dtype=np.uint8)
     if step < 16 or data.size < count * step:
         raise ValueError(f"{where}: the cloud's data ({data.size} bytes) is shorter than its {count} points")
-    offsets = [int(fields[name].offset) for name in _FIELDS]
-    if step % 4 == 0 and all(offset % 4 == 0 and offset + 4 <= step for offset in offsets):
-        # The usual layout (float32 fields on 4-byte boundaries): the points as rows of float32
-        # words, the four columns taken at once (one copy instead of one strided pass per field).
-        words = data[:count * step].view("<f4").reshape(count, step // 4)
-        columns = [offset // 4 for offset in offsets]
-        adjacent = columns == list(range(columns[0], columns[0] + 4))
-        array = (words[:, columns[0]:columns[0] + 4] if adjacent else words[:, columns]).astype(float)
-    else:
-        dtype = np.dtype({"names": list(_FIELDS), "formats": ["<f4"] * 4, "offsets": offsets, "itemsize": step})
-        points = data[:count * step].view(dtype)
-        array = np.column_stack([points[name].astype(float) for name in _FIELDS])
-    ranges = np.linalg.norm(array[:, :3], axis=1)
-    ranges = ranges[np.isfinite(ranges)]
-    if ranges.size and float(np.median(ranges)) > limits.max_range_m:
-        raise ValueError(f"{where}: median point distance {float(np.median(ranges)):.4g} m exceeds "
+    dtype = np.dtype({"names": list(_FIELDS), "formats": ["<f4"] * 4,
+                      "offsets": [int(fields[name].offset) for name in _FIELDS], "itemsize": step})
+    points = data[:count * step].view(dtype)
+    array = np.column_stack([points[name].astype(float) for name in _FIELDS])
+    median_m = median_point_distance(array[:, :3])
+    if median_m > limits.max_range_m:      # False for NaN: no finite point says nothing of the unit
+        raise ValueError(f"{where}: median point distance {median_m:.4g} m exceeds "
                          f"{limits.max_range_m:g} m: the cloud is not in metres (millimetres?)")
     return array
 

@@ -152,6 +152,14 @@ def profile_problem(stamp_s: float, profile: np.ndarray) -> str:
     return ""
 
 
+def median_point_distance(xyz: np.ndarray) -> float:
+    """Median distance of the finite points (N, 3) from the sensor's origin, in their unit; NaN when none
+    is finite. A profile's unit shows in it: a line scanner sees its plate tens to hundreds of mm away."""
+    distance = np.linalg.norm(np.asarray(xyz, dtype=float), axis=-1)
+    distance = distance[np.isfinite(distance)]
+    return float(np.median(distance)) if distance.size else math.nan
+
+
 def stamp_window_s(profiles: int, step_mm: float, speed_mm_s: float, rules: ProfileRules = ProfileRules()) -> float:
     """Length (s) of the time window that holds every profile of a sweep (see :class:`ProfileRules`)."""
     return rules.stamp_window_s(profiles, step_mm, speed_mm_s)
