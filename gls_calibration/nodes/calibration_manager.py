@@ -403,7 +403,7 @@ class CalibrationManager(GlsNode):
                 raise CalibrationCanceled("activation")
             self.store.activate(outcome.candidate.path)
             # /diagnostics describes the record in hand, not the file read back
-            self._active_cache = (self.store.active_path(), record_summary(outcome.candidate.record))
+            self._active_cache = (Path(outcome.candidate.path), record_summary(outcome.candidate.record))
             await self.cell.reload_active()
             try:
                 await self.cell.reload_correction_node()
