@@ -19,7 +19,7 @@ from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import SimScannerNode
 from gls_calibration.ros.base import DEFAULT_NAMESPACE, GlsNode
 from gls_calibration.ros.request_ids import AnsweredRequests, id_key, new_request_id
-from gls_calibration.ros.service_errors import DeadlineExpired
+from gls_calibration.ros.service_errors import DeadlineExpired, ServiceCallError
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import MarkPolylines, StartSweep
 from unique_identifier_msgs.msg import UUID
@@ -148,6 +148,25 @@ def test_call_without_resending_waits_for_its_deadline(ros_context, add_node):
     outcome, error = _run(caller, lambda: caller.call(caller.flaky, Trigger.Request(), 1.5))
     assert outcome == "error" and isinstance(error, DeadlineExpired)
     assert "did not answer within 1.5 s" in str(error)
+
+
+def test_a_wait_whose_check_raises_fails_and_the_executor_serves_on(ros_context, add_node):
+    server = add_node(DropsFirstAnswer(context=ros_context))
+    caller = add_node(Caller(context=ros_context))
+    checks = []
+
+    def broken_check() -> bool:
+        checks.append(1)
+        if len(checks) > 1:      # the first call is made in the coroutine; the rest by the polling timer
+            raise AttributeError("'NoneType' object has no attribute 'members'")
+        return False
+    outcome, error = _run(caller, lambda: caller.wait_for(broken_check, 5.0, "never"))
+    assert outcome == "error" and isinstance(error, ServiceCallError), error
+    assert str(error) == ("the wait's check failed: "
+                          "AttributeError(\"'NoneType' object has no attribute 'members'\")")
+    # The polling timer's thread survived: the executor still serves the caller's calls.
+    outcome, answer = _run(caller, lambda: caller.call(caller.flaky, Trigger.Request(), 20.0, resend_after_s=0.5))
+    assert outcome == "ok" and server.requests == 2, answer
 
 
 @contextmanager

@@ -170,9 +170,10 @@ class ScanAcquisitionNode(GlsNode):
         unfinished = self.unfinished
         if unfinished is not None and message.sweep_id == unfinished[0]:
             self.unfinished = None
-        if self.collector is None:
+        collector = self.collector
+        if collector is None:
             return
-        if message.sweep_id == self.sweep_id and self._ignored(message):
+        if message.sweep_id == self.sweep_id and self._ignored(message, collector):
             return
         if message.sweep_id not in self.ends and len(self.ends) >= MAX_ENDS_KEPT:
             self.ends.pop(next(iter(self.ends)))
@@ -186,19 +187,23 @@ class ScanAcquisitionNode(GlsNode):
         """The end of the sweep being acquired, once it came and was believed."""
         return None if self.end is None else self.end[0]
 
-    def _ignored(self, done: SweepDone) -> bool:
+    def _ignored(self, done: SweepDone, collector: SweepCollector) -> bool:
         """True (with a warning) when ``done``, of this node's sweep, cannot be its end."""
-        problem = self._end_problem(done)
+        problem = self._end_problem(done, collector)
         if problem:
             self.ignored_end = f"an end of sweep {done.sweep_id} was ignored: {problem}"
             self.get_logger().warning(self.ignored_end)
         return bool(problem)
 
-    def _members(self, done: SweepDone):
-        """Mask of the kept profiles that form the sweep ``done`` ends (layout and time window)."""
-        return self.collector.members(self.rules.stamp_window_s(done.profiles, done.step_mm, done.speed_mm_s))
+    def _members(self, done: SweepDone, collector: SweepCollector):
+        """Mask of ``collector``'s profiles that form the sweep ``done`` ends (layout and time window).
 
-    def _end_problem(self, done: SweepDone) -> str:
+        The collector is passed in, not read from the node: the acquisition may end (and drop it)
+        in another executor thread while a callback that took it is still running.
+        """
+        return collector.members(self.rules.stamp_window_s(done.profiles, done.step_mm, done.speed_mm_s))
+
+    def _end_problem(self, done: SweepDone, collector: SweepCollector) -> str:
         """Why an end of sweep with this sweep's id cannot be its end (empty when it can): its count
         must be the scanner's announcement when complete, and no less than what already came."""
         if done.complete and done.profiles != self.expected_profiles:
@@ -206,7 +211,7 @@ class ScanAcquisitionNode(GlsNode):
                     f"{self.expected_profiles}")
         if done.profiles > self.expected_profiles:
             return f"it counts {done.profiles} profiles, more than the {self.expected_profiles} announced"
-        received = int(np.count_nonzero(self._members(done)))
+        received = int(np.count_nonzero(self._members(done, collector)))
         if not done.complete and received > done.profiles:
             return f"it says the sweep was cut short after {done.profiles} profiles, but {received} came"
         return ""
@@ -219,18 +224,18 @@ class ScanAcquisitionNode(GlsNode):
         believed (a spoof): it is forgotten with a warning and the acquisition waits for the real one,
         so that it never returns while the scanner is still sweeping. An end saying the sweep was cut
         short is believed only once ``MALFORMED_GRACE_S`` old with no more profiles than it counts."""
-        if self.sweep_id is None:
+        collector = self.collector
+        if self.sweep_id is None or collector is None:
             return False
         ends = self.ends.get(self.sweep_id, [])
-        ends[:] = [(done, arrived) for done, arrived in ends if not self._ignored(done)]
+        ends[:] = [(done, arrived) for done, arrived in ends if not self._ignored(done, collector)]
         if not ends:
             return False
         done, arrived = ends[0]
         if not done.complete and time.monotonic() - arrived < MALFORMED_GRACE_S:
             return False
         self.end = (done, arrived)
-        collector = self.collector
-        members = int(np.count_nonzero(self._members(done)))
+        members = int(np.count_nonzero(self._members(done, collector)))
         accounted = members + collector.dropped
         junk = (self.malformed + self.wrong_format + self.wrong_unit + collector.too_wide + len(collector)
                 - members)
@@ -300,7 +305,7 @@ class ScanAcquisitionNode(GlsNode):
             if done.profiles != started.expected_profiles:
                 raise ServiceCallError(f"the end of sweep {done.sweep_id} counts {done.profiles} profiles; the "
                                        f"scanner announced {started.expected_profiles}")
-            members = self._members(done)
+            members = self._members(done, collector)
             kept = int(np.count_nonzero(members))
             junk = self._junk_phrase(len(collector) - kept)
             if collector.dropped or kept < done.profiles:

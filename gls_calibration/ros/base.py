@@ -267,8 +267,13 @@ class GlsNode(Node):
         def poll() -> None:
             if waiter.done():
                 return
-            if condition is not None and condition():
-                waiter.set_result(None)
+            try:
+                met = condition is not None and condition()
+            except Exception as error:  # a failing check fails this wait, never the executor
+                waiter.done() or waiter.set_result(ServiceCallError(f"the wait's check failed: {error!r}"))
+                return
+            if met:
+                waiter.done() or waiter.set_result(None)
                 return
             now = time.monotonic()
             if now - began >= timeout_s:
