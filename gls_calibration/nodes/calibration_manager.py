@@ -134,8 +134,9 @@ class ServiceCell:
         return conversions.fiducials_from_response(response, pose)
 
     async def correct(self, x, y, z):
-        if self.candidate is not None:
-            return self.candidate.correct(x, y, z)
+        candidate = self.candidate      # read once: another thread may drop it meanwhile
+        if candidate is not None:
+            return candidate.correct(x, y, z)
         request = CorrectSetpoints.Request(x=conversions.float64_sequence(x), y=conversions.float64_sequence(y),
                                            z=conversions.float64_sequence(z))
         return conversions.setpoints_from_response(await self._checked(self.corrector, request))

@@ -307,7 +307,7 @@ class ScanAcquisitionNode(GlsNode):
                                        f"scanner announced {started.expected_profiles}")
             members = self._members(done, collector)
             kept = int(np.count_nonzero(members))
-            junk = self._junk_phrase(len(collector) - kept)
+            junk = self._junk_phrase(len(collector) - kept, collector)
             if collector.dropped or kept < done.profiles:
                 raise ServiceCallError(
                     f"{kept} of {done.profiles} profiles kept: {collector.dropped} over the bound of "
@@ -381,12 +381,12 @@ class ScanAcquisitionNode(GlsNode):
                                  f"{other}?)")
         return True
 
-    def _junk_phrase(self, foreign: int) -> str:
-        """The profiles dropped from the sweep, by reason ('' when none)."""
+    def _junk_phrase(self, foreign: int, collector: Optional[SweepCollector]) -> str:
+        """The profiles dropped from ``collector``'s sweep, by reason ('' when none)."""
         parts = [(self.malformed, "malformed"),
                  (self.wrong_format, f"not in the scanner's declared format ({self.rules.describe()}; parameters "
                                      "profile_field_type, profile_big_endian)"),
-                 (self.collector.too_wide if self.collector is not None else 0,
+                 (collector.too_wide if collector is not None else 0,
                   f"wider than {self.max_points} points (parameter max_points_per_profile)"),
                  (foreign, "not of this sweep (another wire layout or a stamp outside its time window)")]
         return ", ".join(f"{count} profile(s) {why}" for count, why in parts if count)
@@ -406,8 +406,9 @@ class ScanAcquisitionNode(GlsNode):
 
     def _timeout_message(self, timeout_s: float, expected: int):
         def message() -> str:
-            received = len(self.collector) if self.collector is not None else 0
-            junk = self._junk_phrase(0) if self.collector is not None else ""
+            collector = self.collector      # read once: the acquisition may end in another thread
+            received = len(collector) if collector is not None else 0
+            junk = self._junk_phrase(0, collector) if collector is not None else ""
             malformed = f" ({junk} dropped)" if junk else ""
             ignored = f"; {self.ignored_end}" if self.ignored_end else ""
             return (f"sweep not complete after {timeout_s:g} s: {received} of {expected} profiles "

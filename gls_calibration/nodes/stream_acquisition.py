@@ -164,8 +164,9 @@ class StreamAcquisitionNode(GlsNode):
         """Keep the fixed frames (the latest per child frame) for every acquisition."""
         for transform in message.transforms:
             self.statics[transform.child_frame_id] = TFMessage(transforms=[transform])
-        if self.session is not None:
-            self._add(self.session, LAYOUT.tf_static_topic, message)
+        session = self.session      # read once (see _complete)
+        if session is not None:
+            self._add(session, LAYOUT.tf_static_topic, message)
 
     def on_start(self, message: Header) -> None:
         session = self.session
