@@ -45,27 +45,34 @@ class CoreCell:
         self.reload_active_now()
 
     def points_and_intensities(self, cloud: Cloud) -> tuple[np.ndarray, np.ndarray]:
+        """The cloud is already (points, intensities) in this cell."""
         return cloud
 
     async def estimate_plate_pose(self, cloud: Cloud) -> PlatePose:
+        """Plate pose fitted in process (see ``Cell.estimate_plate_pose``)."""
         return refusing(estimate_plate_pose, cloud[0].reshape(-1, 3), head_direction=(0.0, 0.0, -1.0))
 
     async def measure_fiducials(self, cloud: Cloud, pose: PlatePose, expected_count: int,
                                 ring_radii_mm: Sequence[float]) -> FiducialMeasurement:
+        """Fiducial centres measured in process (see ``Cell.measure_fiducials``)."""
         return refusing(measure_fiducials, cloud[0], cloud[1], pose, ring_radii_mm=ring_radii_mm,
                         expected_count=expected_count)
 
     async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> CorrectedSetpoints:
+        """Correct setpoints by the correction in use (see ``Cell.correct``)."""
         return refusing(self.correction.correct, x, y, z)
 
     async def train(self, landed_xy: np.ndarray, corrections: np.ndarray) -> TrainedModel:
+        """Train a correction in process (see ``Cell.train``)."""
         return refusing(train_correction, landed_xy, corrections, self.geometry, physics_first=self.physics_first,
                         options=self.training)
 
     async def use_candidate(self, candidate: Candidate) -> None:
+        """Correct by ``candidate`` from now on (see ``Cell.use_candidate``)."""
         self.correction = candidate.correction
 
     async def reload_active(self) -> None:
+        """Correct by the store's active calibration again (see ``Cell.reload_active``)."""
         self.reload_active_now()
 
     def reload_active_now(self) -> None:

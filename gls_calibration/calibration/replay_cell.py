@@ -31,9 +31,11 @@ class ReplayCell(CoreCell):
         super().__init__(geometry, store, physics_first=physics_first, training=training)
 
     async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Cloud:
+        """The recording's next sweep, whatever the request (the recording fixed the plan)."""
         return self._next(standstill=False)
 
     async def acquire_standstill(self, profiles: int) -> Cloud:
+        """The recording's next stand-still acquisition."""
         return self._next(standstill=True)
 
     def _next(self, *, standstill: bool) -> Cloud:
@@ -51,10 +53,13 @@ class ReplayCell(CoreCell):
         return sweep.xyz_mm, sweep.intensity
 
     async def mark(self, alpha_x, alpha_y, focus_shift, polyline_starts) -> float:
-        return 0.0     # marked in the recording
+        """Nothing to mark: the recording holds the plate as it was marked."""
+        return 0.0
 
     async def exchange_plate(self) -> None:
-        return None    # exchanged in the recording
+        """Nothing to exchange: the recording holds each plate."""
+        return None
 
     async def true_marks(self) -> Optional[list[np.ndarray]]:
-        return None    # a recording has no ground truth
+        """None: a recording has no ground truth."""
+        return None

@@ -104,6 +104,7 @@ class ChainCheck:
         return math.hypot(*self.sigma_mm)
 
     def to_dict(self) -> dict:
+        """Plain form of the reference check for summary.json and the check file."""
         return {"sigma_mm": list(self.sigma_mm), "plan": self.plan, "placement": self.placement,
                 "reference": self.reference, "centres": self.centres, "chain_map": self.chain_map}
 

@@ -105,6 +105,7 @@ class UncertaintyBudget:
     pitch_mm: float
 
     def contribution(self, name: str) -> Contribution:
+        """The contribution called ``name``; KeyError when the budget has none."""
         for item in self.contributions:
             if item.name == name:
                 return item

@@ -111,6 +111,7 @@ class UncertaintyGrid:
         return float(u.max()), float(u[central].max()) if central.any() else math.nan, float(np.median(u))
 
     def to_dict(self) -> dict:
+        """Plain form of the grid for the calibration file."""
         return {"coverage_probability": COVERAGE_PROBABILITY, "coverage_factor": COVERAGE_FACTOR,
                 "x_mm": self.x_mm.tolist(), "y_mm": self.y_mm.tolist(), "u_k2_mm": self.u_k2_mm.tolist()}
 

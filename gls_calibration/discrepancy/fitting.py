@@ -53,6 +53,7 @@ class Predictor:
 
     def __call__(self, effects: HeadEffects | Mapping[str, Sequence[float]],
                  user_values: Mapping[str, Sequence[float]] | None = None) -> np.ndarray:
+        """Landing of the recorded angles with these effects (n, 2) mm, user effects added."""
         landing = PhysicalHead(self.geometry, effects).land(self.alpha_x, self.alpha_y, self.t)[:, :2]
         for name, values in (user_values or {}).items():
             change = np.asarray(self.user_effects[name].deviation(self.context, np.asarray(values, dtype=float)),

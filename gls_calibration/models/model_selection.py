@@ -17,9 +17,11 @@ from gls_calibration.models.thin_plate_spline import ThinPlateSplineModel
 class DeviationModel(Protocol):
     """What the correction needs from a model."""
 
-    def __call__(self, points) -> np.ndarray: ...
+    def __call__(self, points) -> np.ndarray:
+        """Deviations (n, 2) mm at ``points`` (n, 2) mm."""
 
-    def to_dict(self) -> dict: ...
+    def to_dict(self) -> dict:
+        """Plain form of the model for the calibration file."""
 
 
 @dataclass(frozen=True)

@@ -99,6 +99,7 @@ class ServiceCell:
         return response
 
     async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0):
+        """Acquire one sweep through the scan node (see ``Cell.acquire_sweep``)."""
         deadlines = self.deadlines
         sweep_s = deadlines.sweep_s()
         request = AcquireSweep.Request(timeout_s=sweep_s, length_mm=deadlines.sweep_length_mm,
@@ -114,6 +115,7 @@ class ServiceCell:
         return response.cloud  # forwarded as it came: the processing nodes convert it themselves
 
     async def acquire_standstill(self, profiles: int):
+        """Acquire profiles standing still through the scan node (see ``Cell.acquire_standstill``)."""
         deadlines = self.deadlines
         step_mm = self.node.settings.marked_sweep_step_mm   # sets the profile rate, as in a sweep at this step
         request = AcquireSweep.Request(timeout_s=deadlines.sweep_s(), length_mm=(int(profiles) - 1) * step_mm,
@@ -123,10 +125,12 @@ class ServiceCell:
         return response.cloud
 
     async def estimate_plate_pose(self, cloud):
+        """Plate pose from the plate pose node (see ``Cell.estimate_plate_pose``)."""
         response = await self._checked(self.pose, EstimatePlatePose.Request(cloud=cloud))
         return conversions.plate_pose_from_msg(response.pose)
 
     async def measure_fiducials(self, cloud, pose, expected_count, ring_radii_mm):
+        """Fiducial centres from the fiducial node (see ``Cell.measure_fiducials``)."""
         request = MeasureFiducials.Request(cloud=cloud, pose=conversions.plate_pose_to_msg(pose),
                                            expected_count=int(expected_count),
                                            ring_radii_mm=[float(r) for r in ring_radii_mm])
@@ -134,6 +138,7 @@ class ServiceCell:
         return conversions.fiducials_from_response(response, pose)
 
     async def correct(self, x, y, z):
+        """Correct setpoints by the candidate in hand, else by the correction node's active calibration."""
         candidate = self.candidate      # read once: another thread may drop it meanwhile
         if candidate is not None:
             return candidate.correct(x, y, z)
@@ -142,6 +147,7 @@ class ServiceCell:
         return conversions.setpoints_from_response(await self._checked(self.corrector, request))
 
     async def mark(self, alpha_x, alpha_y, focus_shift, polyline_starts):
+        """Mark polylines with the galvo node (see ``Cell.mark``); returns the marking time, s."""
         request = MarkPolylines.Request(alpha_x=alpha_x, alpha_y=alpha_y, focus_shift=focus_shift,
                                         polyline_starts=np.asarray(polyline_starts, dtype=np.uint32),
                                         request_id=new_request_id())
@@ -152,6 +158,7 @@ class ServiceCell:
         return response.duration_s
 
     async def train(self, landed_xy, corrections):
+        """Train a correction with the training node (see ``Cell.train``)."""
         request = TrainCorrection.Request(
             x=conversions.float64_sequence(landed_xy[:, 0]), y=conversions.float64_sequence(landed_xy[:, 1]),
             dx=conversions.float64_sequence(corrections[:, 0]), dy=conversions.float64_sequence(corrections[:, 1]))
@@ -176,6 +183,7 @@ class ServiceCell:
         return response.message
 
     async def exchange_plate(self) -> None:
+        """Ask the configured plate exchange service for a fresh plate (see ``Cell.exchange_plate``)."""
         if self.exchange is None:
             raise procedure.CalibrationError(
                 "a fresh plate is needed (second iteration or validation) but no plate_exchange_service "
@@ -183,9 +191,11 @@ class ServiceCell:
         await self._checked(self.exchange, Trigger.Request(), idempotent=False)
 
     def points_and_intensities(self, cloud):
+        """Points and intensities of a PointCloud2 (see ``Cell.points_and_intensities``)."""
         return conversions.cloud_arrays_from_msg(cloud)
 
     async def true_marks(self):
+        """The marks where they truly landed, from a simulated galvo; None in a real cell."""
         if self.truth is None:
             return None
         paths = (await self._checked(self.truth, GetMarkedPaths.Request())).paths

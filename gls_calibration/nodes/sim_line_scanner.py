@@ -58,6 +58,7 @@ class SimLineScannerNode(GlsNode):
         self.timer.reset()
 
     def publish_batch(self) -> None:
+        """Publish the next profiles of the stream; stop the timer when none wait or the sensor is off."""
         for _ in range(self.batch):
             if not self.pending or not self.enabled:
                 self.pending.clear()

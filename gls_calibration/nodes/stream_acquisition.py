@@ -151,6 +151,7 @@ class StreamAcquisitionNode(GlsNode):
         self._add(session, self.layout.scan_topic, message)
 
     def on_tf(self, message: TFMessage) -> None:
+        """Add a TF message to the running sweep's buffer (ignored between sweeps)."""
         session = self.session
         if session is None:
             return
@@ -169,6 +170,7 @@ class StreamAcquisitionNode(GlsNode):
             self._add(session, LAYOUT.tf_static_topic, message)
 
     def on_start(self, message: Header) -> None:
+        """Note that the robot started the commanded line."""
         session = self.session
         if session is None or session.started:
             return
@@ -176,6 +178,7 @@ class StreamAcquisitionNode(GlsNode):
         self._add(session, LAYOUT.motion_start_topic, message)
 
     def on_end(self, message: Header) -> None:
+        """Note the stamp at which the robot ended the commanded line."""
         # The end may come before the start: DDS keeps the order within a topic, not across topics.
         session = self.session
         if session is None or session.end_ns is not None:

@@ -135,6 +135,7 @@ class LineMap:
 
     @property
     def knots_mm(self) -> np.ndarray:
+        """Positions of the knots along the line, mm."""
         return self.first_knot_mm + self.knot_spacing_mm * np.arange(self.error_x_mm.size)
 
     def error_mm(self, xy_mm: np.ndarray) -> np.ndarray:
@@ -151,6 +152,7 @@ class LineMap:
         return spline(np.clip(u, knots[0], knots[-1]))
 
     def to_dict(self) -> dict:
+        """Plain form of this line's map for the map file."""
         return {"line": self.line, "first_knot_mm": self.first_knot_mm, "knot_spacing_mm": self.knot_spacing_mm,
                 "error_x_mm": [float(v) for v in self.error_x_mm], "error_y_mm": [float(v) for v in self.error_y_mm]}
 
@@ -189,6 +191,7 @@ class ChainMap:
 
     @property
     def labels(self) -> tuple[str, ...]:
+        """The programmed lines this map covers, in its order."""
         return tuple(line.line for line in self.lines)
 
     def line_map(self, line: str) -> LineMap:
@@ -227,6 +230,7 @@ class ChainMap:
         return "sha256:" + hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def to_dict(self) -> dict:
+        """Plain form of the whole map for the map file."""
         return {"reference": self.reference, "sweeps_per_line": self.sweeps_per_line,
                 "residual_rms_mm": list(self.residual_rms_mm), "lines": [line.to_dict() for line in self.lines]}
 

@@ -36,6 +36,7 @@ class SweepPass:
 
     @property
     def label(self) -> str:
+        """Short name of the pass, such as ``90-`` (orientation, direction)."""
         return f"{self.orientation_deg:g}{'+' if self.direction > 0 else '-'}"
 
 

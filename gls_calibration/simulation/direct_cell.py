@@ -47,6 +47,7 @@ class DirectCell(CoreCell):
         return dataclasses.replace(base, **overrides)
 
     async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Cloud:
+        """Simulate a sweep with its own robot path error and noise (see ``Cell.acquire_sweep``)."""
         self.sweeps += 1   # each sweep its own robot path error and noise, as on the ROS cell
         data = refusing(self.sim.sweep_data, step_mm=step_mm, seed=self.sim.config.seed * 100003 + self.sweeps,
                         direction=direction, orientation_deg=orientation_deg)
@@ -54,6 +55,7 @@ class DirectCell(CoreCell):
         return xyz.astype(np.float32), data.intensity
 
     async def acquire_standstill(self, profiles: int) -> Cloud:
+        """Simulate profiles standing still (see ``Cell.acquire_standstill``)."""
         self.standstills += 1
         data = refusing(self.sim.standstill_data, profiles, seed=self.sim.config.seed * 100003 + self.standstills)
         xyz = data.placed_by_pose() if self.placed_by_pose else data.placed_by_time()
@@ -61,6 +63,7 @@ class DirectCell(CoreCell):
 
     async def mark(self, alpha_x: np.ndarray, alpha_y: np.ndarray, focus_shift: np.ndarray,
                    polyline_starts: np.ndarray) -> float:
+        """Mark on the simulated plate; returns the simulated marking time, s."""
         began = self.sim.head.clock_s
         starts = np.asarray(polyline_starts, dtype=int)
         for ax, ay in zip(np.split(np.asarray(alpha_x), starts[1:]), np.split(np.asarray(alpha_y), starts[1:])):
@@ -68,8 +71,10 @@ class DirectCell(CoreCell):
         return self.sim.head.clock_s - began
 
     async def exchange_plate(self) -> None:
+        """Put a fresh simulated plate in (its marks forgotten)."""
         self.sim.exchange_plate()
         self.marks.clear()
 
     async def true_marks(self) -> Optional[list[np.ndarray]]:
+        """The marks where they truly landed on the simulated plate."""
         return list(self.marks)

@@ -50,12 +50,14 @@ class RecordingCell(DirectCell):
         self.live_measurements: list[FiducialMeasurement] = []
 
     async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Cloud:
+        """Simulate a sweep as DirectCell does and record it."""
         self.sweeps += 1
         data = refusing(self.sim.sweep_data, step_mm=step_mm, seed=self.sim.config.seed * 100003 + self.sweeps,
                         direction=direction, orientation_deg=orientation_deg)
         return self._record(data)
 
     async def acquire_standstill(self, profiles: int) -> Cloud:
+        """Simulate profiles standing still as DirectCell does and record them."""
         self.standstills += 1     # the same draws as DirectCell's
         data = refusing(self.sim.standstill_data, profiles, seed=self.sim.config.seed * 100003 + self.standstills)
         return self._record(data)
@@ -80,12 +82,14 @@ class RecordingCell(DirectCell):
         return sweep.xyz_mm, sweep.intensity
 
     async def estimate_plate_pose(self, cloud: Cloud) -> PlatePose:
+        """Plate pose as CoreCell, kept to compare with the replay."""
         pose = await super().estimate_plate_pose(cloud)
         self.live_poses.append(pose)
         return pose
 
     async def measure_fiducials(self, cloud: Cloud, pose: PlatePose, expected_count: int,
                                 ring_radii_mm) -> FiducialMeasurement:
+        """Fiducial centres as CoreCell, kept to compare with the replay."""
         found = await super().measure_fiducials(cloud, pose, expected_count, ring_radii_mm)
         self.live_measurements.append(found)
         return found

@@ -64,6 +64,7 @@ class ReferencePlateDesign:
 
     @property
     def label(self) -> str:
+        """Short description of the plate: pattern, pitch and positions."""
         return (f"{self.pattern[0]} x {self.pattern[1]} double rings at {self.pitch_mm:g} mm, "
                 f"{len(self.positions_mm)} position{'s' if len(self.positions_mm) > 1 else ''}")
 
@@ -99,10 +100,12 @@ class MeasurementPlan:
 
     @property
     def placement(self) -> str:
+        """How the profiles are placed: ``pose`` (reported pose) or ``time`` (nominal speed)."""
         return "pose" if self.placed_by_pose else "time"
 
     @property
     def label(self) -> str:
+        """Short name of the sweep plan, such as ``0+,90+``."""
         return plan_label(self.passes)
 
 
