@@ -67,6 +67,10 @@ class CoreCell:
         return refusing(train_correction, landed_xy, corrections, self.geometry, physics_first=self.physics_first,
                         options=self.training)
 
+    def start(self, step):
+        """The step itself: in process the steps compute when awaited, one after the other (``Cell.start``)."""
+        return step
+
     async def use_candidate(self, candidate: Candidate) -> None:
         """Correct by ``candidate`` from now on (see ``Cell.use_candidate``)."""
         self.correction = candidate.correction

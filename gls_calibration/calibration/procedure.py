@@ -8,11 +8,13 @@ the node stays thin.
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
+import inspect
 import math
 from pathlib import Path
 import time
-from typing import Any, Callable, Optional, Protocol
+from typing import Any, Awaitable, Callable, Coroutine, Optional, Protocol, TypeVar
 
 import numpy as np
 
@@ -29,6 +31,9 @@ from gls_calibration.registration.separation import SeparationSettings
 from gls_calibration.registration.sweep_plan import CellTimeModel, CombinedSweeps, SweepPass, combine_sweeps, plan_label
 from gls_calibration.scan.plate_marks import existing_marks
 from gls_calibration.scan.plate_pose import PlatePose, mean_plate_pose, pose_at_height
+
+
+T = TypeVar("T")
 
 
 class CalibrationError(RuntimeError):
@@ -96,6 +101,12 @@ class Cell(Protocol):
     async def true_marks(self) -> Optional[list[np.ndarray]]:
         """Simulation only: the polylines really marked on the current plate ((M, 3) each, gls frame,
         mm), in marking order; None on a real cell."""
+
+    def start(self, step: Coroutine[Any, Any, T]) -> Awaitable[T]:
+        """Begin ``step`` (a coroutine of this cell) now, beside what the procedure awaits next, and
+        return what to await for its result; the procedure measures a sweep while it scans the next.
+        A cell that cannot run steps side by side returns ``step`` itself (it then runs when awaited).
+        Not a coroutine: it only schedules."""
 
     def points_and_intensities(self, cloud: Any) -> tuple[np.ndarray, np.ndarray]:
         """The points (..., 3) (mm, any frame a rigid motion from the plate's) and the intensity (...)
@@ -306,6 +317,58 @@ async def plate_height_at_marking(cell: Cell, settings: ProcedureSettings, pose_
         raise CalibrationError(f"the plate height at the marking pose cannot be measured: {error}") from None
 
 
+async def measure_marked_plate(cell: Cell, settings: ProcedureSettings, pose_scanner: PlatePose,
+                               expected_count: int, report: Progress
+                               ) -> list[FiducialMeasurement]:
+    """Scan the marked plate by the sweep plan and measure each sweep while the next is scanned.
+
+    The measurement of sweep k runs (``Cell.start``) while sweep k + 1 is acquired; its result is taken
+    after that acquisition. A sweep with fewer than ``min_found_fraction`` of the fiducials fails the
+    run; on any failure the measurement still running is awaited first, so that nothing of this run
+    goes on behind its error.
+    """
+    plan = settings.sweep_plan
+    needed = fiducials_needed(settings, expected_count)
+    measurements: list[FiducialMeasurement] = []
+
+    async def take(item: SweepPass, pending: Awaitable[FiducialMeasurement]) -> None:
+        found = await pending
+        if len(found.centres) < needed:
+            which = f" (sweep {item.label} of {plan_label(plan)})" if len(plan) > 1 else ""
+            raise CalibrationError(f"found {len(found.centres)} of {expected_count} fiducials; at least {needed} "
+                                   f"({settings.min_found_fraction:.0%}) are needed{which}")
+        measurements.append(found)
+
+    running: Optional[tuple[SweepPass, Awaitable[FiducialMeasurement]]] = None
+    try:
+        for number, item in enumerate(plan):
+            report("sweep_marked", 0.45 + 0.4 * number / len(plan),
+                   f"scanning the marked plate ({number + 1} of {len(plan)}: {item.label})")
+            cloud = await cell.acquire_sweep(settings.marked_sweep_step_mm, item.direction, item.orientation_deg)
+            if running is not None:
+                previous, running = running, None
+                await take(*previous)
+            report("measurement", 0.45 + 0.4 * (number + 0.5) / len(plan),
+                   f"measuring the fiducials of sweep {number + 1} of {len(plan)}")
+            running = (item, cell.start(cell.measure_fiducials(cloud, pose_scanner, expected_count,
+                                                               settings.ring_radii_mm)))
+        previous, running = running, None
+        await take(*previous)
+    finally:
+        if running is not None:     # a failure while a measurement is pending
+            if inspect.iscoroutine(running[1]):
+                running[1].close()      # never begun (a cell that runs steps when awaited): nothing to wait for
+            else:
+                with contextlib.suppress(Exception):    # let it end before the error goes on
+                    await running[1]
+    return measurements
+
+
+def fiducials_needed(settings: ProcedureSettings, expected_count: int) -> int:
+    """The fewest fiducials a sweep (and the pairing) must find of ``expected_count`` marked."""
+    return math.ceil(settings.min_found_fraction * expected_count)
+
+
 async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray, progress: Progress,
                     span: tuple[float, float], want_truth: bool, allow_marked: bool = False) -> PlateRun:
     """Scan the plain plate, mark ``grid_xy`` through the active correction, scan, measure, pair.
@@ -348,21 +411,8 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
     report("marking", 0.2, f"marking {len(grid_xy)} fiducials")
     marking_s = await cell.mark(setpoints.alpha_x, setpoints.alpha_y, setpoints.focus_shift, starts)
 
-    plan = settings.sweep_plan
-    needed = math.ceil(settings.min_found_fraction * len(grid_xy))
-    measurements = []
-    for number, item in enumerate(plan):
-        report("sweep_marked", 0.45 + 0.4 * number / len(plan),
-               f"scanning the marked plate ({number + 1} of {len(plan)}: {item.label})")
-        cloud = await cell.acquire_sweep(settings.marked_sweep_step_mm, item.direction, item.orientation_deg)
-        report("measurement", 0.45 + 0.4 * (number + 0.5) / len(plan),
-               f"measuring the fiducials of sweep {number + 1} of {len(plan)}")
-        found = await cell.measure_fiducials(cloud, pose_scanner, len(grid_xy), settings.ring_radii_mm)
-        if len(found.centres) < needed:
-            which = f" (sweep {item.label} of {plan_label(plan)})" if len(plan) > 1 else ""
-            raise CalibrationError(f"found {len(found.centres)} of {len(grid_xy)} fiducials; at least {needed} "
-                                   f"({settings.min_found_fraction:.0%}) are needed{which}")
-        measurements.append(found)
+    plan, needed = settings.sweep_plan, fiducials_needed(settings, len(grid_xy))
+    measurements = await measure_marked_plate(cell, settings, pose_scanner, len(grid_xy), report)
     report("measurement", 0.85, "combining the sweeps")
     centres_gls, combined = combined_centres_gls(measurements, settings, targets, pose_scanner)
     pairing = pair_with_targets(centres_gls, targets)

@@ -190,6 +190,14 @@ class ServiceCell:
                 "is configured")
         await self._checked(self.exchange, Trigger.Request(), idempotent=False)
 
+    def start(self, step):
+        """A task of the node's executor running ``step`` beside the procedure (``Cell.start``).
+
+        Awaiting the task returns the step's result or raises its error; the step's service calls run
+        on the reentrant group like the procedure's own.
+        """
+        return self.node.executor.create_task(step)
+
     def points_and_intensities(self, cloud):
         """Points and intensities of a PointCloud2 (see ``Cell.points_and_intensities``)."""
         return conversions.cloud_arrays_from_msg(cloud)
