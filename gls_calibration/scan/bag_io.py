@@ -13,7 +13,8 @@ What a bag holds (names are :class:`BagLayout`'s defaults):
 
 Replay (:func:`read_sweeps`) takes the profiles stamped within each motion's start and end, places
 every one through the chain base -> flange -> sensor looked up at its stamp (translation and rotation
-interpolated in time), and returns each sweep as an organized cloud in the robot base frame in mm.
+interpolated in time; one vectorised lookup for all the sweep's stamps), and returns each sweep as an
+organized cloud in the robot base frame in mm.
 Every problem of the input is a ``ValueError`` naming it; nothing is guessed.
 """
 from __future__ import annotations
@@ -403,8 +404,8 @@ class StreamAssembler:
         if len(widths) != 1:
             raise ValueError(f"{where}: profiles of different widths {sorted(widths)}")
         points_m = np.stack([self.profiles[i][1] for i in inside])                    # (H, W, 4)
-        poses = np.stack([_sensor_pose(self.buffer, self.layout, self.limits, int(stamps[i]), where)
-                          for i in inside])
+        poses = self.buffer.lookup_many(self.layout.base_frame, self.layout.sensor_frame, stamps[inside],
+                                        max_age_ns=max_pose_age_ns(self.limits), where=where)
         xyz = (points_m[..., :3] * MM_PER_M) @ np.swapaxes(poses[:, :3, :3], 1, 2) + poses[:, None, :3, 3]
         return ReplayedSweep(xyz, points_m[..., 3], stamps[inside], start, end)
 
@@ -447,11 +448,11 @@ def _add_transform(buffer, transform, static: bool) -> None:
                          _pose_mm(transform.transform), static=static)
 
 
-def _sensor_pose(buffer, layout: BagLayout, limits: ReplayLimits, stamp_ns: int, where: str) -> np.ndarray:
-    return _pose_at(buffer, layout.base_frame, layout.sensor_frame, stamp_ns, limits, where)
+def max_pose_age_ns(limits: ReplayLimits) -> int:
+    """``limits.max_pose_age_s`` in integer ns, as the TF buffer takes it."""
+    return int(round(limits.max_pose_age_s * NS_PER_S))
 
 
 def _pose_at(buffer, target: str, source: str, stamp_ns: int, limits: ReplayLimits, where: str) -> np.ndarray:
     """Pose of ``source`` in ``target`` (4x4, mm) at ``stamp_ns``; ValueError naming a missing frame or pose."""
-    return buffer.lookup(target, source, stamp_ns, max_age_ns=int(round(limits.max_pose_age_s * NS_PER_S)),
-                         where=where)
+    return buffer.lookup(target, source, stamp_ns, max_age_ns=max_pose_age_ns(limits), where=where)
