@@ -267,7 +267,9 @@ def profile_points(message, limits: ReplayLimits, where: str) -> np.ndarray:
     dtype = np.dtype({"names": list(_FIELDS), "formats": ["<f4"] * 4,
                       "offsets": [int(fields[name].offset) for name in _FIELDS], "itemsize": step})
     points = data[:count * step].view(dtype)
-    array = np.column_stack([points[name].astype(float) for name in _FIELDS])
+    array = np.empty((count, len(_FIELDS)))
+    for column, name in enumerate(_FIELDS):
+        array[:, column] = points[name]
     median_m = median_point_distance(array[:, :3])
     if median_m > limits.max_range_m:      # False for NaN: no finite point says nothing of the unit
         raise ValueError(f"{where}: median point distance {median_m:.4g} m exceeds "
@@ -403,11 +405,19 @@ class StreamAssembler:
         widths = {self.profiles[i][1].shape[0] for i in inside}
         if len(widths) != 1:
             raise ValueError(f"{where}: profiles of different widths {sorted(widths)}")
-        points_m = np.stack([self.profiles[i][1] for i in inside])                    # (H, W, 4)
         poses = self.buffer.lookup_many(self.layout.base_frame, self.layout.sensor_frame, stamps[inside],
                                         max_age_ns=max_pose_age_ns(self.limits), where=where)
-        xyz = (points_m[..., :3] * MM_PER_M) @ np.swapaxes(poses[:, :3, :3], 1, 2) + poses[:, None, :3, 3]
-        return ReplayedSweep(xyz, points_m[..., 3], stamps[inside], start, end)
+        # each profile turned straight into the sweep's array (metres to mm folded into the rotation): a
+        # stacked copy of the profiles and one batched product cost four times as much
+        to_base_mm = np.swapaxes(poses[:, :3, :3], 1, 2) * MM_PER_M
+        xyz = np.empty((inside.size, widths.pop(), 3))
+        intensity = np.empty(xyz.shape[:2])
+        for row, index in enumerate(inside):
+            points_m = self.profiles[index][1]
+            np.matmul(points_m[:, :3], to_base_mm[row], out=xyz[row])
+            intensity[row] = points_m[:, 3]
+        xyz += poses[:, None, :3, 3]
+        return ReplayedSweep(xyz, intensity, stamps[inside], start, end)
 
 
 def _windows(path: str, starts: list[int], ends: list[int]) -> list[tuple[int, int]]:
