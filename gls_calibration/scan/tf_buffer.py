@@ -15,6 +15,7 @@ names it.
 from __future__ import annotations
 
 import bisect
+import threading
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -45,9 +46,14 @@ class _Track:
 
 
 class TfBuffer:
-    """Transforms between frames of one tree, static or stamped."""
+    """Transforms between frames of one tree, static or stamped.
+
+    Safe to feed from one thread while another looks up (a live node's subscriptions and its service):
+    a lookup sees the samples added before it, never half an addition or an outdated cached edge.
+    """
 
     def __init__(self) -> None:
+        self._lock = threading.Lock()
         self._parent: dict[str, str] = {}
         self._static: dict[str, np.ndarray] = {}
         self._samples: dict[str, tuple[list[int], list[np.ndarray]]] = {}
@@ -70,18 +76,19 @@ class TfBuffer:
         if not (np.abs(rotation @ rotation.T - np.eye(3)) <= _GRAM_LIMIT).all() or np.linalg.det(rotation) < 0:
             raise ValueError(f"the transform {parent} -> {child} at {stamp_ns} ns does not hold a proper rotation "
                              "(non-normalised quaternion?)")
-        known = self._parent.get(child)
-        if known is not None and known != parent:
-            raise ValueError(f"frame {child} has two parents: {known} and {parent}")
-        self._parent[child] = parent
-        if static:
-            self._static[child] = pose.copy()
-            return
-        stamps, poses = self._samples.setdefault(child, ([], []))
-        at = bisect.bisect_right(stamps, int(stamp_ns))
-        stamps.insert(at, int(stamp_ns))
-        poses.insert(at, pose.copy())
-        self._tracks.pop(child, None)
+        with self._lock:
+            known = self._parent.get(child)
+            if known is not None and known != parent:
+                raise ValueError(f"frame {child} has two parents: {known} and {parent}")
+            self._parent[child] = parent
+            if static:
+                self._static[child] = pose.copy()
+                return
+            stamps, poses = self._samples.setdefault(child, ([], []))
+            at = bisect.bisect_right(stamps, int(stamp_ns))
+            stamps.insert(at, int(stamp_ns))
+            poses.insert(at, pose.copy())
+            self._tracks.pop(child, None)
 
     def _track(self, child: str) -> _Track:
         track = self._tracks.get(child)
@@ -149,7 +156,11 @@ class TfBuffer:
         stamps_ns = np.asarray(stamps_ns)
         if stamps_ns.ndim != 1 or not (np.issubdtype(stamps_ns.dtype, np.integer) or stamps_ns.size == 0):
             raise ValueError(f"{where}: stamps must be a sequence of integer nanoseconds")
-        stamps_ns = stamps_ns.astype(np.int64)
+        with self._lock:
+            return self._lookup_many(target, source, stamps_ns.astype(np.int64), max_age_ns, where)
+
+    def _lookup_many(self, target: str, source: str, stamps_ns: np.ndarray, max_age_ns: int, where: str
+                     ) -> tuple[np.ndarray, list[Optional[str]]]:
         failures: list[Optional[str]] = [None] * stamps_ns.size
         for frame in (target, source):
             if frame not in self._parent and frame not in self._parent.values():
