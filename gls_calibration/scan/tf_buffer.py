@@ -2,15 +2,18 @@
 
 Written on branch ``bags`` because the ``tf`` branch's buffer (issue 28 item 3) did not exist while
 the replay was built; when that one lands it replaces this file and the calls of
-:mod:`gls_calibration.scan.bag_io` (``set_transform``, ``lookup``, ``lookup_many``) follow its API.
-tf2_ros is not installable in the pip set-up, so nothing here imports ROS.
+:mod:`gls_calibration.scan.bag_io` and :mod:`gls_calibration.nodes.stream_acquisition`
+(``set_transform``, ``lookup``, ``lookup_many``, ``try_lookup_many``) follow its API. tf2_ros is not
+installable in the pip set-up, so nothing here imports ROS.
 
 Each frame has one parent (a tree, as in tf2). A static edge holds one pose for all times; a dynamic
 edge a time series, looked up by linear interpolation of the translation and slerp of the rotation
 between the two samples around the stamp. Poses are 4x4 (child -> parent), in mm; stamps int ns.
 A whole sweep's stamps are looked up at once (:meth:`TfBuffer.try_lookup_many`): one search of each
 edge's sorted stamps and one vectorised slerp, with every stamp's failure named as a single lookup
-names it.
+names it. An edge's samples are turned into arrays at its first lookup after a sample was added (work
+in proportion to the samples held), so a sweep is looked up in one call, not stamp by stamp between
+additions.
 """
 from __future__ import annotations
 
