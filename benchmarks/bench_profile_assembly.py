@@ -5,8 +5,10 @@ Issue 33 asks for at most 0.1 ms of CPU to place a profile. Measured here, in on
 - the package's own sweep contract (``scan.sweep.SweepCollector``): checking and keeping each
   profile as it arrives (``add``), then placing the sweep by the reported poses (``assemble``);
 - the streaming path (``scan.bag_io.StreamAssembler``, the default cell and bag replay): each
-  PointCloud2 profile decoded, its sensor pose looked up in the TF buffer at its stamp, the sweep
-  placed at once; and the profile decoding alone (with its metres check).
+  PointCloud2 profile decoded, the TF messages (250 Hz beside 150 profiles/s) added to the buffer,
+  the sensor poses at the sweep's stamps looked up at once, the sweep placed; and three of its
+  phases alone: the profile decoding (with its metres check), the TF messages into the buffer, the
+  lookup and placement of a fed sweep.
 
 Run: .venv/bin/python benchmarks/bench_profile_assembly.py [--profiles 2000] [--points 2000]
 Prints microseconds of CPU (process time) per profile, medians of 3 repeats.
@@ -101,12 +103,14 @@ def streaming(data: list[np.ndarray], profile_rate_hz: float = 150.0, tf_rate_hz
                                                    layout.sensor_frame)) for row, profile in enumerate(data)]
     messages.append((layout.motion_end_topic, SimpleNamespace(stamp=stamp(end))))
 
-    def feed_and_assemble():
+    def feed(topics=None) -> StreamAssembler:
+        """A new assembler given every message (or those of ``topics``)."""
         assembler = StreamAssembler(layout)
         for topic, message in messages:
-            assembler.add(topic, message)
-        return assembler.take_last_sweep()
-    return feed_and_assemble
+            if topics is None or topic in topics:
+                assembler.add(topic, message)
+        return assembler
+    return feed
 
 
 def main() -> int:
@@ -116,18 +120,23 @@ def main() -> int:
     args = parser.parse_args()
     data = profiles(args.profiles, args.points)
     messages = [cloud_message(profile, 0, "scanner_optical") for profile in data]
+    feed = streaming(data)
+    tf_topics = (BagLayout().tf_topic, BagLayout().tf_static_topic)
     times: dict[str, list[float]] = {}
     for _ in range(3):
         add_all, assemble = sweep_contract(data)
+        fed = feed()
         for label, function in (("sweep contract: add (check, keep)", add_all),
                                 ("sweep contract: assemble (place by pose)", assemble),
-                                ("streaming: decode, TF lookup, place", streaming(data)),
+                                ("streaming: decode, TF lookup, place", lambda: feed().take_last_sweep()),
                                 ("streaming: decode only", lambda: [
-                                    profile_points(message, ReplayLimits(), "") for message in messages])):
+                                    profile_points(message, ReplayLimits(), "") for message in messages]),
+                                ("streaming: TF messages into the buffer only", lambda: feed(tf_topics)),
+                                ("streaming: TF lookup and place only", fed.take_last_sweep)):
             times.setdefault(label, []).append(cpu_s(function)[0])
     print(f"{args.profiles} profiles of {args.points} points; CPU per profile (median of 3), target 100 us:")
     for label, values in times.items():
-        print(f"  {label:45s} {1e6 * statistics.median(values) / args.profiles:8.1f} us")
+        print(f"  {label:47s} {1e6 * statistics.median(values) / args.profiles:8.1f} us")
     return 0
 
 

@@ -44,7 +44,7 @@ from gls_calibration.ros.base import GlsNode
 from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import ServiceCallError
 from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC, line_msg, static_qos, stamp_ns, stream_qos, time_msg
-from gls_calibration.scan.bag_io import BagLayout, ReplayLimits, StreamAssembler
+from gls_calibration.scan.bag_io import BagLayout, ReplayLimits, StreamAssembler, max_pose_age_ns
 from gls_calibration.scan.cell_frames import load_cell_frames
 from gls_calibration.scan.sweep import nominal_start_pose
 from gls_calibration_msgs.srv import AcquireSweep
@@ -287,13 +287,10 @@ class StreamAcquisitionNode(GlsNode):
         assembler = session.assembler
         start, end = assembler.starts[-1], assembler.ends[-1]
         inside = [stamp for stamp, _ in assembler.profiles if start <= stamp <= end]
-        unplaced = []
-        for stamp in inside:
-            try:
-                assembler.buffer.lookup(self.layout.base_frame, self.layout.sensor_frame, stamp,
-                                        int(round(self.limits.max_pose_age_s * 1e9)), "stream")
-            except ValueError as error:
-                unplaced.append(str(error))
+        _, failures = assembler.buffer.try_lookup_many(self.layout.base_frame, self.layout.sensor_frame,
+                                                       np.array(inside, dtype=np.int64),
+                                                       max_pose_age_ns(self.limits), "stream")
+        unplaced = [failure for failure in failures if failure is not None]
         if unplaced:
             raise ValueError(f"sweep refused: {len(unplaced)} of {len(inside)} profiles within the motion have no pose "
                              f"({unplaced[0]})")

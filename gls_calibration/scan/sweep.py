@@ -155,7 +155,8 @@ def profile_problem(stamp_s: float, profile: np.ndarray) -> str:
 def median_point_distance(xyz: np.ndarray) -> float:
     """Median distance of the finite points (N, 3) from the sensor's origin, in their unit; NaN when none
     is finite. A profile's unit shows in it: a line scanner sees its plate tens to hundreds of mm away."""
-    distance = np.linalg.norm(np.asarray(xyz, dtype=float), axis=-1)
+    xyz = np.asarray(xyz, dtype=float)
+    distance = np.sqrt(np.einsum("...i,...i->...", xyz, xyz))     # linalg.norm, several times faster on (N, 3)
     distance = distance[np.isfinite(distance)]
     return float(np.median(distance)) if distance.size else math.nan
 
