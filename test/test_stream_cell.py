@@ -87,6 +87,23 @@ def test_streaming_cell_gives_the_direct_cells_clouds(stream_cell, tmp_path):
     assert robot.refused == 0
 
 
+def test_back_to_back_lines_do_not_overlap_in_time(stream_cell):
+    # The simulation streams a motion faster than real time, so its stamps run ahead of the wall clock;
+    # a line commanded at once after must still start after all the previous one streamed (seen: the
+    # next motion stamped inside the last one, its profiles dropped as out of order).
+    robot, _, acquisition, client_node = stream_cell()
+    runs = []
+    robot.run_listeners.append(runs.append)
+    for _ in range(4):
+        answer = _call(client_node, "scan/acquire", AcquireSweep.Request(length_mm=200.0, step_mm=10.0))
+        assert answer.success, answer.message
+        assert answer.cloud.height == 21, answer.message
+        assert "0 out of order dropped" in answer.message, answer.message
+    assert len(runs) == 4 and robot.refused == 0
+    for previous, run in zip(runs, runs[1:]):
+        assert run.start_ns > previous.after_profiles()[0][-1]
+
+
 def test_scanner_off_and_a_line_the_robot_refuses_fail_the_sweep(stream_cell):
     # the simulation stands still at the middle of its 200 mm sweep only: an acquisition that takes the
     # marking pose at the middle of 100 mm commands a line the robot refuses

@@ -8,8 +8,11 @@ scanner (:mod:`gls_calibration.nodes.sim_line_scanner`) streams the same motion'
 simulation computes a motion's profiles and reported poses together
 (:class:`~gls_calibration.simulation.line_motion.SimulatedLineMotion`, owned here), so the scanner's
 profile rate is this node's ``profile_rate_hz``. Stamps run on from the node clock at the start, as
-fast as the subscribers take them (simulated time, not real time). A line the simulation cannot run
-is refused with an error in the log: nothing is published.
+fast as the subscribers take them (simulated time, not real time): a motion's stamps may lie ahead of
+the wall clock when the next line comes, so a line starts at the node clock or, if later, just after
+the previous motion's last stamp (its TF margin and the profiles streamed after its end), never
+before: motions do not overlap in time, as on a real robot. A line the simulation cannot run is
+refused with an error in the log: nothing is published.
 """
 from __future__ import annotations
 
@@ -62,6 +65,7 @@ class SimRobotNode(GlsNode):
             transform_msg(self.frames.flange, self.frames.sensor, self.frames.flange_to_sensor, 0),
             transform_msg(self.frames.base, self.frames.gls, self.frames.base_to_gls, 0)]))
         self.job: Optional[tuple[MotionRun, np.ndarray, np.ndarray]] = None
+        self.free_at_ns = 0     # the next line starts no earlier: after everything stamped for the last one
         self.refused = 0
         group = MutuallyExclusiveCallbackGroup()   # commands and ticks one at a time: samples go out in order
         self.create_subscription(Path, LINE_TOPIC, self.on_line, stream_qos(10), callback_group=group)
@@ -76,7 +80,8 @@ class SimRobotNode(GlsNode):
             start, end, duration_s = line_from_msg(message, self.frames.base)
             if self.marks_client is not None:
                 await self._load_marks()
-            run = self.motion.run(LineCommand(start, end, duration_s), self.get_clock().now().nanoseconds)
+            began_ns = max(self.get_clock().now().nanoseconds, self.free_at_ns)
+            run = self.motion.run(LineCommand(start, end, duration_s), began_ns)
         except (ValueError, ServiceCallError) as error:
             self.refused += 1
             self.get_logger().error(f"line refused: {error}")
@@ -87,6 +92,7 @@ class SimRobotNode(GlsNode):
         stamps = run.start_ns + np.round(np.arange(first, last + 1) * period_ns).astype(np.int64)
         self.job = (run, stamps, run.flange_at(stamps))
         self.published = 0
+        self.free_at_ns = max(int(stamps[-1]), int(run.after_profiles()[0][-1])) + 1
         self.starts.publish(Header(stamp=time_msg(run.start_ns), frame_id=self.frames.base))
         for listener in self.run_listeners:
             listener(run)
