@@ -7,11 +7,13 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
 
 from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import LISTENER_WAIT_S, SimScannerNode
 from gls_calibration.ros import conversions
+from gls_calibration.simulation.world import load_sim_config
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, StartSweep
 
@@ -101,3 +103,29 @@ def test_a_standstill_without_the_pose_stream_is_refused(start_cell):
     assert not refused.success
     assert refused.message == ("a stand-still acquisition needs the reported pose (use_pose_stream is false): "
                                "without travel the time cannot place its profiles")
+
+
+def test_the_scanner_sees_the_galvos_plate_whatever_the_process_simulated_before(start_cell):
+    """The scanner rebuilds the galvo's plate from the id the galvo reports: the same texture and the
+    same per-plate draws (marking-pose error, thermal scale, warp), on the first plate and after an
+    exchange. An in-process cell used to seed its copy from a count of every plate the process had
+    made, so it saw another plate than the galvo's, and a different one after other tests had run
+    (test_record_once found 8 of 9 fiducials after test_bags and test_stream_calibrate)."""
+    for _ in range(3):      # plates of earlier cells in this process must not matter
+        load_sim_config(preset="paper_like").make_plate()
+    cell = start_cell(node_types=(SimGalvoNode, SimScannerNode), parameters={"measurement_preset": "paper_like"})
+    galvo, scanner = cell.nodes["sim_galvo"].plate, cell.nodes["sim_scanner"].plate
+    uv = np.stack(np.meshgrid(np.linspace(-100.0, 100.0, 41), np.linspace(-100.0, 100.0, 41)), axis=-1).reshape(-1, 2)
+    for plate_id in (0, 1):
+        if plate_id:
+            assert cell.call(Trigger, "sim/exchange_plate", Trigger.Request(), 10.0).success
+        # a sweep loads the galvo's plate into the scanner (nobody listens: it goes out after the wait)
+        started = cell.call(StartSweep, "scanner/start_sweep", StartSweep.Request(length_mm=0.2, step_mm=0.1),
+                            LISTENER_WAIT_S + 10.0)
+        assert started.success, started.message
+        wait_for(lambda: cell.nodes["sim_scanner"].job is None, 20.0, what="the end of the sweep")
+        assert galvo.marking_pose_error == scanner.marking_pose_error and galvo.marking_pose_error != (0.0, 0.0, 0.0)
+        assert galvo.thermal_scale == scanner.thermal_scale != 0.0
+        np.testing.assert_array_equal(scanner.warp(uv), galvo.warp(uv))
+        np.testing.assert_array_equal(scanner.reflectivity(uv), galvo.reflectivity(uv))
+        assert galvo.plate_id == scanner.plate_id == plate_id

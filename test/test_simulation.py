@@ -140,6 +140,19 @@ def test_clean_plate_clears_marks_and_gets_a_new_id():
     assert plate.reflectivity(np.array([[2.5, 0.0]]))[0] > marked[0] + 0.3
 
 
+def test_plate_ids_count_the_plates_of_one_fixture_not_of_the_process():
+    """The simulated scanner rebuilds the galvo's plate from its id: an id that counted every plate the
+    process had made gave an in-process cell other draws after other tests had run."""
+    config = load_sim_config(preset="paper_like")
+    cells = [SimulatedCell(config) for _ in range(2)]
+    assert [cell.plate.plate_id for cell in cells] == [0, 0]
+    assert [cell.exchange_plate() for cell in cells] == [1, 1]
+    assert cells[0].exchange_plate() == 2
+    copy = config.make_plate()
+    assert copy.load_clean(config.plate_seed(1), plate_id=1) == 1
+    assert copy.marking_pose_error == cells[1].plate.marking_pose_error != cells[0].plate.marking_pose_error
+
+
 # ---------------------------------------------------------------- scanner
 def test_sweep_profile_count_spacing_and_stamps():
     scanner = LaserLineScanner(ScannerSettings(line_length_mm=50.0, step_mm=0.2, speed_mm_s=15.0))

@@ -29,7 +29,6 @@ class SimGalvoNode(GlsNode):
         self.plate = self.config.make_plate()
         self.head = TruthHead(self.config.geometry, self.config.effects, plate=self.plate,
                               mark_speed_mm_s=self.config.mark_speed_mm_s, jump_time_s=self.config.jump_time_s)
-        self.plates_loaded = 0
         self.landed: list[np.ndarray] = []
         self.times: list[np.ndarray] = []
         self.max_points = self.declare("max_points", 5_000_000, "most points of one marking job",
@@ -102,8 +101,8 @@ class SimGalvoNode(GlsNode):
 
     def on_exchange_plate(self, request, response):
         """Load a clean plate; the marking clock runs on (the head stays warm)."""
-        self.plates_loaded += 1
-        plate_id = self.plate.load_clean([self.config.seed, self.plates_loaded])
+        plate_id = self.plate.plate_id + 1
+        self.plate.load_clean(self.config.plate_seed(plate_id), plate_id)
         self.landed.clear()
         self.times.clear()
         response.success, response.message = True, f"clean plate {plate_id} loaded"

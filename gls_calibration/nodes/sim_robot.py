@@ -102,7 +102,7 @@ class SimRobotNode(GlsNode):
         """The plate's marks as the simulated galvo landed them (the simulation's truth, as sim_scanner loads it)."""
         answer = await self.call(self.marks_client, GetMarkedPaths.Request(), 10.0, resend_after_s=MARKS_RESEND_AFTER_S)
         paths, plate = answer.paths, self.motion.sim.plate
-        plate.load_clean([self.motion.sim.config.seed, paths.plate_id])
+        plate.load_clean(self.motion.sim.config.plate_seed(paths.plate_id), paths.plate_id)
         points = np.column_stack([conversions.float64_array(paths.x), conversions.float64_array(paths.y),
                                   conversions.float64_array(paths.z)])
         if len(points):

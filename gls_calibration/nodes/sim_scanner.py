@@ -165,7 +165,8 @@ class SimScannerNode(GlsNode):
         answer = await self.call(self.marks_client, GetMarkedPaths.Request(), 10.0,
                                  resend_after_s=MARKS_RESEND_AFTER_S)
         paths = answer.paths
-        self.plate.load_clean([self.config.seed, paths.plate_id])
+        # the galvo's plate itself: its id names it in the galvo's fixture, and so its seed
+        self.plate.load_clean(self.config.plate_seed(paths.plate_id), paths.plate_id)
         points = np.column_stack([conversions.float64_array(paths.x), conversions.float64_array(paths.y),
                                   conversions.float64_array(paths.z)])
         if len(points):

@@ -23,7 +23,6 @@ plate rebuilt from the same landed paths (the simulated scanner's copy) looks th
 from __future__ import annotations
 
 from dataclasses import dataclass
-import itertools
 import math
 
 import numpy as np
@@ -35,7 +34,6 @@ from gls_calibration.geometry.optics import plate_frame
 from gls_calibration.simulation.measurement import MeasurementChain, smooth_process
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
-_PLATE_IDS = itertools.count(1)
 
 
 @dataclass(frozen=True)
@@ -84,13 +82,19 @@ class Plate:
         self.rotation, self.origin = plate_frame(
             self.settings.tilt_x_rad, self.settings.tilt_y_rad, self.settings.delta_d_mm)
         self.normal = self.rotation[:, 2].copy()
-        self.load_clean(seed)
+        self.load_clean(seed, plate_id=0)
 
     # ------------------------------------------------------------------ state
-    def load_clean(self, seed: int | np.random.Generator | None = None) -> int:
-        """Put a fresh plate in the fixture: new id, new texture, no marks. Returns the plate id."""
+    def load_clean(self, seed: int | np.random.Generator | None = None, plate_id: int | None = None) -> int:
+        """Put a fresh plate in the fixture: new id, new texture, no marks. Returns the plate id.
+
+        ``plate_id`` (None: one more than the plate's before) numbers the plates loaded into this
+        fixture, 0 for the one it was built with: a copy of another fixture's plate is given that
+        plate's id (and seed). The id belongs to the fixture, not the process, so that it, like the
+        draws, does not depend on how many plates were made before.
+        """
         rng = np.random.default_rng(seed)
-        self.plate_id = next(_PLATE_IDS)
+        self.plate_id = self.plate_id + 1 if plate_id is None else int(plate_id)
         self._texture = self._make_texture(rng)
         self._marks: list[np.ndarray] = []
         self._index = None

@@ -72,9 +72,16 @@ class SimConfig:
         if not (math.isfinite(self.jump_time_s) and self.jump_time_s >= 0.0):
             raise ValueError(f"jump_time_s must be non-negative, got {self.jump_time_s!r}")
 
+    def plate_seed(self, plate_id: int) -> int | list[int]:
+        """Seed of the plate with id ``plate_id`` loaded into this cell's fixture (0: the first one).
+
+        The only rule for it: the galvo's plate and the scanner's copy of it (rebuilt from the id the
+        galvo reports) must draw the same texture, marking-pose error, thermal scale and warp."""
+        return self.seed if plate_id == 0 else [self.seed, int(plate_id)]
+
     def make_plate(self) -> Plate:
         """A plate of this configuration (with the measurement chain's mark and plate effects)."""
-        return Plate(self.plate_settings, seed=self.seed, chain=self.measurement,
+        return Plate(self.plate_settings, seed=self.plate_seed(0), chain=self.measurement,
                      beam_distance_mm=self.geometry.working_distance_mm + self.effects.get("working_distance")[0])
 
     def make_scanner(self) -> LaserLineScanner:
@@ -186,12 +193,11 @@ class SimulatedCell:
         self.head = TruthHead(self.config.geometry, self.config.effects, plate=self.plate,
                               mark_speed_mm_s=self.config.mark_speed_mm_s, jump_time_s=self.config.jump_time_s)
         self.scanner = self.config.make_scanner()
-        self._plates_loaded = 0
 
     def exchange_plate(self) -> int:
         """Load a clean plate (new id, new texture, no marks); the marking clock keeps running."""
-        self._plates_loaded += 1
-        return self.plate.load_clean([self.config.seed, self._plates_loaded])
+        plate_id = self.plate.plate_id + 1
+        return self.plate.load_clean(self.config.plate_seed(plate_id), plate_id)
 
     def mark_cartesian(self, polylines_xy: Iterable, z: float = 0.0) -> list[np.ndarray]:
         """Mark polylines given in gls xy (M, 2) through the nominal inverse kinematics; landed (M, 3) each."""
