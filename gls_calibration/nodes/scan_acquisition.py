@@ -20,6 +20,7 @@ from typing import Optional
 import numpy as np
 
 from geometry_msgs.msg import PoseStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
@@ -102,13 +103,15 @@ class ScanAcquisitionNode(GlsNode):
         self.waiting = False                   # an acquisition waits for the unfinished sweep's end
         self.start_client = self.client(StartSweep, "scanner/start_sweep")
         self.standstill_client = self.client(StartSweep, "scanner/start_standstill")
+        # The streams one callback at a time, each topic in arrival order (as stream_acquisition): side by
+        # side, a later profile could be checked first (the unit problem then named the second profile).
+        streams = MutuallyExclusiveCallbackGroup()
         self.points_subscription = self.create_subscription(
-            PointCloud2, "scan/points", self.on_profile, profile_qos(self.max_profiles),
-            callback_group=self.reentrant_group)
+            PointCloud2, "scan/points", self.on_profile, profile_qos(self.max_profiles), callback_group=streams)
         self.create_subscription(PoseStamped, "scan/pose", self.on_pose, profile_qos(self.max_profiles),
-                                 callback_group=self.reentrant_group)
+                                 callback_group=streams)
         self.done_subscription = self.create_subscription(SweepDone, "scan/sweep_done", self.on_sweep_done,
-                                                          profile_qos(10), callback_group=self.reentrant_group)
+                                                          profile_qos(10), callback_group=streams)
         self.create_service(AcquireSweep, "scan/acquire", self.on_acquire, callback_group=self.reentrant_group)
         self.create_service(AcquireSweep, "scan/acquire_standstill", self.on_acquire_standstill,
                             callback_group=self.reentrant_group)
