@@ -178,3 +178,22 @@ def test_sim_cell_split_cell_calibrates_as_the_sweep_contract_cell(tmp_path):
     assert streaming["fiducials_found"] == today["fiducials_found"] == 9
     for key in ("pre_rms_mm", "pre_max_mm", "cv_rms_mm"):
         assert abs(streaming[key] - today[key]) < 1e-3, (key, streaming[key], today[key])
+
+
+@pytest.mark.parametrize("serve", [False, True])
+def test_a_one_shot_split_cell_keeps_its_streams_in_its_namespace(tmp_path, serve):
+    # Two one-shot cells on one ROS domain met on /tf and the motion topics (a line refused, a sweep
+    # without poses); a served cell keeps the absolute names that drivers and RViz use.
+    from gls_calibration.cli import sim_cell
+
+    args = sim_cell.parse_args(["--out", str(tmp_path)] + (["--serve"] if serve else []))
+    namespace = sim_cell.cell_namespace(args)
+    context = rclpy.Context()
+    rclpy.init(args=sim_cell.ros_arguments(args, tmp_path / "store", tmp_path), context=context)
+    try:
+        node = rclpy.create_node("probe", namespace=namespace, context=context)
+        for topic in ("/tf", "/tf_static", "/motion/line", "/motion/start", "/motion/end", "/scanner/profile"):
+            assert node.resolve_topic_name(topic) == (topic if serve else f"/{namespace}{topic}")
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)

@@ -282,6 +282,21 @@ def reference_plan(args: argparse.Namespace):
     return plan if args.sweep_plan is None else replace(plan, passes=parse_plan(args.sweep_plan))
 
 
+def private_stream_remaps(namespace: str) -> list[str]:
+    """Remap rules that move the split cell's absolute topics (``/tf``, ``/tf_static``, the motion
+    contract, the profiles) under ``namespace``: a one-shot cell's robot and scanner must not meet
+    another cell's stream acquisition on the same ROS domain (seen: two runs at once, lines refused
+    and profiles of the other cell's motions). A served cell keeps them absolute, as drivers use them."""
+    from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC
+
+    topics = (LAYOUT.tf_topic, LAYOUT.tf_static_topic, LAYOUT.motion_start_topic, LAYOUT.motion_end_topic,
+              LAYOUT.scan_topic, LINE_TOPIC)
+    rules = []
+    for topic in topics:
+        rules += ["-r", f"{topic}:=/{namespace.strip('/')}{topic}"]
+    return rules
+
+
 def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: Path) -> list[str]:
     """Parameter files and overrides shared by every node of the cell."""
     sim_config = args.sim_config or config_path("sim.yaml")
@@ -309,6 +324,8 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
     if args.chain_map_file is not None:
         overrides["chain_map_file"] = str(args.chain_map_file.resolve())
     ros_args = ["--ros-args", "--log-level", "info" if args.verbose else "warn"]
+    if not args.serve and not args.sweep_contract:
+        ros_args += private_stream_remaps(cell_namespace(args))
     for path in (config_path("head.yaml"), config_path("gls.yaml"), sim_config):
         ros_args += ["--params-file", str(path)]
     for name, value in overrides.items():
