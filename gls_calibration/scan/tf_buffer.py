@@ -1,10 +1,8 @@
-"""The smallest TF buffer the bag replay needs: stamped transforms per edge, chain lookup at a time.
+"""The TF buffer of bag replay and the streaming acquisition: stamped transforms per edge, chain lookups.
 
-Written on branch ``bags`` because the ``tf`` branch's buffer (issue 28 item 3) did not exist while
-the replay was built; when that one lands it replaces this file and the calls of
-:mod:`gls_calibration.scan.bag_io` and :mod:`gls_calibration.nodes.stream_acquisition`
-(``set_transform``, ``lookup``, ``lookup_many``, ``try_lookup_many``) follow its API. tf2_ros is not
-installable in the pip set-up, so nothing here imports ROS.
+Hand-written because tf2 / tf2_ros are not installable in the pip set-up (no wheels); nothing here
+imports ROS, so bag replay and the live node (:mod:`gls_calibration.scan.bag_io`,
+:mod:`gls_calibration.nodes.stream_acquisition`) place profiles with the same arithmetic.
 
 Each frame has one parent (a tree, as in tf2). A static edge holds one pose for all times; a dynamic
 edge a time series, looked up by linear interpolation of the translation and slerp of the rotation
