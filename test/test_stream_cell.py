@@ -189,7 +189,8 @@ def test_a_one_shot_split_cell_keeps_its_streams_in_its_namespace(tmp_path, serv
     args = sim_cell.parse_args(["--out", str(tmp_path)] + (["--serve"] if serve else []))
     namespace = sim_cell.cell_namespace(args)
     context = rclpy.Context()
-    rclpy.init(args=sim_cell.ros_arguments(args, tmp_path / "store", tmp_path), context=context)
+    rclpy.init(args=sim_cell.ros_arguments(args, tmp_path / "store", tmp_path) + sim_cell.private_stream_remaps(args),
+               context=context)
     try:
         node = rclpy.create_node("probe", namespace=namespace, context=context)
         for topic in ("/tf", "/tf_static", "/motion/line", "/motion/start", "/motion/end", "/scanner/profile"):

@@ -282,18 +282,21 @@ def reference_plan(args: argparse.Namespace):
     return plan if args.sweep_plan is None else replace(plan, passes=parse_plan(args.sweep_plan))
 
 
-def private_stream_remaps(namespace: str) -> list[str]:
-    """Remap rules that move the split cell's absolute topics (``/tf``, ``/tf_static``, the motion
-    contract, the profiles) under ``namespace``: a one-shot cell's robot and scanner must not meet
-    another cell's stream acquisition on the same ROS domain (seen: two runs at once, lines refused
-    and profiles of the other cell's motions). A served cell keeps them absolute, as drivers use them."""
+def private_stream_remaps(args: argparse.Namespace) -> list[str]:
+    """``-r`` rules that move the split cell's absolute topics (``/tf``, ``/tf_static``, the motion
+    contract, the profiles) into a one-shot cell's private namespace: its robot and scanner must not
+    meet another cell's stream acquisition on the same ROS domain (seen: two runs at once, lines
+    refused and profiles of the other cell's motions). None for a served cell or a ``--namespace``
+    the user chose (absolute names, as drivers use them) and for the sweep contract (no such topics)."""
+    if args.serve or args.sweep_contract or args.namespace is not None:
+        return []
     from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC
 
     topics = (LAYOUT.tf_topic, LAYOUT.tf_static_topic, LAYOUT.motion_start_topic, LAYOUT.motion_end_topic,
               LAYOUT.scan_topic, LINE_TOPIC)
-    rules = []
+    rules = []      # within the cell's --ros-args section (ros_arguments leaves it open)
     for topic in topics:
-        rules += ["-r", f"{topic}:=/{namespace.strip('/')}{topic}"]
+        rules += ["-r", f"{topic}:=/{cell_namespace(args)}{topic}"]
     return rules
 
 
@@ -324,8 +327,6 @@ def ros_arguments(args: argparse.Namespace, calibration_dir: Path, report_dir: P
     if args.chain_map_file is not None:
         overrides["chain_map_file"] = str(args.chain_map_file.resolve())
     ros_args = ["--ros-args", "--log-level", "info" if args.verbose else "warn"]
-    if not args.serve and not args.sweep_contract:
-        ros_args += private_stream_remaps(cell_namespace(args))
     for path in (config_path("head.yaml"), config_path("gls.yaml"), sim_config):
         ros_args += ["--params-file", str(path)]
     for name, value in overrides.items():
@@ -367,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     context = rclpy.Context()
     # "--" ends the cell's ROS arguments; the user's command line follows with its own --ros-args.
     user = ["--", *args.user_ros_arguments] if args.user_ros_arguments else []
-    cell_arguments = ros_arguments(args, store, args.out) + user
+    cell_arguments = ros_arguments(args, store, args.out) + private_stream_remaps(args) + user
     rclpy.init(args=cell_arguments, context=context, signal_handler_options=SignalHandlerOptions.NO)
     namespace = cell_namespace(args)
     nodes: list = []
