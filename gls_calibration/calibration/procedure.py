@@ -189,7 +189,7 @@ class ProcedureSettings:
 
 
 def plane_height(pose: PlatePose, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """z of the plate plane above (x, y) in the frame of ``pose``."""
+    """Return the height z of the plate plane above (x, y) in the frame of ``pose``."""
     nx, ny, nz = pose.normal
     if abs(nz) < 1e-6:
         raise CalibrationError("the plate plane is parallel to the beam axis; check the scanner mounting")
@@ -222,8 +222,11 @@ Progress = Callable[[str, float, str], None]
 
 
 def check_clean_plate(points: np.ndarray, intensity: np.ndarray, settings: ProcedureSettings) -> None:
-    """CalibrationError when the plain-plate sweep (points (..., 3) mm, intensity (...)) shows marks
-    beyond the plate's texture: many points far outside it, or a fiducial-sized cluster of them."""
+    """Raise CalibrationError when the plain-plate sweep shows marks beyond the plate's texture.
+
+    Marks are many points far outside the texture, or a fiducial-sized cluster of them; the sweep
+    is points (..., 3) mm and intensity (...).
+    """
     evidence = existing_marks(intensity, settings.mark_check_sigmas, points=points,
                               cluster_sigmas=settings.mark_cluster_sigmas,
                               cluster_radius_mm=2.0 * max(settings.ring_radii_mm) + 0.5)
@@ -253,9 +256,11 @@ def centre_uncertainty_mm(run: PlateRun, settings: ProcedureSettings) -> float:
 
 def check_model_explains(model: "TrainedModel", deviation_rms_mm: float, uncertainty_mm: float,
                          settings: ProcedureSettings) -> None:
-    """CalibrationError when the model cannot explain the measurement: its cross-validated error is
-    far above the measurement's uncertainty (``uncertainty_mm``, :func:`centre_uncertainty_mm`)
-    and a large part of the deviations it was trained on.
+    """Raise CalibrationError when the model cannot explain the measurement.
+
+    That is: its cross-validated error is far above the measurement's uncertainty
+    (``uncertainty_mm``, :func:`centre_uncertainty_mm`) and a large part of the deviations it was
+    trained on.
 
     Both, because a sparse grid (3x3) leaves a CV error of ~0.6 mm on a 1.5 mm field and still
     helps, while new marks measured among old ones (the issue's case) leave 0.25 mm of 0.34 mm.

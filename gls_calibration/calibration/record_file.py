@@ -282,9 +282,11 @@ _CLOSING_EVENTS = (yaml.SequenceEndEvent, yaml.MappingEndEvent)
 
 
 def _check_structure(text: str) -> None:
-    """YAMLError for aliases (an alias bomb expands exponentially when walked) or nesting deeper
-    than MAX_YAML_DEPTH (construction recurses once per level). The parser is lazy: a hostile
-    document is refused after a few events, however long it is."""
+    """Raise YAMLError for aliases or for nesting deeper than MAX_YAML_DEPTH.
+
+    An alias bomb expands exponentially when walked; construction recurses once per level. The
+    parser is lazy: a hostile document is refused after a few events, however long it is.
+    """
     depth = 0
     for event in yaml.parse(text, Loader=_SafeLoader):
         if isinstance(event, yaml.AliasEvent):

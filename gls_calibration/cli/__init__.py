@@ -6,8 +6,11 @@ import math
 
 
 def timeout_seconds(text: str) -> float:
-    """argparse ``type`` of a ``--timeout``: a positive finite number of seconds (a negative, zero,
-    NaN or infinite wait is refused as a usage error, exit 2, before anything starts)."""
+    """Parse a ``--timeout`` (an argparse ``type``): a positive finite number of seconds.
+
+    A negative, zero, NaN or infinite wait is refused as a usage error, exit 2, before anything
+    starts.
+    """
     try:
         value = float(text)
     except ValueError:

@@ -82,7 +82,7 @@ def _rings(text: str) -> tuple[float, ...]:
 
 
 def load_cloud(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """xyz (H, W, 3) or (N, 3) and intensity of a cloud file; ValueError naming the problem."""
+    """Read xyz (H, W, 3) or (N, 3) and intensity of a cloud file; ValueError names the problem."""
     suffix = path.suffix.lower()
     if not path.is_file():
         raise ValueError(f"{path}: no such file")

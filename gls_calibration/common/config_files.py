@@ -42,8 +42,11 @@ def read_config_file(path: str | Path, what: str, parse: Callable[[Any], Parsed]
 
 
 def require_exact_keys(block, keys, prefix: str) -> None:
-    """ValueError naming ``prefix.key`` for every key of ``block`` not in ``keys``, then for every key
-    of ``keys`` that ``block`` lacks (unknown keys first: a misspelt key is also a missing one)."""
+    """Raise ValueError naming ``prefix.key`` for every unknown or missing key of ``block``.
+
+    Unknown keys (in ``block``, not in ``keys``) come first, then the keys of ``keys`` that
+    ``block`` lacks: a misspelt key is also a missing one.
+    """
     unknown = sorted(set(block) - set(keys))
     missing = [key for key in keys if key not in block]
     if unknown:

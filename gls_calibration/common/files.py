@@ -47,8 +47,10 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
 
 
 def require_regular_output(path: str | os.PathLike) -> None:
-    """ValueError unless ``path`` may be written as a regular file: absent, or a regular file
-    (a device, FIFO, directory or a symlink to one is refused: renaming onto it would replace it)."""
+    """Raise ValueError unless ``path`` may be written as a regular file (absent or regular).
+
+    A device, FIFO, directory or a symlink to one is refused: renaming onto it would replace it.
+    """
     path = Path(path)
     if path.is_symlink() or (path.exists() and not path.is_file()):
         kind = "a symlink" if path.is_symlink() else "not a regular file"

@@ -125,8 +125,10 @@ class CorrectedSetpoints:
 
 
 def check_calibration_plane(geometry: HeadGeometry, plane_z_mm: float) -> None:
-    """ValueError unless the calibration plane lies within the focus range: the plate was marked and
-    scanned there."""
+    """Raise ValueError unless the calibration plane lies within the focus range.
+
+    The plate was marked and scanned there.
+    """
     if not abs(plane_z_mm) <= geometry.focus_range_mm:
         raise ValueError(f"calibration plane z = {plane_z_mm:g} mm lies outside the head's focus range "
                          f"(+-{geometry.focus_range_mm:g} mm)")
@@ -222,10 +224,12 @@ class Correction:
         return weight * total[:, 0], weight * total[:, 1], inside, clamped_x, clamped_y
 
     def check_field(self, samples_per_side: int = FIELD_CHECK_SAMPLES) -> None:
-        """ValueError unless the summed correction is finite and within ``MAX_DEVIATION_MM`` on a
-        grid over the calibrated region (its edges included; outside it the correction is the
-        edge's, tapered). Called when a calibration is loaded, so that a broken model is refused
-        then and not on every later request."""
+        """Raise ValueError unless the summed correction is finite and within ``MAX_DEVIATION_MM``.
+
+        It is evaluated on a grid over the calibrated region (its edges included; outside it the
+        correction is the edge's, tapered). Called when a calibration is loaded, so that a broken
+        model is refused then and not on every later request.
+        """
         if not self.models:
             return
         region = self.calibrated_region
@@ -302,8 +306,11 @@ class Correction:
                                     for field in fields(CorrectedSetpoints)))
 
     def _check_heights(self, z: np.ndarray) -> None:
-        """ValueError unless every height is within +- the working distance: no ray reaches a point at
-        or above the mirrors, and nothing as far below the plane as the head is above it is a target."""
+        """Raise ValueError unless every height is within +- the working distance.
+
+        No ray reaches a point at or above the mirrors, and nothing as far below the plane as the
+        head is above it is a target.
+        """
         limit = self.geometry.working_distance_mm
         outside = np.abs(z) >= limit
         if outside.any():
@@ -394,7 +401,7 @@ _shared_pool: list[tuple[int, ThreadPoolExecutor]] = []    # (threads, pool): on
 
 
 def available_workers() -> int:
-    """CPUs this process may run on (the default number of workers of :meth:`Correction.correct`)."""
+    """Count the CPUs this process may run on (default workers of :meth:`Correction.correct`)."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:           # not on Linux

@@ -133,8 +133,11 @@ class UncertaintyGrid:
 
 
 def check_grid(x: np.ndarray, y: np.ndarray, u: np.ndarray, key: str) -> None:
-    """ValueError naming ``key`` when the axes are not increasing finite lists of 2+ nodes or U is
-    not a finite non-negative (ny, nx) array."""
+    """Raise ValueError naming ``key`` unless the axes and U form a valid grid.
+
+    The axes must be increasing finite lists of 2+ nodes and U a finite non-negative (ny, nx)
+    array.
+    """
     for name, axis in (("x_mm", x), ("y_mm", y)):
         if axis.ndim != 1 or axis.size < 2 or not np.all(np.isfinite(axis)):
             raise ValueError(f"key '{key}.{name}' must be a list of 2 or more finite numbers")

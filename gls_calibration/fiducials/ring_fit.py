@@ -153,7 +153,7 @@ def _edge_weights(peak_score: np.ndarray, usable: np.ndarray) -> np.ndarray:
 
 
 def _second_harmonic(radius_per_ray: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    """cos 2theta and sin 2theta amplitudes (M, 2) of radii (M, A) at equally spaced ray ``angles`` (A,)."""
+    """Return cos/sin 2theta amplitudes (M, 2) of radii (M, A) at evenly spaced ``angles`` (A,)."""
     return np.stack([radius_per_ray @ np.cos(2 * angles), radius_per_ray @ np.sin(2 * angles)], -1) * (
         2.0 / len(angles))
 

@@ -169,7 +169,7 @@ def load_user_effect(reference: str) -> UserEffect:
 
 
 def check_user_effect(effect: UserEffect) -> None:
-    """ValueError unless ``effect`` has a new name, at least one parameter, ranges around zero and a callable."""
+    """Raise ValueError unless ``effect`` has a new name, parameters, ranges about 0, a callable."""
     spec = effect.spec
     if spec.name in EFFECT_TABLE:
         raise ValueError(f"user effect {spec.name!r} clashes with the library effect of that name")

@@ -293,7 +293,7 @@ class PhysicalHead:
             self.geometry.mirror_distance_mm + self.geometry.working_distance_mm)
 
     def to_plate(self, points) -> np.ndarray:
-        """gls points (N, 3) -> in-plane plate coordinates (N, 2) about the plate origin (mm)."""
+        """Map gls points (N, 3) to in-plane coordinates (N, 2) about the plate origin (mm)."""
         offsets = np.asarray(points, dtype=float) - self.plate_origin
         return np.stack([offsets @ self.plate_rotation[:, 0], offsets @ self.plate_rotation[:, 1]], axis=-1)
 

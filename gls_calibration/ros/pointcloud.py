@@ -148,7 +148,7 @@ def pointcloud2_to_array(msg: PointCloud2, field_names: Sequence[str] | None = (
 
 
 def _field_code(name: str, field_type: np.dtype) -> tuple[int, int]:
-    """PointField datatype and count for one numpy field, or ValueError if it cannot be carried."""
+    """Return the PointField datatype and count for one numpy field; ValueError if not carried."""
     base, shape = (field_type.subdtype if field_type.subdtype is not None else (field_type, ()))
     code = _POINT_FIELD_CODES.get((base.kind, base.itemsize))
     if code is None or base.fields is not None or len(shape) > 1:

@@ -75,7 +75,7 @@ def pose_from_msg(message: Pose, where: str) -> np.ndarray:
 
 
 def transform_msg(parent: str, child: str, pose_mm: np.ndarray, stamp_ns_: int) -> TransformStamped:
-    """TransformStamped of ``child`` in ``parent`` (4x4, mm) in metres."""
+    """Build the TransformStamped (metres) of ``child`` in ``parent`` from a 4x4 pose in mm."""
     message = TransformStamped()
     message.header.stamp = time_msg(stamp_ns_)
     message.header.frame_id = parent

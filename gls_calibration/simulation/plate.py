@@ -142,7 +142,7 @@ class Plate:
 
     # ------------------------------------------------------------ frames
     def to_plate(self, points) -> np.ndarray:
-        """gls points (..., 3) -> plate coordinates (..., 2) (projected on the plate plane)."""
+        """Map gls points (..., 3) to plate coordinates (..., 2), projected on the plate plane."""
         offsets = np.asarray(points, dtype=float) - self.origin
         return np.stack([offsets @ self.rotation[:, 0], offsets @ self.rotation[:, 1]], axis=-1)
 

@@ -127,9 +127,11 @@ def _triple(value: Any, key: str) -> np.ndarray:
 
 
 def sim_config_from_dict(document: Any, preset: str | None = None) -> SimConfig:
-    """SimConfig from a parsed sim configuration (see the module docstring); missing keys take defaults.
+    """Build a SimConfig from a parsed sim configuration (see the module docstring).
 
-    ``preset`` overrides ``measurement.preset`` of the document (e.g. from a command line)."""
+    Missing keys take defaults. ``preset`` overrides ``measurement.preset`` of the document (e.g.
+    from a command line).
+    """
     parameters = parameters_block(document)
     known_blocks = ("seed", "head", "effects", "marking", "plate", "scanner", "sweep", "measurement")
     unknown = sorted(set(parameters) - set(known_blocks))
