@@ -129,7 +129,8 @@ class PlateRun:
 @dataclass(frozen=True)
 class Candidate:
     """A calibration saved (not activated) during a run: its file, its validated record and the
-    correction it describes; it travels as this object (``Cell.use_candidate``), never re-read."""
+    correction it describes; it travels as this object (``Cell.use_candidate``), never re-read.
+    """
 
     path: str
     correction: "Correction"
@@ -246,7 +247,8 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
               placement: str = "pose", *, measurement_preset: str = "") -> RunSummary:
     """The run summary of ``outcome``; ``chain_check`` (the reference check of the chain, measured
     with the plan the run used and profiles placed by ``placement``) gives the stated accuracy;
-    ``measurement_preset`` names the simulated measurement chain (empty: a real cell)."""
+    ``measurement_preset`` names the simulated measurement chain (empty: a real cell).
+    """
     first, validation = outcome.runs[0], outcome.validation
     last_model = outcome.models[-1] if outcome.models else None
     measured_after = validation.metrics if validation else None
@@ -303,7 +305,8 @@ def _certificate(outcome: CalibrationOutcome, check: Optional[ChainCheck]) -> di
 
 def _kinds(outcome: CalibrationOutcome) -> dict:
     """Which kind each figure of ``outcome`` is, the active calibration's validation figures, and
-    what the candidate was judged against."""
+    what the candidate was judged against.
+    """
     validation, active = outcome.validation, outcome.active_validation
     values: dict[str, Any] = {"pre_kind": SELF_CONSISTENCY if outcome.active_calibration else INDEPENDENT}
     if validation is not None:

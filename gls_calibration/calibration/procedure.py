@@ -56,13 +56,15 @@ class Cell(Protocol):
         """Sweep the scanner over the plate with ``step_mm`` between profiles, along the sensor's +y
         (``direction`` 1) or -y (-1), the sensor turned by ``orientation_deg`` (0 or 90) about its
         viewing axis; the cloud in the scanner (base) frame, whatever the direction and orientation,
-        placed by the robot's reported pose where the cell has one (see ``scan/sweep.py``)."""
+        placed by the robot's reported pose where the cell has one (see ``scan/sweep.py``).
+        """
 
     async def acquire_standstill(self, profiles: int) -> Any:
         """``profiles`` profiles taken with the robot standing still in the pose the marks are made
         from (no travel), as a cloud in the scanner (base) frame like ``acquire_sweep``'s: the plate
         height at marking (``settings.standstill_height``). Needs its own random draws on a simulated
-        cell, never those of the sweeps."""
+        cell, never those of the sweeps.
+        """
 
     async def estimate_plate_pose(self, cloud: Any) -> PlatePose:
         """The plate plane fitted to ``cloud`` (scanner frame, normal towards the head)."""
@@ -71,47 +73,57 @@ class Cell(Protocol):
                                 ring_radii_mm: tuple[float, ...]) -> FiducialMeasurement:
         """Centres (scanner frame, mm) of the ring fiducials found in ``cloud`` on the plate ``pose``;
         ``expected_count`` fiducials were marked (a hint, not a promise) with rings of ``ring_radii_mm``
-        (the procedure's settings: the radii it marked with, the one owner)."""
+        (the procedure's settings: the radii it marked with, the one owner).
+        """
 
     async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> CorrectedSetpoints:
         """Setpoints that land on the targets (x, y, z) (gls frame, mm) through the calibration loaded
-        in the cell (the nominal model when none is); ``within_limits`` flags the reachable ones."""
+        in the cell (the nominal model when none is); ``within_limits`` flags the reachable ones.
+        """
 
     async def mark(self, alpha_x: np.ndarray, alpha_y: np.ndarray, focus_shift: np.ndarray,
                    polyline_starts: np.ndarray) -> float:
         """Mark polylines: mirror angles (rad) and focus shift (mm) per point, ``polyline_starts`` the
-        index of each polyline's first point (starts with 0). Returns the marking time in seconds."""
+        index of each polyline's first point (starts with 0). Returns the marking time in seconds.
+        """
 
     async def train(self, landed_xy: np.ndarray, corrections: np.ndarray) -> TrainedModel:
         """A model of the correction to add at a target, trained on the landed points P (N, 2) and the
-        corrections K(Q) - K(P) (N, 2) (gls frame, mm); see ``training.train_correction``."""
+        corrections K(Q) - K(P) (N, 2) (gls frame, mm); see ``training.train_correction``.
+        """
 
     async def use_candidate(self, candidate: Candidate) -> None:
         """Make the cell correct through ``candidate`` (saved, not active) from now on: its correction
-        as it is, not its file read again."""
+        as it is, not its file read again.
+        """
 
     async def reload_active(self) -> None:
         """Make the cell correct through the store's active calibration again (the nominal model when
-        there is none): what a failed run calls to drop a candidate it loaded."""
+        there is none): what a failed run calls to drop a candidate it loaded.
+        """
 
     async def exchange_plate(self) -> None:
         """Put a clean plate in the cell (second iteration, validation); CalibrationError when the cell
-        cannot."""
+        cannot.
+        """
 
     async def true_marks(self) -> Optional[list[np.ndarray]]:
         """Simulation only: the polylines really marked on the current plate ((M, 3) each, gls frame,
-        mm), in marking order; None on a real cell."""
+        mm), in marking order; None on a real cell.
+        """
 
     def start(self, step: Coroutine[Any, Any, T]) -> Awaitable[T]:
         """Begin ``step`` (a coroutine of this cell) now, beside what the procedure awaits next, and
         return what to await for its result; the procedure measures a sweep while it scans the next.
         A cell that cannot run steps side by side returns ``step`` itself (it then runs when awaited).
-        Not a coroutine: it only schedules."""
+        Not a coroutine: it only schedules.
+        """
 
     def points_and_intensities(self, cloud: Any) -> tuple[np.ndarray, np.ndarray]:
         """The points (..., 3) (mm, any frame a rigid motion from the plate's) and the intensity (...)
         of every point of a cloud from ``acquire_sweep`` (NaN: no return), for the check that the
-        plain plate carries no old marks. Not a coroutine: the cloud is here."""
+        plain plate carries no old marks. Not a coroutine: the cloud is here.
+        """
 
 
 ITERATIONS_LIMIT = 10    # most iterations max_iterations (and default_iterations) may allow: the manager's range
@@ -294,7 +306,8 @@ def combined_centres_gls(measurements: list[FiducialMeasurement], settings: Proc
     """The centres (K, 3, gls frame) of the marked plate from every sweep of ``settings.sweep_plan``
     (``sweep_plan.combine_sweeps``, placement as the settings say), put on the plate plane
     ``pose_scanner``; and the combination. ``measurements`` are in the plan's order; with a
-    ``settings.chain_map`` each sweep's centres lose their line's repeating error first."""
+    ``settings.chain_map`` each sweep's centres lose their line's repeating error first.
+    """
     try:
         measurements = correct_measurements(settings.chain_map, measurements, settings.sweep_plan, pose_scanner)
         combined = combine_sweeps(measurements, settings.sweep_plan, targets, settings.scanner_to_gls,

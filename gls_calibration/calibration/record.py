@@ -34,7 +34,8 @@ TAPER_MM = 10.0   # fade of the correction beyond the calibrated region (correct
 def region_around(targets_xy: np.ndarray, ring_radii_mm: Sequence[float], plane_z_mm: float = 0.0) -> CalibratedRegion:
     """The one rule of the calibrated region: the box of the fiducial targets (N, 2), padded by the
     outer ring radius so that whole rings stay inside, on the plane ``z = plane_z_mm`` where the plate
-    was measured."""
+    was measured.
+    """
     box = CalibratedRegion.from_points(targets_xy, plane_z_mm)
     pad = max(ring_radii_mm)
     return CalibratedRegion(box.x_min - pad, box.x_max + pad, box.y_min - pad, box.y_max + pad, plane_z_mm)
@@ -82,7 +83,8 @@ def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequ
     """The record of a run whose ``models`` were trained on ``runs`` (after ``existing_models``),
     with its certificate's U map (``uncertainty``; its chain term from ``chain_check`` when that
     was made with the run's plan, assumed otherwise). A model the certificate does not cover (physics
-    first) leaves the map out: the file then serves NaN, as an older file does."""
+    first) leaves the map out: the file then serves NaN, as an older file does.
+    """
     first = runs[0]
     region = calibrated_region(settings, float(np.mean(first.targets[:, 2])))
     try:
@@ -114,7 +116,8 @@ def record_models(record: Mapping) -> list[dict]:
 
 def correction_from_record(record: Mapping, geometry: HeadGeometry) -> Correction:
     """The correction a record describes (ValueError when its models or region are unusable, or
-    when its field is not finite or beyond the physical limit: :meth:`Correction.check_field`)."""
+    when its field is not finite or beyond the physical limit: :meth:`Correction.check_field`).
+    """
     models = [model_from_dict(model) for model in record["models"]]
     region = CalibratedRegion.from_dict(record["calibrated_region"]) if models else None
     grid = None
@@ -149,7 +152,8 @@ def record_fiducials(record: Mapping) -> tuple[np.ndarray, np.ndarray]:
 
 def record_identity(record: Mapping) -> tuple[str, datetime]:
     """Which calibration a record is: a content hash (sha256 of its YAML, 16 hex digits) and its
-    creation time (UTC); what a correction answer names so that a client knows who answered."""
+    creation time (UTC); what a correction answer names so that a client knows who answered.
+    """
     content_hash = hashlib.sha256(dump_record(record).encode("utf-8")).hexdigest()[:16]
     created = datetime.fromisoformat(record["created_utc"])
     return content_hash, created if created.tzinfo else created.replace(tzinfo=timezone.utc)

@@ -22,7 +22,8 @@ from gls_calibration.scan.bag_io import ReplayedSweep
 
 class ReplayCell(CoreCell):
     """``procedure.Cell`` whose sweeps and stand-stills are ``sweeps`` in order (each checked to be the
-    kind asked for); calibrations live in ``store``."""
+    kind asked for); calibrations live in ``store``.
+    """
 
     def __init__(self, sweeps: Sequence[ReplayedSweep], geometry: HeadGeometry, store: CalibrationStore, *,
                  physics_first: bool = False, training: TrainingOptions = TrainingOptions()) -> None:

@@ -82,7 +82,8 @@ class Contribution:
 @dataclass(frozen=True)
 class TrainingData:
     """One model's training: where (landed P, (N, 2) mm), what (corrections (N, 2) mm), how well
-    measured (per-axis standard uncertainty of each centre, (N,) mm) and the model's dict."""
+    measured (per-axis standard uncertainty of each centre, (N,) mm) and the model's dict.
+    """
 
     landed_xy: np.ndarray
     corrections: np.ndarray
@@ -93,7 +94,8 @@ class TrainingData:
 @dataclass(frozen=True)
 class UncertaintyBudget:
     """The certificate's budget: each contribution's per-axis standard uncertainty (RMS and max
-    over the grid, k = 1), U (95 % radius) over the grid, its field-wide figures, how it was made."""
+    over the grid, k = 1), U (95 % radius) over the grid, its field-wide figures, how it was made.
+    """
 
     contributions: tuple[Contribution, ...]
     grid: UncertaintyGrid
@@ -314,7 +316,8 @@ def run_budget(runs: Sequence[Any], models: Sequence[Any], settings: Any, region
                certificate: CertificateSettings = CertificateSettings()) -> UncertaintyBudget:
     """The budget of a calibrate flow's ``runs`` (``PlateRun``) and the ``models`` (``TrainedModel``)
     trained on them, with the procedure's ``settings``; the check counts when made with the same
-    plan, placement and chain map (as for the stated accuracy)."""
+    plan, placement and chain map (as for the stated accuracy).
+    """
     if len(runs) != len(models):
         raise ValueError(f"one trained model per plate run is needed, got {len(models)} models for {len(runs)} runs")
     trainings = [TrainingData(run.measured_gls[:, :2], run.corrections,

@@ -19,7 +19,8 @@ CANCEL_WAIT_S = 300.0   # the current step (a sweep, a marking job) ends before 
 
 def main(argv: list[str] | None = None) -> int:
     """Exit 0 when the calibration succeeded, 1 when it failed or timed out, 2 on bad arguments,
-    130 when canceled with Ctrl-C."""
+    130 when canceled with Ctrl-C.
+    """
     own_arguments, ros_arguments = split_ros_arguments(argv)
     parser = argparse.ArgumentParser(prog="gls-calibrate", description=__doc__.splitlines()[0])
     parser.add_argument("--namespace", default="gls", help="namespace of the calibration manager")

@@ -1,5 +1,6 @@
 """What the operator tools share: ROS arguments, waiting for a service answer, a progress bar, the
-summary table."""
+summary table.
+"""
 from __future__ import annotations
 
 from contextlib import contextmanager
@@ -25,14 +26,16 @@ from unique_identifier_msgs.msg import UUID
 def split_ros_arguments(argv: Sequence[str] | None) -> tuple[list[str], list[str]]:
     """(the tool's own arguments, the whole command line for rclpy, which reads only what follows
     ``--ros-args``) of e.g. ``gls-calibrate --iterations 2 --ros-args -r __ns:=/cell2``; None means
-    sys.argv[1:]."""
+    sys.argv[1:].
+    """
     argv = list(sys.argv[1:] if argv is None else argv)
     return remove_ros_args(["tool"] + argv)[1:], argv
 
 
 def ros_rules(argv: Sequence[str], *flags: str) -> list[str]:
     """The values given to ``flags`` (e.g. ``-p``, ``--param``) among the ROS arguments of ``argv`` (from
-    ``--ros-args`` to ``--`` or the end), in their order: rcl applies them so, the last one of a name wins."""
+    ``--ros-args`` to ``--`` or the end), in their order: rcl applies them so, the last one of a name wins.
+    """
     rules, inside, tokens = [], False, iter(argv)
     for token in tokens:
         if token in ("--ros-args", "--"):
@@ -49,7 +52,8 @@ def client_node(name: str, namespace: str, ros_arguments: Sequence[str] = ()
                 ) -> Iterator[tuple[Node, SingleThreadedExecutor]]:
     """An initialised rclpy (with ``ros_arguments``: remaps, namespace, parameters) and one node for
     an operator tool, shut down afterwards. rclpy's signal handlers stay off, so Ctrl-C raises
-    KeyboardInterrupt where the tool can answer it."""
+    KeyboardInterrupt where the tool can answer it.
+    """
     context = Context()
     rclpy.init(args=["tool", *ros_arguments], context=context, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(name, namespace=namespace, context=context)
@@ -76,7 +80,8 @@ def call_and_wait(executor: Executor, client, request: Any, timeout_s: float,
 
     ``resend_after_s`` (only for requests a server may receive twice): when no answer came within
     that time, send the request again, then after twice that time, and so on; the first answer to any
-    copy counts."""
+    copy counts.
+    """
     deadline_s = min(timeout_s, 30.0)
     if not client.wait_for_service(timeout_sec=deadline_s):
         raise TimeoutError(f"service {client.srv_name} is not available (waited {deadline_s:g} s)")
@@ -101,7 +106,8 @@ def send_goal(executor: Executor, node: Node, client, action_type: type, action_
     the goal carries an id of its own: unanswered after ``resend_after_s`` (then twice as long, ...),
     it is sent again with the same id, which a server refuses rather than starting a second run; and
     the action's status topic (``action_name``/_action/status), where the server lists the goals it
-    accepted, shows an accepted goal whose answer never came."""
+    accepted, shows an accepted goal whose answer never came.
+    """
     goal_id = UUID(uuid=list(uuid.uuid4().bytes))
     key = bytes(goal_id.uuid)
     listed: set[bytes] = set()
@@ -129,7 +135,8 @@ def _send_until_answered(executor: Executor, send, sent: list, timeout_s: float,
                          resend_after_s: Optional[float], what: str, given_up=lambda: False):
     """Call ``send()`` (it returns a future, kept in ``sent``) and spin ``executor`` until one of its
     futures is done (returned), ``given_up()`` holds or ``timeout_s`` has passed (None). With
-    ``resend_after_s``, send again when unanswered that long, then after twice as long, and so on."""
+    ``resend_after_s``, send again when unanswered that long, then after twice as long, and so on.
+    """
     deadline = time.monotonic() + timeout_s
     answered: Future = Future()
     wait_s = resend_after_s

@@ -46,7 +46,8 @@ def read_targets(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def corrected_csv_text(x, y, z, k_x, k_y, alpha_x, alpha_y, focus_shift, inside, within, uncertainty) -> str:
     """The output table: OUTPUT_COLUMNS, floats at full precision, flags as 0/1; the uncertainty
-    (mm, 95 % radius) ``nan`` outside the calibrated field or without the calibration's map."""
+    (mm, 95 % radius) ``nan`` outside the calibrated field or without the calibration's map.
+    """
     lines = [",".join(OUTPUT_COLUMNS)]
     floats = np.column_stack([x, y, z, k_x, k_y, alpha_x, alpha_y, focus_shift]).tolist()
     uncertainty = np.full(len(floats), np.nan) if uncertainty is None else np.asarray(uncertainty, dtype=float)
@@ -82,7 +83,8 @@ def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: S
     """The same from the running cell's correction node (``ros_arguments``: remaps, namespace), through
     ``correct_setpoints_batch``: a file of targets is a large request, whose answer on
     ``correct_setpoints`` would hold up other clients' single targets. RuntimeError when it gives no
-    usable answer."""
+    usable answer.
+    """
     from gls_calibration.cli.client import RESEND_AFTER_S, call_and_wait, client_node
     from gls_calibration.ros.base import CLIENT_QOS
     from gls_calibration.ros.conversions import float64_sequence, setpoints_from_response
@@ -112,7 +114,8 @@ def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: S
 
 def main(argv: Optional[list[str]] = None) -> int:
     """Exit 0 on success, 1 when targets are unreachable or the service failed, 2 on bad input. ROS
-    arguments (remaps, namespace) follow ``--ros-args``."""
+    arguments (remaps, namespace) follow ``--ros-args``.
+    """
     from gls_calibration.cli import timeout_seconds
     from gls_calibration.cli.client import split_ros_arguments
     own_arguments, ros_arguments = split_ros_arguments(argv)

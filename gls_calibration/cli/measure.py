@@ -129,7 +129,8 @@ def load_cloud(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def plate_extent(xyz: np.ndarray) -> tuple[float, float]:
     """Sides (short, long) of the minimum-area rectangle holding the cloud's points on their best-fit
-    plane, in the cloud's own units (no unit is assumed: the plane is the points' principal one)."""
+    plane, in the cloud's own units (no unit is assumed: the plane is the points' principal one).
+    """
     points = xyz.reshape(-1, 3)
     points = points[np.isfinite(points).all(axis=1)]
     if len(points) < 3:
@@ -147,7 +148,8 @@ def cloud_units(extent: tuple[float, float], units: str | None, grid: int, size_
     """The cloud's unit (``mm`` or ``m``): ``units`` when given, else the one in which ``extent`` (short,
     long side in the cloud's units) holds the grid without exceeding it ``MAX_EXTENT_RATIO`` times.
     ValueError naming both sizes when the extent cannot hold the grid. A 1x1 grid is one fiducial:
-    its centres span nothing, whatever ``size_mm`` says."""
+    its centres span nothing, whatever ``size_mm`` says.
+    """
     centres_span_mm = size_mm if grid >= 2 else 0.0
     required_mm = centres_span_mm + 2 * ring_radius_mm
     if units is None:
@@ -255,7 +257,8 @@ def summary(measurement: FiducialMeasurement, pose: PlatePose, args, seconds: fl
 
 def measure_cloud(xyz: np.ndarray, intensity: np.ndarray, args) -> tuple[PlatePose, FiducialMeasurement, float]:
     """Plate pose and fiducials of one cloud (mm) as the tool measures them, and the seconds it took;
-    ValueError for no plane or 1 to 3 fiducials (too few to use)."""
+    ValueError for no plane or 1 to 3 fiducials (too few to use).
+    """
     start = time.perf_counter()
     pose = estimate_plate_pose(xyz)
     measurement = measure_fiducials(xyz, intensity, pose, ring_radii_mm=args.rings, pixel_size_mm=args.pixel,

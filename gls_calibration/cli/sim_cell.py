@@ -69,7 +69,8 @@ GRID_MAX = 101            # the manager's range of ``grid.per_side`` (3 to 101)
 
 def max_iterations() -> int:
     """Most iterations the cell's manager accepts: ``max_iterations`` of config/gls.yaml, the file it
-    is given (``procedure.ProcedureSettings``' default when the file does not say)."""
+    is given (``procedure.ProcedureSettings``' default when the file does not say).
+    """
     from gls_calibration.calibration.procedure import ProcedureSettings
 
     def parse(document) -> object:
@@ -89,7 +90,8 @@ def manager_parameter_override(ros_arguments: list[str], namespace: str, name: s
     """The ``-p``/``--param`` rule of ``ros_arguments`` that sets the cell manager's parameter ``name``
     (None when none does), as rcl picks it: the last ``calibration_manager:name:=V``, which beats any
     ``name:=V`` but reaches only a manager in the root namespace (rcl matches the node's full name), else
-    the last ``name:=V``. ``namespace``: the cell's, unless a ``-r __ns:=...`` rule moves the nodes."""
+    the last ``name:=V``. ``namespace``: the cell's, unless a ``-r __ns:=...`` rule moves the nodes.
+    """
     for rule in ros_rules(ros_arguments, "-r", "--remap"):
         target, _, value = rule.partition(":=")
         if target in ("__ns", f"{MANAGER_NODE}:__ns"):
@@ -106,7 +108,8 @@ def manager_parameter_override(ros_arguments: list[str], namespace: str, name: s
 
 def iterations_limit(override: Optional[str]) -> int:
     """The manager's ``max_iterations`` given by the ``-p`` rule ``override`` (config/gls.yaml's
-    without one); ValueError naming the rule when the manager would not take its value."""
+    without one); ValueError naming the rule when the manager would not take its value.
+    """
     if override is None:
         return max_iterations()
     text = override.partition(":=")[2]
@@ -122,7 +125,8 @@ def iterations_limit(override: Optional[str]) -> int:
 
 def output_folder_problem(folder: Path) -> str:
     """Why ``folder`` cannot be the cell's output folder (empty when it can): it must be a folder or
-    not exist yet, below an existing folder (nothing is created here)."""
+    not exist yet, below an existing folder (nothing is created here).
+    """
     if folder.exists() or folder.is_symlink():
         return "" if folder.is_dir() else f"--out {folder} exists and is not a folder"
     for parent in folder.absolute().parents:
@@ -133,7 +137,8 @@ def output_folder_problem(folder: Path) -> str:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     """Command line of gls-sim-cell; ROS arguments after ``--ros-args`` go to every node (after the
-    cell's own, so that they win)."""
+    cell's own, so that they win).
+    """
     own_arguments, user_ros_arguments = split_ros_arguments(argv)
     parser = argparse.ArgumentParser(prog="gls-sim-cell", description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("reports/sim-cell"),
@@ -275,7 +280,8 @@ def cell_namespace(args: argparse.Namespace) -> str:
 
 def reference_plan(args: argparse.Namespace):
     """The plan the calibration of this command line would run: config/gls.yaml's, with the
-    ``--sweep-plan`` and ``--placement`` the cell's manager is given (see ``ros_arguments``)."""
+    ``--sweep-plan`` and ``--placement`` the cell's manager is given (see ``ros_arguments``).
+    """
     from gls_calibration.simulation.reference_plate import calibration_plan
 
     plan = replace(calibration_plan(config_path("gls.yaml")), placed_by_pose=args.placement == "pose")
@@ -287,7 +293,8 @@ def private_stream_remaps(args: argparse.Namespace) -> list[str]:
     contract, the profiles) into a one-shot cell's private namespace: its robot and scanner must not
     meet another cell's stream acquisition on the same ROS domain (seen: two runs at once, lines
     refused and profiles of the other cell's motions). None for a served cell or a ``--namespace``
-    the user chose (absolute names, as drivers use them) and for the sweep contract (no such topics)."""
+    the user chose (absolute names, as drivers use them) and for the sweep contract (no such topics).
+    """
     if args.serve or args.sweep_contract or args.namespace is not None:
         return []
     from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC
@@ -427,7 +434,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def run_calibration(args: argparse.Namespace, manager: CalibrationManager, threads: NodeThreads) -> int:
     """Call ``calibrate`` from a client node of the cell, with a progress bar; print the summary and
-    the time budget."""
+    the time budget.
+    """
     client_node = rclpy.create_node("sim_cell_client", namespace=manager.get_namespace(), context=manager.context)
     bar = ProgressBar(sys.stderr)
     client_node.create_subscription(CalibrationProgress, "calibration/progress", bar.update, 10)
@@ -461,7 +469,8 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager, threa
 def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, float]) -> str:
     """``report_dir/time_budget.json`` (the run's cell time, wall time per stage, CPU per node; see
     ``time_budget``) and the table printed from it. The simulated nodes' CPU (``sim_*``) is the
-    simulation's, not the pipeline's; CPU in threads a node does not own is not attributed."""
+    simulation's, not the pipeline's; CPU in threads a node does not own is not attributed.
+    """
     pipeline = {name: cpu for name, cpu in cpu_by_node.items() if not name.startswith("sim_")}
     simulation = {name: cpu for name, cpu in cpu_by_node.items() if name.startswith("sim_")}
     budget = {"cell_time_s": summary.get("cell_time_s"), "stage_wall_s": summary.get("stage_wall_s", {}),
@@ -486,7 +495,8 @@ def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, fl
 
 def measure_chain_map_file(args: argparse.Namespace) -> Path:
     """Measure the chain map of the calibration's lines on the simulated robot (the certified plate
-    swept along them, as a real cell would): DIR/chain_map.yaml."""
+    swept along them, as a real cell would): DIR/chain_map.yaml.
+    """
     from gls_calibration.registration.chain_map import save_chain_map
     from gls_calibration.simulation.reference_plate import FIELD_PLATE, measure_chain_map
 
@@ -500,7 +510,8 @@ def measure_chain_map_file(args: argparse.Namespace) -> Path:
 def measure_reference_check(args: argparse.Namespace) -> Path:
     """Measure the simulated reference plate with the calibration's plan, on the same robot, before
     the calibration (as a real cell checks its chain with a certified plate), with the run's chain map
-    applied when it has one: DIR/reference_check.yaml."""
+    applied when it has one: DIR/reference_check.yaml.
+    """
     from gls_calibration.registration.chain_map import load_chain_map
     from gls_calibration.simulation.reference_plate import FIELD_PLATE, chain_check, reference_plate_check
 

@@ -35,7 +35,8 @@ COLUMNS = ("x_cmd", "y_cmd", "x_meas", "y_meas")
 
 def read_measured(path: Path) -> tuple[np.ndarray, np.ndarray, Optional[float]]:
     """Commanded (N, 2) and measured (N, 2) points and the mean ``z_cmd`` (None without that column)
-    from the CSV; ValueError naming the problem."""
+    from the CSV; ValueError naming the problem.
+    """
     try:
         with path.open(newline="") as stream:
             reader = csv.DictReader(stream)
@@ -77,7 +78,8 @@ def _flatten(parameters: Mapping, prefix: str = "") -> dict[str, Any]:
 
 def _package_parameter_names() -> set[str]:
     """Every parameter name of the package's own parameter files (gls.yaml, head.yaml, sim.yaml): what
-    the cell's nodes read from the ``/**`` block they share."""
+    the cell's nodes read from the ``/**`` block they share.
+    """
     names: set[str] = set(TRAINER_PARAMETER_NAMES)
     for name in ("gls.yaml", "head.yaml", "sim.yaml"):
         document = read_config_file(config_path(name), "parameter file", lambda document: document)
@@ -93,7 +95,8 @@ def _known(name: str, known: set[str]) -> bool:
 def trainer_parameters(document: Any) -> dict[str, Any]:
     """The rbf_trainer's parameters of a ROS parameter file: the ``/**`` block every node reads, then
     the ``rbf_trainer`` block (which wins, as for the node; a namespaced ``/ns/rbf_trainer`` too).
-    ValueError when neither holds a grid-search parameter or a block names a parameter nobody reads."""
+    ValueError when neither holds a grid-search parameter or a block names a parameter nobody reads.
+    """
     if not isinstance(document, Mapping):
         raise ValueError(f"expected {LAYOUT}; got a {type(document).__name__} (not a parameter file)")
     merged: dict[str, Any] = {}

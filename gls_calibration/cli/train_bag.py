@@ -35,7 +35,8 @@ from gls_calibration.scan.bag_io import BagLayout, read_recording
 
 def plates_in(motion_count: int, settings: ProcedureSettings) -> int:
     """Plates a bag of ``motion_count`` motions (sweeps and stand-stills) holds; ValueError when it does not
-    hold whole plates."""
+    hold whole plates.
+    """
     standstills = 1 if settings.standstill_height else 0
     per_plate = settings.plain_sweeps + standstills + len(settings.sweep_plan)
     if motion_count % per_plate:
@@ -49,7 +50,8 @@ def plates_in(motion_count: int, settings: ProcedureSettings) -> int:
 def recording_settings(grid: int | None, size_mm: float | None, sweep_plan: str | None,
                        plain_sweeps: int | None, standstill: bool | None = None) -> ProcedureSettings:
     """Grid, plan, plain sweeps and stand-still height as given, else as ``config/gls.yaml`` has them;
-    ValueError naming a bad one."""
+    ValueError naming a bad one.
+    """
     from gls_calibration.cli.sim_record import grid_per_side, grid_size_mm, standstill_height
     from gls_calibration.registration.sweep_plan import parse_plan
     from gls_calibration.simulation.reference_plate import calibration_plan
@@ -64,7 +66,8 @@ def recording_settings(grid: int | None, size_mm: float | None, sweep_plan: str 
 
 def train_from_bag(args: argparse.Namespace, settings: ProcedureSettings) -> int:
     """Run the calibration from ``args.bag``; exit 0, 1 when the calibration failed, 2 on bad input.
-    ``settings``: grid, plan and plain sweeps of the recording (the mounting is taken from the bag)."""
+    ``settings``: grid, plan and plain sweeps of the recording (the mounting is taken from the bag).
+    """
     report_dir = args.out.with_name(args.out.name + ".report")
     try:
         require_regular_output(args.out)

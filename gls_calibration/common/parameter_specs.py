@@ -22,7 +22,8 @@ KINDS = ("integer", "number", "numbers", "flag")
 class ParameterSpec:
     """One parameter of a node. ``kind``: ``integer``, ``number`` (a double), ``flag`` (a bool) or
     ``numbers`` (a list of finite doubles, positive or, with ``minimum=0.0``, not negative; ROS ranges
-    do not apply to lists, the node checks them at start)."""
+    do not apply to lists, the node checks them at start).
+    """
 
     name: str
     default: Any
@@ -51,7 +52,8 @@ class ParameterSpec:
 
     def check(self, value: Any, what: str) -> Any:
         """``value`` of a parameter file (as YAML reads it) when the node would take it; ValueError naming
-        ``what`` and the parameter otherwise."""
+        ``what`` and the parameter otherwise.
+        """
         key = f"{what} {self.name!r}"
         if self.kind == "flag":
             if not isinstance(value, bool):

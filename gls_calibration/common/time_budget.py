@@ -38,7 +38,8 @@ SWEEP_STAGE = "sweep_marked"
 @dataclass(frozen=True)
 class StageTimes:
     """Wall time per stage (s, in the order the stages first came) and from the last marked-plate
-    sweep to the result (s; NaN without a marked-plate sweep followed by another message)."""
+    sweep to the result (s; NaN without a marked-plate sweep followed by another message).
+    """
 
     wall_s: Mapping[str, float] = field(default_factory=dict)
     last_sweep_to_result_s: float = math.nan
@@ -76,7 +77,8 @@ class StageClock:
 
 def thread_cpu_s(thread: threading.Thread) -> float:
     """CPU time (s) a running thread has used so far; NaN when it has ended or the platform cannot
-    tell (``time.pthread_getcpuclockid``)."""
+    tell (``time.pthread_getcpuclockid``).
+    """
     if not thread.is_alive():    # the ident of an ended thread names no clock (pthread: undefined)
         return math.nan
     try:

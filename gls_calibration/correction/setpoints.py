@@ -197,7 +197,8 @@ class Correction:
 
     def prepare(self) -> None:
         """Build what the models evaluate large requests with (a spline's tiles: 60-150 ms) now, not
-        on the first large request; safe to call from another thread while this correction serves."""
+        on the first large request; safe to call from another thread while this correction serves.
+        """
         for model in self.models:
             prepare = getattr(model, "prepare", None)
             if prepare is not None:
@@ -410,7 +411,8 @@ def available_workers() -> int:
 
 def _worker_slices(count: int, workers: int) -> list[slice]:
     """Contiguous parts of ``count`` targets for up to ``workers`` threads, cut at multiples of BLOCK_ROWS,
-    none shorter than ``_MIN_ROWS_PER_WORKER`` (a short last part joins the one before it)."""
+    none shorter than ``_MIN_ROWS_PER_WORKER`` (a short last part joins the one before it).
+    """
     workers = max(1, min(workers, count // _MIN_ROWS_PER_WORKER))
     if workers == 1:
         return [slice(0, count)]
@@ -424,7 +426,8 @@ def _worker_slices(count: int, workers: int) -> list[slice]:
 
 def _pool(workers: int) -> ThreadPoolExecutor:
     """A shared pool of at least ``workers`` threads (started once, not per request). From its start
-    on, BLAS runs on one thread in this process."""
+    on, BLAS runs on one thread in this process.
+    """
     with _pool_lock:
         if not _shared_pool or _shared_pool[0][0] < workers:
             # The workers are the parallelism: under each of them a threaded BLAS would start threads of

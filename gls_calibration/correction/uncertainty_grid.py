@@ -94,7 +94,8 @@ class UncertaintyGrid:
 
     def inside_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """U at points of the calibrated field: clamped to the grid's box (no NaN), with the fast
-        cell lookup when the nodes are equally spaced (the documented evaluator clamps the same way)."""
+        cell lookup when the nodes are equally spaced (the documented evaluator clamps the same way).
+        """
         if self._uniform:
             return self._uniform_at(np.asarray(x, float), np.asarray(y, float))
         x = np.clip(np.asarray(x, float), self.x_mm[0], self.x_mm[-1])

@@ -162,7 +162,8 @@ def screen(selection: Selection, current: EffectsFit, remaining: Sequence[str],
     """Every remaining candidate added to ``current``: one Gauss-Newton step for all, a full fit for the
     ``FULL_FITS`` whose step drops the chi-square most unless even that cannot pay for its parameters
     (a drop below half its penalty). For the others the step stands: its chi-square is that of a real
-    model, so it never overstates their gain."""
+    model, so it never overstates their gain.
+    """
     steps = linearised_extensions(selection.predict, selection.measured_xy, current, remaining, selection.known,
                                   selection.sigma_axis_mm)
     penalty = math.log(selection.observations) if selection.criterion == "bic" else 2.0

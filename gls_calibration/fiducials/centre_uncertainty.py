@@ -1,5 +1,6 @@
 """The standard uncertainty of a fitted ring centre: sector jackknife, the edge noise's spectrum,
-moderation towards the plate's typical variance (step 4 of :mod:`gls_calibration.fiducials.measure`)."""
+moderation towards the plate's typical variance (step 4 of :mod:`gls_calibration.fiducials.measure`).
+"""
 from __future__ import annotations
 
 import numpy as np
@@ -34,14 +35,16 @@ def _harmonic_design(angles: np.ndarray) -> np.ndarray:
 
     (a, b) is the centre's offset from the ray origin (first order, exact at the fixed point of the
     passes); the second harmonic takes up ellipticity (tilt, unequal pixel pitch, an uncalibrated
-    scanner's distortion) so that it neither enters the residuals nor the uncertainty."""
+    scanner's distortion) so that it neither enters the residuals nor the uncertainty.
+    """
     return np.stack([np.ones_like(angles), np.cos(angles), np.sin(angles), np.cos(2 * angles),
                      np.sin(2 * angles)], axis=-1)
 
 
 def _sector_sums(values: np.ndarray, sector_of_ray: np.ndarray) -> np.ndarray:
     """Sums of ``values`` (M, A, ...) over the rays of each sector (M, SECTORS, ...); the rays of a
-    sector are contiguous and ``sector_of_ray`` is sorted, so this is one ``reduceat``."""
+    sector are contiguous and ``sector_of_ray`` is sorted, so this is one ``reduceat``.
+    """
     starts = np.searchsorted(sector_of_ray, np.arange(SECTORS))
     return np.add.reduceat(values, starts, axis=1)
 

@@ -54,7 +54,8 @@ CANDIDATE_BLOCK = 32
 
 def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm: float):
     """Bin centres (B,) and the mean profile with its first and second derivatives (each (B,)) of
-    ``values`` against ``rho`` (1-D, mm); empty bins take their neighbours' values."""
+    ``values`` against ``rho`` (1-D, mm); empty bins take their neighbours' values.
+    """
     edges = np.arange(-band_mm - 3 * bin_mm, band_mm + 3 * bin_mm + 0.5 * bin_mm, bin_mm)
     index = np.digitize(rho, edges)
     counts = np.bincount(index, minlength=len(edges) + 1)[1:-1]
@@ -70,7 +71,8 @@ def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm:
 def _window(pitch_mm: tuple[float, float], jacobian: np.ndarray, inner_mm: float, outer_mm: float):
     """Pixel offsets (N, 2) as (column, row) around a candidate's centre pixel that can fall between
     ``inner_mm`` and ``outer_mm`` of it (the plate's typical pixel map, a pixel of slack), and an
-    index (S, L) of them per angular sector, padded with N (a row of zeros is appended there)."""
+    index (S, L) of them per angular sector, padded with N (a row of zeros is appended there).
+    """
     half_rows, half_cols = int(np.ceil(outer_mm / pitch_mm[0])) + 1, int(np.ceil(outer_mm / pitch_mm[1])) + 1
     rows, cols = np.mgrid[-half_rows:half_rows + 1, -half_cols:half_cols + 1]
     offsets = np.stack([cols.ravel(), rows.ravel()], -1)

@@ -1,5 +1,6 @@
 """The plate as an image: an organized cloud as it is, an unorganized one rasterised on the plate plane
-(step 1 of :mod:`gls_calibration.fiducials.measure`)."""
+(step 1 of :mod:`gls_calibration.fiducials.measure`).
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -63,7 +64,8 @@ the image's median."""
 @dataclass(frozen=True)
 class _PlateImage:
     """Intensity image with a per-pixel plane position: the organized cloud's point (through the plate
-    pose) or uv = raster_origin + raster_matrix @ (col, row)."""
+    pose) or uv = raster_origin + raster_matrix @ (col, row).
+    """
 
     intensity: np.ndarray          # (H, W) float32, marks dark, no NaN
     cloud_xyz: np.ndarray | None   # (H, W, 3) the organized cloud's point per pixel, NaN allowed
@@ -76,7 +78,8 @@ class _PlateImage:
 def _fill_missing(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Fill invalid pixels with the mean of the valid ones in the smallest box of ``FILL_BOX_SIZES``
     around them holding any (borders reflected as ``cv2.BORDER_REFLECT``); beyond the largest, the
-    median of the valid pixels."""
+    median of the valid pixels.
+    """
     if valid.all():
         return image
     filled = image.astype(np.float32)
@@ -132,7 +135,8 @@ def _finite_points(xyz: np.ndarray, intensity: np.ndarray) -> np.ndarray:
 
 def _median_spacing(lines_uv: np.ndarray, axis: int) -> float:
     """Median distance (mm) between neighbouring pixels' plane positions ``lines_uv`` (..., 2) along
-    image axis ``axis``."""
+    image axis ``axis``.
+    """
     with np.errstate(invalid="ignore", over="ignore"):     # missing or absurd points drop out below
         steps = np.diff(lines_uv, axis=axis)
         lengths = np.hypot(steps[..., 0], steps[..., 1]).ravel()
@@ -241,7 +245,8 @@ def _point_spacing(xyz: np.ndarray, keep: np.ndarray, pose: PlatePose, turn: np.
 
 def _edge_turn(points: np.ndarray) -> np.ndarray:
     """Rotation (2, 2) that turns 2-D ``points`` (N, 2) so that the edges of their minimum-area
-    rectangle lie along the axes (by at most 45 deg)."""
+    rectangle lie along the axes (by at most 45 deg).
+    """
     with np.errstate(over="ignore", invalid="ignore"):     # absurd coordinates fail the size check later
         edge_deg = cv2.minAreaRect(points.astype(np.float32))[2]
     turn_rad = np.deg2rad((edge_deg + 45.0) % 90.0 - 45.0)

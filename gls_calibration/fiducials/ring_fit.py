@@ -1,5 +1,6 @@
 """Sub-pixel double-ring centres: rays in plate millimetres, edge points, the ring model's weighted fit
-(step 3 of :mod:`gls_calibration.fiducials.measure`)."""
+(step 3 of :mod:`gls_calibration.fiducials.measure`).
+"""
 from __future__ import annotations
 
 import cv2
@@ -45,7 +46,8 @@ start is within about 20 um, where the ring model's first-order centre is exact 
 
 def _sample_bicubic(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
     """Bicubic samples (``cv2.INTER_CUBIC``) of ``image`` at float32 (column, row) positions (M, ...);
-    NaN outside."""
+    NaN outside.
+    """
     count = len(map_x)
     shape = map_x.shape
     map_x, map_y = map_x.reshape(count, -1), map_y.reshape(count, -1)
@@ -85,7 +87,8 @@ def _peak(score: np.ndarray, low: np.ndarray, width: int):
     """Sub-sample argmax of ``score`` (M, A, S) within sample indices [low, low + width) per candidate.
 
     ``low`` (M,) must keep the window and one neighbour on each side inside the profile. Returns
-    the fractional index (M, A) and whether the maximum is interior (a real peak, not an end)."""
+    the fractional index (M, A) and whether the maximum is interior (a real peak, not an end).
+    """
     index = low[:, None, None] + np.arange(width)[None, None, :]                   # (M, 1, W)
     window = np.take_along_axis(score, np.broadcast_to(index, score.shape[:2] + (width,)), -1)
     best = np.argmax(window, axis=-1)
@@ -102,7 +105,8 @@ def _peak(score: np.ndarray, low: np.ndarray, width: int):
 def _row_nanquantile(values: np.ndarray, quantile: float) -> np.ndarray:
     """Per row of ``values`` (M, N) the ``quantile`` (0-1, linear interpolation) of its finite entries,
     NaN for a row without any: ``np.nanpercentile`` along rows, with one sort for all rows instead of
-    numpy's loop over the rows that hold a NaN."""
+    numpy's loop over the rows that hold a NaN.
+    """
     ordered = np.sort(np.where(np.isfinite(values), values, np.nan), axis=1)      # NaN sorts last
     last = np.isfinite(values).sum(axis=1) - 1
     position = np.maximum(last, 0) * quantile
@@ -146,7 +150,8 @@ def _edge_weights(peak_score: np.ndarray, usable: np.ndarray) -> np.ndarray:
 
     A ray's edge error grows as its rings' contrast falls (marks fainter along the path, a line
     sampled between points), so rays are weighed by how clearly they see the rings, relative to the
-    same fiducial's other rays rather than against a fixed threshold."""
+    same fiducial's other rays rather than against a fixed threshold.
+    """
     median = _row_nanquantile(np.where(usable, peak_score, np.nan), 0.5)
     relative = peak_score / np.where(median > 0, median, np.inf)[:, None]
     return np.clip(relative, 0.0, EDGE_WEIGHT_MAX) ** EDGE_WEIGHT_POWER
@@ -275,7 +280,8 @@ def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, in
                   directions: np.ndarray, radial: np.ndarray) -> np.ndarray:
     """Image samples along rays (M, A, S) laid out in plate mm from ``centres``; NaN outside.
 
-    Rays map to pixels through each candidate's inverse affine map (pixel = J^-1 (uv - offset))."""
+    Rays map to pixels through each candidate's inverse affine map (pixel = J^-1 (uv - offset)).
+    """
     start = np.einsum("mij,mj->mi", inverse, centres - offset).astype(np.float32)      # (M, 2)
     heading = np.einsum("mij,aj->mai", inverse, directions).astype(np.float32)          # (M, A, 2)
     map_x = start[:, None, None, 0] + heading[..., 0, None] * radial                    # (M, A, S)

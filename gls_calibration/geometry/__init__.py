@@ -1,2 +1,3 @@
 """Stage 0, the head: nominal kinematics, the physical ray-trace model and its named effects, the head
-configuration file."""
+configuration file.
+"""

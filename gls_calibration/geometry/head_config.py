@@ -103,7 +103,8 @@ def head_config_from_dict(document: Any) -> tuple[HeadGeometry, HeadEffects]:
 
 def effects_from_mapping(effects: Any, what: str) -> HeadEffects:
     """Named effects from a YAML mapping ``name: [parameters...]`` (a lone number for one parameter);
-    ValueError names a bad value or an unknown effect."""
+    ValueError names a bad value or an unknown effect.
+    """
     effects = effects or {}
     if not isinstance(effects, Mapping):
         raise ValueError(f"{what} must be a mapping of effect name to parameters, got {effects!r}")

@@ -1,5 +1,6 @@
 """The Gaussian RBF network trained by orthogonal least squares (forward selection of centres, as
-MATLAB's ``newrb``): the seed paper's model."""
+MATLAB's ``newrb``): the seed paper's model.
+"""
 from __future__ import annotations
 
 from collections.abc import Mapping

@@ -91,7 +91,8 @@ class ThinPlateSplineModel:
 
     def _tiled(self) -> Optional[tps_tiles.TiledKernelSum]:
         """The tiled evaluator, built once on first use (60-150 ms; loading a file stays fast), or None
-        where it failed its accuracy check."""
+        where it failed its accuracy check.
+        """
         if self._tiles is None:
             with TILES_LOCK:
                 if self._tiles is None:
@@ -138,7 +139,8 @@ class ThinPlateSplineModel:
 
     def _blocks(self, points: np.ndarray, result: Optional[np.ndarray] = None) -> np.ndarray:
         """The spline (M, 2) at ``points`` (M, 2) summed exactly block by block (added to ``result``
-        when given: its affine part)."""
+        when given: its affine part).
+        """
         if result is None:
             result = points @ self.affine[1:]
             result += self.affine[0]

@@ -167,7 +167,8 @@ class ServiceCell:
 
     async def use_candidate(self, candidate) -> None:
         """Evaluate ``candidate`` here from now on (its correction as built, not its file read again);
-        the correction node does not see it."""
+        the correction node does not see it.
+        """
         self.candidate = candidate.correction
 
     async def reload_active(self) -> None:
@@ -262,7 +263,8 @@ class CalibrationManager(GlsNode):
     def _apply_settable(self, requested: dict) -> Optional[str]:
         """``ros2 param set`` of settable parameters (``requested``: every settable one, the requested
         values in): refused during a run or when invalid (the reason returned), otherwise in use from
-        the next run."""
+        the next run.
+        """
         values = {parameter.name: _plain(self.get_parameter(parameter.name).value) for parameter in MANAGER_PARAMETERS}
         requested = {name: _plain(value) for name, value in requested.items()}
         names = ", ".join(sorted(name for name, value in requested.items() if value != values[name])) or "nothing"
@@ -347,7 +349,8 @@ class CalibrationManager(GlsNode):
     async def _run(self, request, response, feedback: Optional[Callable[[str, float, str], None]],
                    cancel_requested: Callable[[], bool]) -> str:
         """One calibration into ``response`` (service response or action result); its final status:
-        "succeeded", "aborted" or "canceled". Whatever ends it early, the active calibration stays."""
+        "succeeded", "aborted" or "canceled". Whatever ends it early, the active calibration stays.
+        """
         began = time.monotonic()
         for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "cv_rms_mm", "stated_rms_mm"):
             setattr(response, name, math.nan)   # what a failed run answers

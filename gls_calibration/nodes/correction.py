@@ -37,7 +37,8 @@ NOMINAL_ID = "nominal"
 class Served:
     """What answers corrections, swapped as one value (the batch service reads it from another
     thread): the correction (None: refused with ``problem``), its id and creation time, the file it
-    came from ("" for the nominal model) and its description in the diagnostics."""
+    came from ("" for the nominal model) and its description in the diagnostics.
+    """
 
     correction: Optional[Correction]
     calibration_id: str = NOMINAL_ID
@@ -139,7 +140,8 @@ class CorrectionNode(GlsNode):
                calibration_id: str = NOMINAL_ID, created: Optional[datetime] = None,
                summary: Optional[dict] = None) -> None:
         """Serve ``correction`` (None: refuse corrections with ``problem``); ``summary`` describes it
-        in the diagnostics (default: the nominal model's)."""
+        in the diagnostics (default: the nominal model's).
+        """
         if correction is None:
             self.served = Served(None, "", None, problem, file, {"active_calibration_id": "none"})
         else:
@@ -170,7 +172,8 @@ class CorrectionNode(GlsNode):
 
     async def answer(self, worker: GlsNode, request, response):
         """Fill ``response`` for ``request``; between chunks, ``worker`` (the node whose executor runs
-        this) serves what else is waiting."""
+        this) serves what else is waiting.
+        """
         # One snapshot: a reload between chunks must not mix two calibrations in one answer.
         served = self.served
         correction = served.correction
@@ -211,7 +214,8 @@ class CorrectionNode(GlsNode):
 
 class BatchCorrectionNode(GlsNode):
     """``correct_setpoints_batch``: the same answers as ``correct_setpoints`` (same calibration, same
-    limits, from its owner), on an executor of its own."""
+    limits, from its owner), on an executor of its own.
+    """
 
     def __init__(self, owner: CorrectionNode, **kwargs) -> None:
         super().__init__(f"{owner.get_name()}_batch", namespace=owner.get_namespace(), **kwargs)

@@ -38,7 +38,8 @@ class PlatePoseNode(GlsNode):
 
 def head_direction(value) -> tuple[float, float, float]:
     """The ``head_direction`` parameter's value as 3 floats; ValueError unless 3 finite numbers, not all
-    zero (a zero direction orients no normal; checked at start, not at the first request)."""
+    zero (a zero direction orients no normal; checked at start, not at the first request).
+    """
     items = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else []
     numbers = [float(item) for item in items
                if isinstance(item, (int, float)) and not isinstance(item, bool) and math.isfinite(float(item))]

@@ -208,7 +208,8 @@ class ScanAcquisitionNode(GlsNode):
 
     def _end_problem(self, done: SweepDone, collector: SweepCollector) -> str:
         """Why an end of sweep with this sweep's id cannot be its end (empty when it can): its count
-        must be the scanner's announcement when complete, and no less than what already came."""
+        must be the scanner's announcement when complete, and no less than what already came.
+        """
         if done.complete and done.profiles != self.expected_profiles:
             return (f"it counts {done.profiles} profiles, complete, but the scanner announced "
                     f"{self.expected_profiles}")
@@ -226,7 +227,8 @@ class ScanAcquisitionNode(GlsNode):
         An end of sweep that contradicts the scanner's announcement or what was received is not
         believed (a spoof): it is forgotten with a warning and the acquisition waits for the real one,
         so that it never returns while the scanner is still sweeping. An end saying the sweep was cut
-        short is believed only once ``MALFORMED_GRACE_S`` old with no more profiles than it counts."""
+        short is believed only once ``MALFORMED_GRACE_S`` old with no more profiles than it counts.
+        """
         collector = self.collector
         if self.sweep_id is None or collector is None:
             return False
@@ -251,7 +253,8 @@ class ScanAcquisitionNode(GlsNode):
 
     async def on_acquire_standstill(self, request, response):
         """Profiles taken standing still (as many as a sweep of the request's length and step), as
-        an organized cloud placed by the reported pose; refused without the pose stream."""
+        an organized cloud placed by the reported pose; refused without the pose stream.
+        """
         if not self.use_poses:
             response.success = False
             response.message = ("a stand-still acquisition needs the reported pose (use_pose_stream is false): "
@@ -351,7 +354,8 @@ class ScanAcquisitionNode(GlsNode):
         """Before a sweep: await the end of the sweep a failed acquisition left running, so that the
         scanner is free. At most ``timeout_s`` (this sweep's limit), and no longer than the larger of
         that acquisition's limit and ``timeout_s`` (the parameter) after it failed; a scanner that leaves
-        the graph ends the wait. Then the sweep is asked for anyway (the scanner says if it is busy)."""
+        the graph ends the wait. Then the sweep is asked for anyway (the scanner says if it is busy).
+        """
         unfinished = self.unfinished
         if unfinished is None:
             return
@@ -371,7 +375,8 @@ class ScanAcquisitionNode(GlsNode):
 
     def _unit_problem(self, points: np.ndarray, stamp_s: float) -> bool:
         """True (the first such profile's problem kept for the answer) when the profile's median point
-        distance from the sensor lies outside ``RANGE_WINDOW_MM``: not in ``profile_unit``."""
+        distance from the sensor lies outside ``RANGE_WINDOW_MM``: not in ``profile_unit``.
+        """
         median = median_point_distance(np.stack([points["x"], points["y"], points["z"]], axis=-1))
         low, high = RANGE_WINDOW_MM
         if math.isnan(median) or low <= median <= high:     # no finite point says nothing of the unit

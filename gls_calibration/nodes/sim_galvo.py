@@ -41,7 +41,8 @@ class SimGalvoNode(GlsNode):
 
     def on_mark(self, request, response):
         """Mark every polyline; ``success=false`` with the reason on malformed or unreachable commands.
-        A repeated request id gets the first answer again and marks nothing."""
+        A repeated request id gets the first answer again and marks nothing.
+        """
         return self.answered.answer(request.request_id, lambda: self._mark(request, response))
 
     def _mark(self, request, response):

@@ -88,13 +88,15 @@ class SimScannerNode(GlsNode):
     @answers_errors(ValueError)
     async def on_start_sweep(self, request, response):
         """Load the plate's marks, then start publishing the sweep; a repeated request id gets the
-        first answer again and starts nothing."""
+        first answer again and starts nothing.
+        """
         return await self.answered.answer_async(request.request_id, lambda: self._start_sweep(request, response))
 
     @answers_errors(ValueError)
     async def on_start_standstill(self, request, response):
         """Load the plate's marks, then publish profiles taken standing still; a repeated request id
-        gets the first answer again."""
+        gets the first answer again.
+        """
         return await self.answered.answer_async(request.request_id,
                                                 lambda: self._start_sweep(request, response, standstill=True))
 

@@ -225,7 +225,8 @@ class StreamAcquisitionNode(GlsNode):
 
     def _complete(self) -> bool:
         """The motion ended and a profile and a flange pose stamped after its end came, or the streams have
-        been quiet for ``end_grace_s`` since."""
+        been quiet for ``end_grace_s`` since.
+        """
         session = self.session      # read once: the acquisition may close it in another executor thread
         if session is None or session.end_ns is None or not session.started:
             return False

@@ -1,2 +1,3 @@
 """Stage 3, registration: measured centres onto the targets, combination of sweeps and separation of the
-scanner's errors."""
+scanner's errors.
+"""

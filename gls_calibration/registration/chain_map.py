@@ -78,7 +78,8 @@ MAX_ERROR_MM = 5.0
 
 def travel_axis(line: str) -> int:
     """Index of the B axis along which line ``line`` (a sweep-plan label) travels: 1 (y) for the
-    sensor as mounted, 0 (x) for the sensor turned 90 deg."""
+    sensor as mounted, 0 (x) for the sensor turned 90 deg.
+    """
     (item,) = parse_plan(line)
     return 1 if item.orientation_deg == 0.0 else 0
 
@@ -140,7 +141,8 @@ class LineMap:
 
     def error_mm(self, xy_mm: np.ndarray) -> np.ndarray:
         """The line's error (N, 2) (B x, y, mm) at points ``xy_mm`` (N, 2+) of B; ValueError for a
-        point beyond the first or last knot (the map says nothing there)."""
+        point beyond the first or last knot (the map says nothing there).
+        """
         xy = np.asarray(xy_mm, dtype=float)
         u = xy[:, travel_axis(self.line)]
         knots = self.knots_mm
@@ -161,7 +163,8 @@ class LineMap:
 class ChainMap:
     """Repeating errors of the programmed lines (one :class:`LineMap` each), as measured against a
     plate with known centres (``reference``), averaged over ``sweeps_per_line`` sweeps per line;
-    ``residual_rms_mm`` the per-axis RMS (B x, y) of the reference centres about the fit."""
+    ``residual_rms_mm`` the per-axis RMS (B x, y) of the reference centres about the fit.
+    """
 
     lines: tuple[LineMap, ...]
     reference: str
@@ -218,14 +221,16 @@ class ChainMap:
 
     def correct_measurement(self, found, item: SweepPass, pose) -> Any:
         """A ``FiducialMeasurement`` of a sweep ``item`` with its centres corrected (B frame) and its
-        plate coordinates recomputed on the plate ``pose`` (``PlatePose``)."""
+        plate coordinates recomputed on the plate ``pose`` (``PlatePose``).
+        """
         centres = self.correct(item.label, found.centres)
         return replace(found, centres=centres, centres_plane=pose.to_plane(centres))
 
     @property
     def identity(self) -> str:
         """``sha256:`` and 16 hex digits of the map's content: what a reference check and a calibration
-        record to say which map their sweeps were corrected with."""
+        record to say which map their sweeps were corrected with.
+        """
         text = json.dumps(self.to_dict(), sort_keys=True)
         return "sha256:" + hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -247,7 +252,8 @@ def chain_map_identity(chain_map: Optional[ChainMap]) -> str:
 def correct_measurements(chain_map: Optional[ChainMap], measurements: Sequence, passes: Sequence[SweepPass],
                          pose) -> list:
     """Every sweep's measurement with the map of its line removed (``measurements`` in the order of
-    ``passes``); unchanged when ``chain_map`` is None. ValueError when a line is not mapped."""
+    ``passes``); unchanged when ``chain_map`` is None. ValueError when a line is not mapped.
+    """
     if chain_map is None:
         return list(measurements)
     if not isinstance(chain_map, ChainMap):
@@ -261,7 +267,8 @@ def correct_measurements(chain_map: Optional[ChainMap], measurements: Sequence, 
 class ReferenceSweep:
     """One sweep of a plate with known centres: its line (sweep-plan label), which plate placement
     it saw (``plate``: sweeps of one placement share the plate's unknown pose), the known centres
-    (M, 2, the plate's own frame, mm) and where the sweep measured them (M, 2+, B frame, mm)."""
+    (M, 2, the plate's own frame, mm) and where the sweep measured them (M, 2+, B frame, mm).
+    """
 
     line: str
     plate: int
@@ -273,7 +280,8 @@ class ReferenceSweep:
 class ChainMapFit:
     """How the map is fitted: knot spacing (mm), the knots' reach beyond the measured centres (mm),
     the smoothness prior (std of a second difference of knot values, mm), the ridge fixing a common
-    shift of every line (mm), and the per-centre measurement sigma that weighs the data (mm)."""
+    shift of every line (mm), and the per-centre measurement sigma that weighs the data (mm).
+    """
 
     knot_spacing_mm: float = 10.0
     margin_mm: float = 10.0

@@ -119,7 +119,8 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: Ru
 
 def _stored_uncertainty(outcome: CalibrationOutcome):
     """The candidate record's ``uncertainty`` mapping (the budget), or None (the record in hand, not
-    its file read back)."""
+    its file read back).
+    """
     record = outcome.candidate.record
     return None if record is None else record.get(UNCERTAINTY_KEY)
 
@@ -127,7 +128,8 @@ def _stored_uncertainty(outcome: CalibrationOutcome):
 def training_csv_text(run) -> str:
     """The first plate's fiducials as gls-train reads them: commanded targets, the height they were
     commanded at and the measured centres (gls frame, mm). Training from it reproduces the run's
-    model when the plate was marked through the nominal model (the first calibration of a head)."""
+    model when the plate was marked through the nominal model (the first calibration of a head).
+    """
     height = {(float(x), float(y)): float(z) for x, y, z in run.targets}
     z_cmd = [height[(float(x), float(y))] for x, y in run.paired_targets_xy]
     rows = np.column_stack([run.paired_targets_xy, z_cmd, run.measured_gls[:, :2]]).tolist()

@@ -73,7 +73,8 @@ class GlsNode(Node):
 
     def join_workers(self, timeout_s: float) -> list[str]:
         """Join the threads of :meth:`start_worker` (``timeout_s`` for all); the names of those still
-        running, each logged."""
+        running, each logged.
+        """
         deadline = time.monotonic() + timeout_s
         with self._workers_lock:
             workers = list(self._workers)
@@ -130,7 +131,8 @@ class GlsNode(Node):
                         allow_empty: bool = False, length: int | None = None) -> list[float]:
         """Declare a list-of-numbers parameter and check it at start (ROS ranges do not apply to lists):
         finite, positive (or not negative), not empty unless allowed, of ``length`` when given.
-        ValueError naming the parameter otherwise, so a bad value stops the node at start with the reason."""
+        ValueError naming the parameter otherwise, so a bad value stops the node at start with the reason.
+        """
         values = self.declare(name, default, description)
         if values is None and allow_empty:
             values = []    # rcl reads "[]" (file or -p) as no value: an empty list has no element type
@@ -157,7 +159,8 @@ class GlsNode(Node):
 
     def client(self, srv_type: type, name: str):
         """A client in the reentrant group, so that coroutine callbacks can await it, with a deep
-        answer queue (``CLIENT_QOS``)."""
+        answer queue (``CLIENT_QOS``).
+        """
         return self.create_client(srv_type, name, qos_profile=CLIENT_QOS, callback_group=self.reentrant_group)
 
     async def call(self, client, request: Any, timeout_s: float, *, server_wait_s: float = SERVER_WAIT_S,

@@ -134,7 +134,8 @@ OPTIONAL_SETPOINT_FIELDS = ("uncertainty_k2_mm",)     # filled where the message
 def start_setpoints_response(response) -> dict[str, array.array]:
     """Empty the array fields of a CorrectSetpoints response and return them by ``CorrectedSetpoints``
     field name, to be extended chunk by chunk (``append_setpoints``): nothing of the whole answer's
-    size is allocated, concatenated or converted at once while the interpreter lock is held."""
+    size is allocated, concatenated or converted at once while the interpreter lock is held.
+    """
     sequences = {}
     for field in fields(CorrectedSetpoints):
         if field.name in OPTIONAL_SETPOINT_FIELDS and not hasattr(response, field.name):

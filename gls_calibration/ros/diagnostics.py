@@ -48,7 +48,8 @@ NOMINAL_SUMMARY = {"active_calibration_id": "nominal", "model_type": "none (nomi
 
 def record_summary(record: Mapping) -> dict[str, object]:
     """Diagnostic values of the active calibration's record: id, creation time, model types and
-    the RMS measured last; :func:`with_age` turns the creation time into an age."""
+    the RMS measured last; :func:`with_age` turns the creation time into an age.
+    """
     content_hash, created = record_identity(record)
     values: dict[str, object] = {
         "active_calibration_id": content_hash, "created_s": created.timestamp(),

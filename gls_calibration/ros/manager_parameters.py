@@ -183,7 +183,8 @@ class ManagerConfig:
 
 def numbers_value(name: str, value: Any) -> tuple[float, ...]:
     """A list-of-numbers parameter's value as floats; ValueError naming ``name`` when it is not one
-    (rcl reads ``[]`` as no value at all: None)."""
+    (rcl reads ``[]`` as no value at all: None).
+    """
     items = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else None
     if not items or not all(isinstance(item, (int, float)) and not isinstance(item, bool) for item in items) \
             or not all(math.isfinite(float(item)) for item in items):
@@ -195,7 +196,8 @@ def value_problem(parameter: ManagerParameter, value: Any) -> str:
     """Why ``value`` (as YAML reads a ``-p`` rule) cannot be ``parameter``'s (empty when its type can).
 
     rcl keeps a parameter file's value when a ``-p`` rule gives one of another type, silently: a tool
-    that passes parameter files checks its user's rules with this first."""
+    that passes parameter files checks its user's rules with this first.
+    """
     if parameter.kind == "integer":
         fits = isinstance(value, int) and not isinstance(value, bool)
         wanted = "an integer"
@@ -222,7 +224,8 @@ def value_problem(parameter: ManagerParameter, value: Any) -> str:
 def manager_config(values: Mapping[str, Any]) -> ManagerConfig:
     """The manager's configuration from the value of every parameter of the table; ValueError naming
     the parameter when a value cannot be used (also for a combination, e.g. default_iterations above
-    max_iterations)."""
+    max_iterations).
+    """
     def number(name: str) -> float:
         return float(values[name])
 

@@ -24,7 +24,8 @@ _SPECIAL_FLOATS = {".nan": math.nan, ".inf": math.inf, "+.inf": math.inf, "-.inf
 
 def parameter_rules(argv: Sequence[str]) -> list[str]:
     """The ``-p``/``--param`` rules among the ROS arguments of ``argv`` (from ``--ros-args`` to
-    ``--`` or the end), in their order (rcl applies them so: the last one of a name wins)."""
+    ``--`` or the end), in their order (rcl applies them so: the last one of a name wins).
+    """
     rules, inside, tokens = [], False, iter(argv)
     for token in tokens:
         if token in ("--ros-args", "--"):
@@ -38,7 +39,8 @@ def parameter_rules(argv: Sequence[str]) -> list[str]:
 
 def _reaches(target: str, node: Node) -> Optional[str]:
     """The parameter name of the rule target ``target`` when it reaches ``node`` (None otherwise):
-    ``name`` reaches every node; ``node:name`` the node whose full name matches ``node``."""
+    ``name`` reaches every node; ``node:name`` the node whose full name matches ``node``.
+    """
     prefix, colon, name = target.rpartition(":")
     if not colon:
         return target
@@ -112,7 +114,8 @@ def rule_applied(text: str, held: Any) -> bool:
 
 def unapplied_rule_problem(node: Node, argv: Sequence[str]) -> str:
     """Why a ``-p`` rule of ``argv`` that reaches ``node`` is not what the node holds (empty when every
-    one is). Only parameters the node declares are checked; the last rule of a name counts."""
+    one is). Only parameters the node declares are checked; the last rule of a name counts.
+    """
     last: dict[str, tuple[str, str]] = {}
     for rule in parameter_rules(argv):
         target, assign, text = rule.partition(":=")

@@ -281,7 +281,8 @@ def cloud_to_msg(points_mm: np.ndarray, frame_id: str, stamp: Time | None = None
 
 def cloud_from_msg(msg: PointCloud2, mm_per_unit: float = MM_PER_M) -> np.ndarray:
     """The float32 x, y, z, intensity cloud (mm, a copy) of a PointCloud2 in metres, or in the unit
-    of which one is ``mm_per_unit`` mm (1.0 for a driver that publishes millimetres)."""
+    of which one is ``mm_per_unit`` mm (1.0 for a driver that publishes millimetres).
+    """
     view = pointcloud2_to_array(msg)
     _require_fields(view, _XYZ + ("intensity",))
     points = np.empty(view.shape, dtype=xyzi_dtype())

@@ -73,7 +73,8 @@ class AnsweredRequests:
 
     async def answer_async(self, request_id: UUID, serve: Callable[[], Awaitable[Any]]) -> Any:
         """As :meth:`answer`, for coroutine handlers that interleave: a repeat that arrives while its
-        first request is being served awaits that service's answer."""
+        first request is being served awaits that service's answer.
+        """
         key = id_key(request_id)
         if key == NO_ID:
             return await serve()

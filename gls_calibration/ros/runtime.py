@@ -30,7 +30,8 @@ THREAD_JOIN_TIMEOUT_S = 10.0
 def with_companions(node: Node) -> tuple[Node, ...]:
     """``node`` and its companions (``node.companions``: nodes of the same process that need an
     executor thread of their own, e.g. the correction's batch service), to be spun and destroyed
-    with it."""
+    with it.
+    """
     return (node, *getattr(node, "companions", ()))
 
 
@@ -72,7 +73,8 @@ class NodeThreads:
 
     def cpu_s(self) -> dict[str, float]:
         """CPU time (s) each node's executor thread has used so far, by node name (``time_budget``);
-        read it while the threads spin (an ended thread gives NaN)."""
+        read it while the threads spin (an ended thread gives NaN).
+        """
         from gls_calibration.common.time_budget import thread_cpu_s
 
         return {node.get_name(): thread_cpu_s(thread) for node, thread in zip(self.nodes, self.threads)}

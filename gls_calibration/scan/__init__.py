@@ -1,2 +1,3 @@
 """Stage 1, scans: laser-line profiles assembled into sweeps (live, streamed through TF, or from a bag),
-the plate's pose, old marks."""
+the plate's pose, old marks.
+"""

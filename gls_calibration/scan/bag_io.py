@@ -103,7 +103,8 @@ class ReplayedSweep:
     @property
     def standstill(self) -> bool:
         """Whether the robot stood still (travel below ``STANDSTILL_TRAVEL_MM``); ValueError when the
-        travel is unknown."""
+        travel is unknown.
+        """
         travel = self.travel_mm
         if not np.isfinite(travel):
             raise ValueError(f"motion from {self.start_ns} to {self.end_ns} ns: its first or last profile has no "
@@ -218,7 +219,8 @@ class BagRecorder:
                      base_to_flange_mm: np.ndarray) -> None:
         """Profiles (H, W, 4: x, y, z in m, intensity) and flange poses (N, 4, 4, mm), in time order, poses
         first at equal stamps; outside a motion they are what a scanner streams while the robot is not
-        sweeping."""
+        sweeping.
+        """
         layout = self.layout
         events = sorted([(int(t), 0, i) for i, t in enumerate(flange_stamps_ns)]
                         + [(int(t), 1, i) for i, t in enumerate(profile_stamps_ns)])

@@ -40,7 +40,8 @@ class MarkEvidence:
 
     def marked(self, max_outlying_points: int, max_cluster_points: int | None = None) -> bool:
         """True when more points than ``max_outlying_points`` lie outside the texture, or more than
-        ``max_cluster_points`` (when given) make one cluster."""
+        ``max_cluster_points`` (when given) make one cluster.
+        """
         return self.outlying_points > max_outlying_points or (
             max_cluster_points is not None and self.largest_cluster > max_cluster_points)
 
@@ -49,7 +50,8 @@ def existing_marks(intensity, sigmas: float = 6.0, *, points=None, cluster_sigma
                    cluster_radius_mm: float = 6.0) -> MarkEvidence:
     """Count the points of ``intensity`` (any shape; NaN = no return) beyond ``sigmas`` robust deviations;
     with ``points`` (intensity's shape + (3,), mm), also the largest cluster of points beyond
-    ``cluster_sigmas`` within ``cluster_radius_mm`` (a fiducial's extent) of one of them."""
+    ``cluster_sigmas`` within ``cluster_radius_mm`` (a fiducial's extent) of one of them.
+    """
     sigmas = as_positive_number(sigmas, "sigmas")
     values = np.asarray(intensity, dtype=np.float64)
     finite = np.isfinite(values)

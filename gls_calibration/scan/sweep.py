@@ -80,7 +80,8 @@ class ProfileRules:
     def format_problem(self, field_types: dict[str, str], big_endian: bool) -> str:
         """Why a profile whose fields declare ``field_types`` (name -> numpy type name) and byte order
         ``big_endian`` is not in the sensor's declared format (empty when it is; a missing field is
-        for :func:`profile_problem`)."""
+        for :func:`profile_problem`).
+        """
         if bool(big_endian) != self.big_endian:
             return f"byte order {'big' if big_endian else 'little'}-endian, the sensor declares {self.describe()}"
         other = {name: kind for name, kind in field_types.items() if name in XYZI_FIELDS and kind != self.field_type}
@@ -92,7 +93,8 @@ class ProfileRules:
     def announcement_problem(self, announced: int, length_mm: float, step_mm: float) -> str:
         """Why a scanner's announced profile count contradicts a sweep's length and step (empty when
         it does not, or when either is 0: left to the driver): floor(L / s) + 1 profiles, within
-        ``count_slack``."""
+        ``count_slack``.
+        """
         if length_mm <= 0.0 or step_mm <= 0.0:
             return ""
         expected = math.floor(length_mm / step_mm + 1e-9) + 1
@@ -154,7 +156,8 @@ def profile_problem(stamp_s: float, profile: np.ndarray) -> str:
 
 def median_point_distance(xyz: np.ndarray) -> float:
     """Median distance of the finite points (N, 3) from the sensor's origin, in their unit; NaN when none
-    is finite. A profile's unit shows in it: a line scanner sees its plate tens to hundreds of mm away."""
+    is finite. A profile's unit shows in it: a line scanner sees its plate tens to hundreds of mm away.
+    """
     xyz = np.asarray(xyz, dtype=float)
     distance = np.sqrt(np.einsum("...i,...i->...", xyz, xyz))     # linalg.norm, several times faster on (N, 3)
     distance = distance[np.isfinite(distance)]
@@ -273,7 +276,8 @@ class SweepCollector:
 
     def members(self, window_s: float = math.inf) -> np.ndarray:
         """Boolean mask of the kept profiles that form the sweep: the most common layout, and of
-        those the most that fit in one time window of ``window_s`` (see :func:`stamp_window_s`)."""
+        those the most that fit in one time window of ``window_s`` (see :func:`stamp_window_s`).
+        """
         mask = np.zeros(len(self._profiles), dtype=bool)
         if not self._profiles:
             return mask

@@ -100,7 +100,8 @@ class TfBuffer:
     def _edge(self, child: str, stamps_ns: np.ndarray, max_age_ns: int, where: str
               ) -> tuple[np.ndarray, dict[int, str]]:
         """Poses of ``child`` in its parent at ``stamps_ns`` ((n, 4, 4) or one (4, 4) for a static edge) and
-        the failures (index of the stamp -> message; those rows are NaN)."""
+        the failures (index of the stamp -> message; those rows are NaN).
+        """
         if child in self._static:
             return self._static[child], {}
         track = self._track(child)
@@ -139,7 +140,8 @@ class TfBuffer:
     def _to_root(self, frame: str, stamps_ns: np.ndarray, max_age_ns: int, where: str,
                  failures: list[Optional[str]]) -> tuple[str, Optional[np.ndarray]]:
         """Root of ``frame``'s tree and the poses of ``frame`` in the root ((n, 4, 4); None: the identity);
-        a stamp's first failing edge, walking up, is written into ``failures`` unless one is there."""
+        a stamp's first failing edge, walking up, is written into ``failures`` unless one is there.
+        """
         pose = None
         while frame in self._parent:
             edge, failed = self._edge(frame, stamps_ns, max_age_ns, where)
@@ -153,7 +155,8 @@ class TfBuffer:
     def try_lookup_many(self, target: str, source: str, stamps_ns: Sequence[int], max_age_ns: int,
                         where: str = "tf") -> tuple[np.ndarray, list[Optional[str]]]:
         """Poses of ``source`` in ``target`` at each of ``stamps_ns`` ((n, 4, 4), mm; NaN where it failed) and
-        for each stamp None or the message :meth:`lookup` raises at that stamp (prefixed ``where``)."""
+        for each stamp None or the message :meth:`lookup` raises at that stamp (prefixed ``where``).
+        """
         stamps_ns = np.asarray(stamps_ns)
         if stamps_ns.ndim != 1 or not (np.issubdtype(stamps_ns.dtype, np.integer) or stamps_ns.size == 0):
             raise ValueError(f"{where}: stamps must be a sequence of integer nanoseconds")
@@ -185,7 +188,8 @@ class TfBuffer:
     def lookup_many(self, target: str, source: str, stamps_ns: Sequence[int], max_age_ns: int,
                     where: str = "tf") -> np.ndarray:
         """Poses of ``source`` in ``target`` at each of ``stamps_ns`` ((n, 4, 4), mm); ValueError: the first
-        failing stamp's message, as :meth:`lookup` at that stamp raises it."""
+        failing stamp's message, as :meth:`lookup` at that stamp raises it.
+        """
         poses, failures = self.try_lookup_many(target, source, stamps_ns, max_age_ns, where)
         first = next((failure for failure in failures if failure is not None), None)
         if first is not None:

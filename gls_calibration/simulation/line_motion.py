@@ -53,7 +53,8 @@ class MotionRun:
 
     def flange_at(self, stamps_ns: np.ndarray) -> np.ndarray:
         """Reported flange poses (N, 4, 4) at ``stamps_ns``: linear in time between the profiles' poses
-        (slerp for the rotation), held before the first and after the last."""
+        (slerp for the rotation), held before the first and after the last.
+        """
         knots = self.profile_stamps_ns.astype(float)
         times = np.clip(np.asarray(stamps_ns, dtype=float), knots[0], knots[-1])
         poses = np.repeat(np.eye(4)[None], times.size, axis=0)
@@ -67,7 +68,8 @@ class MotionRun:
 
     def after_profiles(self) -> tuple[np.ndarray, np.ndarray]:
         """Stamps (ns) and profiles the scanner streams after the motion's end (the robot stands at its
-        end: the last profile again), as a running sensor keeps streaming."""
+        end: the last profile again), as a running sensor keeps streaming.
+        """
         period = int(self.profile_stamps_ns[1] - self.profile_stamps_ns[0]) if self.profile_stamps_ns.size > 1 \
             else NS_PER_S // 10
         stamps = self.end_ns + period * np.arange(1, AFTER_PROFILES + 1, dtype=np.int64)

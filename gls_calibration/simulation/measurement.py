@@ -176,7 +176,8 @@ KEYS = tuple(item.name for item in fields(MeasurementChain))
 
 def measurement_from_mapping(block: Any, preset: str | None = None) -> tuple[str, MeasurementChain]:
     """(preset, chain) from a ``measurement`` block; ``preset`` (e.g. from the command line) overrides
-    the block's own. ValueError names an unknown preset or key, a bad value or a conflict."""
+    the block's own. ValueError names an unknown preset or key, a bad value or a conflict.
+    """
     block = {} if block is None else block
     if not isinstance(block, Mapping):
         raise ValueError(f"'measurement' must be a mapping, got {type(block).__name__}")
@@ -203,7 +204,8 @@ def measurement_from_mapping(block: Any, preset: str | None = None) -> tuple[str
 
 def smooth_process(rng: np.random.Generator, positions_mm, std: float, correlation_mm: float) -> np.ndarray:
     """A smooth zero-mean random process sampled at ``positions_mm`` (any order): standard deviation
-    ``std``, Gaussian autocorrelation of length ``correlation_mm``. Zeros when ``std`` is 0."""
+    ``std``, Gaussian autocorrelation of length ``correlation_mm``. Zeros when ``std`` is 0.
+    """
     positions = np.asarray(positions_mm, dtype=float)
     if std == 0.0 or positions.size == 0:
         return np.zeros_like(positions)
@@ -260,7 +262,8 @@ def lateral_linearity_shape(x_mm, half_length_mm: float) -> np.ndarray:
     """The sensor's fixed lateral linearity shape along the line, peak 1 over ``|x| <= half_length_mm``.
 
     A property of the sensor, the same in every sweep: a smooth mix of low orders (its linear part
-    is a scale error of the line, as a real sensor's calibration leaves one)."""
+    is a scale error of the line, as a real sensor's calibration leaves one).
+    """
     s = np.asarray(x_mm, dtype=float) / half_length_mm
     shape = 0.55 * np.sin(0.5 * np.pi * s) + 0.35 * np.sin(1.3 * np.pi * s + 0.7) + 0.25 * np.cos(2.2 * np.pi * s)
     peak = np.max(np.abs(0.55 * np.sin(0.5 * np.pi * _UNIT) + 0.35 * np.sin(1.3 * np.pi * _UNIT + 0.7)

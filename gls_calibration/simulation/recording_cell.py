@@ -64,7 +64,8 @@ class RecordingCell(DirectCell):
 
     def _record(self, data) -> Cloud:
         """Write one motion's stream (profiles, flange poses, start and end) and assemble it as a subscriber
-        would."""
+        would.
+        """
         sensor_mm = data.sensor_points()
         sensor_mm[..., 1] = np.where(np.isfinite(sensor_mm[..., 1]), 0.0, np.nan)   # a line sensor measures y = 0
         profiles_m = np.concatenate([sensor_mm / MM_PER_M, data.intensity[..., None]], axis=-1).astype(np.float32)
@@ -97,5 +98,6 @@ class RecordingCell(DirectCell):
 
 def base_to_gls(config) -> np.ndarray:
     """The galvo head's frame in the recording's robot base frame (mm): ``config.scanner_to_gls`` (the
-    CAD mounting of a :class:`~gls_calibration.simulation.world.SimConfig`) inverted."""
+    CAD mounting of a :class:`~gls_calibration.simulation.world.SimConfig`) inverted.
+    """
     return np.linalg.inv(config.scanner_to_gls)

@@ -81,7 +81,8 @@ FIELD_PLATE = ReferencePlateDesign(pattern=(19, 19), pitch_mm=10.0, positions_mm
 class MeasurementPlan:
     """How a plate is measured: the passes over it (``sweep_plan.SweepPass``), profiles placed by the
     robot's reported pose or by time, the plain sweeps whose plate planes are averaged (0: the
-    plane of the first pass), and the sweeps' profile steps (plain and marked plate)."""
+    plane of the first pass), and the sweeps' profile steps (plain and marked plate).
+    """
 
     passes: tuple[SweepPass, ...] = (SweepPass(),)
     placed_by_pose: bool = False
@@ -116,7 +117,8 @@ def calibration_plan(parameter_file: str | Path | None = None) -> MeasurementPla
     """The plan the calibration manager runs with ``parameter_file`` (default: the package's
     ``config/gls.yaml``): its ``sweep.plan``, ``sweep.placed_by_pose``, ``sweep.plain_repeats``,
     ``sweep.plain_step_mm`` and ``sweep.marked_step_mm``, the procedure's defaults for keys the file
-    leaves out. ValueError naming the file and key."""
+    leaves out. ValueError naming the file and key.
+    """
     defaults = ProcedureSettings()
 
     def parse(document: Any) -> MeasurementPlan:
@@ -167,7 +169,8 @@ def measure_plate(config: SimConfig, plate: Plate, plan: MeasurementPlan, seed: 
                   known_gls: np.ndarray, chain_map: ChainMap | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Measure ``plate`` with ``plan`` as the calibration measures its marked plate (with
     ``chain_map`` removed from every sweep when given); the measured centres (M, 3, gls frame through
-    the CAD mounting) and the known ones (M, 3) they pair with."""
+    the CAD mounting) and the known ones (M, 3) they pair with.
+    """
     scanner = config.make_scanner()
     mounting = config.scanner_to_gls
     settings = ProcedureSettings(ring_radii_mm=RING_RADII_MM, sweep_plan=plan.passes,
@@ -202,7 +205,8 @@ def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 
                           chain_map: ChainMap | None = None) -> ReferencePlateResult:
     """Scan the reference plate ``design`` at ``positions`` (plate-centre offsets, mm; None: the
     design's) with ``plan``; ``chain_map`` removed from every sweep when given (a calibration that
-    runs with a chain map must state its accuracy from a check made with it)."""
+    runs with a chain map must state its accuracy from a check made with it).
+    """
     positions = design.positions_mm if positions is None else positions
     residuals, measured_all, known_all, found, expected = [], [], [], 0, 0
     for index, offset in enumerate(positions):
@@ -282,7 +286,8 @@ def chain_check(result: ReferencePlateResult, plan: MeasurementPlan, config: Sim
                 design: ReferencePlateDesign = PAPER_PLATE, chain_map: ChainMap | None = None) -> ChainCheck:
     """The reference check of ``plan`` (``result`` of :func:`reference_plate_check` on ``design``, with
     ``chain_map`` applied) as the calibration manager reads it (``stated_accuracy``): what the cell may
-    state its accuracy from."""
+    state its accuracy from.
+    """
     return ChainCheck(sigma_mm=result.sigma_mm, plan=plan.label, placement=plan.placement,
                       reference=(f"simulated reference plate, {design.label}; preset "
                                  f"{config.measurement_preset}, cell seed {config.seed}, check seed {seed}"),

@@ -207,7 +207,8 @@ class LaserLineScanner:
 
     def _robot_field(self, component: int, direction: int, orientation_deg: float):
         """The robot's repeating error ``component`` (0 along, 1 across, 2 height; 3 the line's scale,
-        a number) for lines of this travel direction and sensor orientation, drawn once and kept."""
+        a number) for lines of this travel direction and sensor orientation, drawn once and kept.
+        """
         key = (component, direction, orientation_deg)
         if key not in self._robot_fields:
             c = self.chain
@@ -227,7 +228,8 @@ class LaserLineScanner:
 
         The reported travel is the robot's timing (what its encoders see); the true travel, across and
         height add what the robot cannot see: per-sweep wander and the errors that repeat per line,
-        evaluated where the sensor is in the base frame."""
+        evaluated where the sensor is in the base frame.
+        """
         c = self.chain
         nominal = np.arange(rows) * step
         if start is None:
@@ -268,7 +270,8 @@ class LaserLineScanner:
         """Measured xyz (count, W, 3), placed by time in the start frame, and intensity (count, W).
 
         ``plane`` (normal, origin in gls) replaces the plate's plane where the rays end (the stand-still
-        acquisition: the plate as the robot-held head sees it in its marking pose)."""
+        acquisition: the plate as the robot-held head sees it in its marking pose).
+        """
         s, c = self.settings, self.chain
         x = self.line_x()
         rows = slice(first, first + count)
@@ -395,7 +398,8 @@ class LaserLineScanner:
                    marking_pose_error: tuple[float, float, float] = (0.0, 0.0, 0.0),
                    period_s: float | None = None) -> Iterator[Profile]:
         """The profiles of :meth:`standstill_data` one by one (sensor frame, y = 0; the reported pose
-        is where the sensor stands)."""
+        is where the sensor stands).
+        """
         data = self.standstill_data(plate, profiles, seed, position_mm, marking_pose_error, period_s)
         for row in range(data.xyz.shape[0]):
             points = np.empty(data.xyz.shape[1], dtype=PROFILE_DTYPE)
@@ -419,7 +423,8 @@ class LaserLineScanner:
                     step_mm: float | None = None, seed: int = 0, direction: int = 1,
                     orientation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """The whole sweep as an organized cloud placed by time: xyz (H, W, 3) and intensity (H, W),
-        float32, in the sweep's start frame (B for the default sweep). Same numbers as :meth:`sweep`."""
+        float32, in the sweep's start frame (B for the default sweep). Same numbers as :meth:`sweep`.
+        """
         data = self.sweep_data(plate, length_mm, speed_mm_s, step_mm, seed, direction, orientation_deg)
         return data.xyz, data.intensity
 

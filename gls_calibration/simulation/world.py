@@ -76,7 +76,8 @@ class SimConfig:
         """Seed of the plate with id ``plate_id`` loaded into this cell's fixture (0: the first one).
 
         The only rule for it: the galvo's plate and the scanner's copy of it (rebuilt from the id the
-        galvo reports) must draw the same texture, marking-pose error, thermal scale and warp."""
+        galvo reports) must draw the same texture, marking-pose error, thermal scale and warp.
+        """
         return self.seed if plate_id == 0 else [self.seed, int(plate_id)]
 
     def make_plate(self) -> Plate:
@@ -214,7 +215,8 @@ class SimulatedCell:
     def sweep_cloud(self, step_mm: float | None = None, seed: int | None = None, direction: int = 1,
                     orientation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """One sweep over the configured length placed by time: organized xyz (H, W, 3) and intensity
-        (H, W), in the sweep's start frame (the scanner base frame for the default sweep)."""
+        (H, W), in the sweep's start frame (the scanner base frame for the default sweep).
+        """
         data = self.sweep_data(step_mm, seed, direction, orientation_deg)
         return data.xyz, data.intensity
 
@@ -227,7 +229,8 @@ class SimulatedCell:
 
     def standstill_data(self, profiles: int, seed: int) -> SweepData:
         """``profiles`` profiles with the robot standing still at the marking pose, the sensor over the
-        middle of the sweep (see ``LaserLineScanner.standstill_data``): the plate as the head sees it."""
+        middle of the sweep (see ``LaserLineScanner.standstill_data``): the plate as the head sees it.
+        """
         return self.scanner.standstill_data(self.plate, profiles, seed=seed,
                                             position_mm=(0.0, 0.5 * self.config.sweep_length_mm, 0.0),
                                             marking_pose_error=self.plate.marking_pose_error)
