@@ -128,7 +128,9 @@ class PlateRun:
 
 @dataclass(frozen=True)
 class Candidate:
-    """A calibration saved (not activated) during a run: its file, its validated record and the
+    """A calibration saved (not activated) during a run, with its validated record.
+
+    A calibration saved (not activated) during a run: its file, its validated record and the
     correction it describes; it travels as this object (``Cell.use_candidate``), never re-read.
     """
 
@@ -245,7 +247,9 @@ def _full(metrics: Optional[DeviationMetrics], name: str) -> float:
 
 def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = None,
               placement: str = "pose", *, measurement_preset: str = "") -> RunSummary:
-    """The run summary of ``outcome``; ``chain_check`` (the reference check of the chain, measured
+    """Return the run summary of ``outcome`` with the stated accuracy and measurement preset.
+
+    The run summary of ``outcome``; ``chain_check`` (the reference check of the chain, measured
     with the plan the run used and profiles placed by ``placement``) gives the stated accuracy;
     ``measurement_preset`` names the simulated measurement chain (empty: a real cell).
     """
@@ -304,7 +308,9 @@ def _certificate(outcome: CalibrationOutcome, check: Optional[ChainCheck]) -> di
 
 
 def _kinds(outcome: CalibrationOutcome) -> dict:
-    """Which kind each figure of ``outcome`` is, the active calibration's validation figures, and
+    """Return the kind of each figure of ``outcome`` and the figures the candidate was judged by.
+
+    Which kind each figure of ``outcome`` is, the active calibration's validation figures, and
     what the candidate was judged against.
     """
     validation, active = outcome.validation, outcome.active_validation

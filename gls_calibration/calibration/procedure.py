@@ -53,14 +53,18 @@ class Cell(Protocol):
     """
 
     async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Any:
-        """Sweep the scanner over the plate with ``step_mm`` between profiles, along the sensor's +y
+        """Sweep the scanner over the plate and return the cloud in the scanner (base) frame.
+
+        Sweep the scanner over the plate with ``step_mm`` between profiles, along the sensor's +y
         (``direction`` 1) or -y (-1), the sensor turned by ``orientation_deg`` (0 or 90) about its
         viewing axis; the cloud in the scanner (base) frame, whatever the direction and orientation,
         placed by the robot's reported pose where the cell has one (see ``scan/sweep.py``).
         """
 
     async def acquire_standstill(self, profiles: int) -> Any:
-        """``profiles`` profiles taken with the robot standing still in the pose the marks are made
+        """Take ``profiles`` profiles with the robot standing still in the marking pose.
+
+        ``profiles`` profiles taken with the robot standing still in the pose the marks are made
         from (no travel), as a cloud in the scanner (base) frame like ``acquire_sweep``'s: the plate
         height at marking (``settings.standstill_height``). Needs its own random draws on a simulated
         cell, never those of the sweeps.
@@ -71,56 +75,74 @@ class Cell(Protocol):
 
     async def measure_fiducials(self, cloud: Any, pose: PlatePose, expected_count: int,
                                 ring_radii_mm: tuple[float, ...]) -> FiducialMeasurement:
-        """Centres (scanner frame, mm) of the ring fiducials found in ``cloud`` on the plate ``pose``;
+        """Find the centres (scanner frame, mm) of the ring fiducials in ``cloud``.
+
+        Centres (scanner frame, mm) of the ring fiducials found in ``cloud`` on the plate ``pose``;
         ``expected_count`` fiducials were marked (a hint, not a promise) with rings of ``ring_radii_mm``
         (the procedure's settings: the radii it marked with, the one owner).
         """
 
     async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> CorrectedSetpoints:
-        """Setpoints that land on the targets (x, y, z) (gls frame, mm) through the calibration loaded
+        """Return setpoints that land on the targets through the cell's loaded calibration.
+
+        Setpoints that land on the targets (x, y, z) (gls frame, mm) through the calibration loaded
         in the cell (the nominal model when none is); ``within_limits`` flags the reachable ones.
         """
 
     async def mark(self, alpha_x: np.ndarray, alpha_y: np.ndarray, focus_shift: np.ndarray,
                    polyline_starts: np.ndarray) -> float:
-        """Mark polylines: mirror angles (rad) and focus shift (mm) per point, ``polyline_starts`` the
+        """Mark polylines given as mirror angles and focus shift; return the marking time (s).
+
+        Mark polylines: mirror angles (rad) and focus shift (mm) per point, ``polyline_starts`` the
         index of each polyline's first point (starts with 0). Returns the marking time in seconds.
         """
 
     async def train(self, landed_xy: np.ndarray, corrections: np.ndarray) -> TrainedModel:
-        """A model of the correction to add at a target, trained on the landed points P (N, 2) and the
+        """Train a model of the correction to add at a target from landed points and corrections.
+
+        A model of the correction to add at a target, trained on the landed points P (N, 2) and the
         corrections K(Q) - K(P) (N, 2) (gls frame, mm); see ``training.train_correction``.
         """
 
     async def use_candidate(self, candidate: Candidate) -> None:
-        """Make the cell correct through ``candidate`` (saved, not active) from now on: its correction
-        as it is, not its file read again.
+        """Make the cell correct through ``candidate`` (saved, not active) from now on.
+
+        Its correction as it is, not its file read again.
         """
 
     async def reload_active(self) -> None:
-        """Make the cell correct through the store's active calibration again (the nominal model when
+        """Make the cell correct through the store's active calibration again.
+
+        Make the cell correct through the store's active calibration again (the nominal model when
         there is none): what a failed run calls to drop a candidate it loaded.
         """
 
     async def exchange_plate(self) -> None:
-        """Put a clean plate in the cell (second iteration, validation); CalibrationError when the cell
-        cannot.
+        """Put a clean plate in the cell (second iteration, validation).
+
+        CalibrationError when the cell cannot.
         """
 
     async def true_marks(self) -> Optional[list[np.ndarray]]:
-        """Simulation only: the polylines really marked on the current plate ((M, 3) each, gls frame,
+        """Return the polylines really marked on the current plate (simulation only).
+
+        Simulation only: the polylines really marked on the current plate ((M, 3) each, gls frame,
         mm), in marking order; None on a real cell.
         """
 
     def start(self, step: Coroutine[Any, Any, T]) -> Awaitable[T]:
-        """Begin ``step`` (a coroutine of this cell) now, beside what the procedure awaits next, and
+        """Begin ``step`` now, beside what the procedure awaits next; return what to await.
+
+        Begin ``step`` (a coroutine of this cell) now, beside what the procedure awaits next, and
         return what to await for its result; the procedure measures a sweep while it scans the next.
         A cell that cannot run steps side by side returns ``step`` itself (it then runs when awaited).
         Not a coroutine: it only schedules.
         """
 
     def points_and_intensities(self, cloud: Any) -> tuple[np.ndarray, np.ndarray]:
-        """The points (..., 3) (mm, any frame a rigid motion from the plate's) and the intensity (...)
+        """Return the points (..., 3) mm and intensity (...) of a cloud from ``acquire_sweep``.
+
+        The points (..., 3) (mm, any frame a rigid motion from the plate's) and the intensity (...)
         of every point of a cloud from ``acquire_sweep`` (NaN: no return), for the check that the
         plain plate carries no old marks. Not a coroutine: the cloud is here.
         """
@@ -253,7 +275,9 @@ def check_clean_plate(points: np.ndarray, intensity: np.ndarray, settings: Proce
 
 
 def centre_uncertainty_mm(run: PlateRun, settings: ProcedureSettings) -> float:
-    """Standard uncertainty (mm, per axis) of one measured centre of ``run``: the RMS of the
+    """Return the standard uncertainty (mm, per axis) of one measured centre of ``run``.
+
+    Standard uncertainty (mm, per axis) of one measured centre of ``run``: the RMS of the
     per-centre figures the measurement stated, never below ``settings.measurement_uncertainty_mm``.
 
     The floor stands for what the fits cannot see (robot path, plate height, timing); a plate that
@@ -303,7 +327,9 @@ def acceptance_problem(before_rms_mm: float, after_rms_mm: float, uncertainty_mm
 
 def combined_centres_gls(measurements: list[FiducialMeasurement], settings: ProcedureSettings, targets: np.ndarray,
                          pose_scanner: PlatePose) -> tuple[np.ndarray, CombinedSweeps]:
-    """The centres (K, 3, gls frame) of the marked plate from every sweep of ``settings.sweep_plan``
+    """Combine the marked plate's centres (K, 3, gls frame) from every sweep of the plan.
+
+    The centres (K, 3, gls frame) of the marked plate from every sweep of ``settings.sweep_plan``
     (``sweep_plan.combine_sweeps``, placement as the settings say), put on the plate plane
     ``pose_scanner``; and the combination. ``measurements`` are in the plan's order; with a
     ``settings.chain_map`` each sweep's centres lose their line's repeating error first.
@@ -319,7 +345,9 @@ def combined_centres_gls(measurements: list[FiducialMeasurement], settings: Proc
 
 
 async def plate_height_at_marking(cell: Cell, settings: ProcedureSettings, pose_scanner: PlatePose) -> PlatePose:
-    """``pose_scanner`` (from the sweeps) moved to the plate height measured standing still at the
+    """Move ``pose_scanner`` to the plate height measured standing still at the marking pose.
+
+    ``pose_scanner`` (from the sweeps) moved to the plate height measured standing still at the
     marking pose.
 
     Each sweep's path is off by the robot's repeatability; the mean of a few sweeps still leaves the

@@ -32,7 +32,9 @@ TAPER_MM = 10.0   # fade of the correction beyond the calibrated region (correct
 
 
 def region_around(targets_xy: np.ndarray, ring_radii_mm: Sequence[float], plane_z_mm: float = 0.0) -> CalibratedRegion:
-    """The one rule of the calibrated region: the box of the fiducial targets (N, 2), padded by the
+    """Return the calibrated region: the fiducial targets' box padded by the outer ring radius.
+
+    The one rule of the calibrated region: the box of the fiducial targets (N, 2), padded by the
     outer ring radius so that whole rings stay inside, on the plane ``z = plane_z_mm`` where the plate
     was measured.
     """
@@ -80,7 +82,9 @@ def calibration_record(geometry: HeadGeometry, *, plate_pose, models: Sequence[M
 def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequence[PlateRun],
                  models: Sequence[TrainedModel], existing_models: Sequence[Mapping],
                  chain_check: Optional[ChainCheck] = None) -> CalibrationRecord:
-    """The record of a run whose ``models`` were trained on ``runs`` (after ``existing_models``),
+    """Build the record of a run from its trained ``models`` and its certificate's U map.
+
+    The record of a run whose ``models`` were trained on ``runs`` (after ``existing_models``),
     with its certificate's U map (``uncertainty``; its chain term from ``chain_check`` when that
     was made with the run's plan, assumed otherwise). A model the certificate does not cover (physics
     first) leaves the map out: the file then serves NaN, as an older file does.
@@ -115,7 +119,9 @@ def record_models(record: Mapping) -> list[dict]:
 
 
 def correction_from_record(record: Mapping, geometry: HeadGeometry) -> Correction:
-    """The correction a record describes (ValueError when its models or region are unusable, or
+    """Build the correction a record describes; ValueError when it is unusable.
+
+    The correction a record describes (ValueError when its models or region are unusable, or
     when its field is not finite or beyond the physical limit: :meth:`Correction.check_field`).
     """
     models = [model_from_dict(model) for model in record["models"]]
@@ -151,7 +157,9 @@ def record_fiducials(record: Mapping) -> tuple[np.ndarray, np.ndarray]:
 
 
 def record_identity(record: Mapping) -> tuple[str, datetime]:
-    """Which calibration a record is: a content hash (sha256 of its YAML, 16 hex digits) and its
+    """Return a record's content hash (sha256 of its YAML, 16 hex digits) and creation time.
+
+    Which calibration a record is: a content hash (sha256 of its YAML, 16 hex digits) and its
     creation time (UTC); what a correction answer names so that a client knows who answered.
     """
     content_hash = hashlib.sha256(dump_record(record).encode("utf-8")).hexdigest()[:16]

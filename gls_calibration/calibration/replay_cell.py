@@ -21,7 +21,9 @@ from gls_calibration.scan.bag_io import ReplayedSweep
 
 
 class ReplayCell(CoreCell):
-    """``procedure.Cell`` whose sweeps and stand-stills are ``sweeps`` in order (each checked to be the
+    """A ``procedure.Cell`` that replays recorded sweeps and stand-stills in order.
+
+    ``procedure.Cell`` whose sweeps and stand-stills are ``sweeps`` in order (each checked to be the
     kind asked for); calibrations live in ``store``.
     """
 

@@ -130,13 +130,17 @@ class CalibrationStore:
         return sorted(entries, key=lambda path: (int(_HISTORY_NAME.match(path.name).group(2)), path.name))
 
     def load(self, path: str | os.PathLike) -> CalibrationRecord:
-        """Read and validate one calibration file of this store (relative paths are taken inside the
+        """Read and validate one calibration file of this store.
+
+        Read and validate one calibration file of this store (relative paths are taken inside the
         history); a path that leads outside the store's directory, even through a symlink, is refused.
         """
         return load_record(self.confined(path))
 
     def confined(self, path: str | os.PathLike) -> Path:
-        """``path`` (relative: inside the history) once resolved inside the store's directory;
+        """Resolve ``path`` inside the store's directory; CalibrationFileError if it leads outside.
+
+        ``path`` (relative: inside the history) once resolved inside the store's directory;
         CalibrationFileError when it leads outside (``..``, absolute paths elsewhere, symlinks).
 
         Whether a path leads outside is decided before asking whether it exists (symlinks that exist

@@ -81,7 +81,9 @@ class Contribution:
 
 @dataclass(frozen=True)
 class TrainingData:
-    """One model's training: where (landed P, (N, 2) mm), what (corrections (N, 2) mm), how well
+    """One model's training: where, what, how well measured, and the model's dict.
+
+    One model's training: where (landed P, (N, 2) mm), what (corrections (N, 2) mm), how well
     measured (per-axis standard uncertainty of each centre, (N,) mm) and the model's dict.
     """
 
@@ -93,7 +95,9 @@ class TrainingData:
 
 @dataclass(frozen=True)
 class UncertaintyBudget:
-    """The certificate's budget: each contribution's per-axis standard uncertainty (RMS and max
+    """The certificate's budget: each contribution, U over the grid and field-wide figures.
+
+    The certificate's budget: each contribution's per-axis standard uncertainty (RMS and max
     over the grid, k = 1), U (95 % radius) over the grid, its field-wide figures, how it was made.
     """
 
@@ -314,7 +318,9 @@ def run_sigma_mm(sigma: Optional[np.ndarray], count: int, floor_mm: float) -> np
 def run_budget(runs: Sequence[Any], models: Sequence[Any], settings: Any, region: Mapping[str, float],
                working_distance_mm: float, check: Optional[ChainCheck],
                certificate: CertificateSettings = CertificateSettings()) -> UncertaintyBudget:
-    """The budget of a calibrate flow's ``runs`` (``PlateRun``) and the ``models`` (``TrainedModel``)
+    """Return the uncertainty budget of a calibrate flow's ``runs`` and their trained ``models``.
+
+    The budget of a calibrate flow's ``runs`` (``PlateRun``) and the ``models`` (``TrainedModel``)
     trained on them, with the procedure's ``settings``; the check counts when made with the same
     plan, placement and chain map (as for the stated accuracy).
     """

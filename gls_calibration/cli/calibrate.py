@@ -18,7 +18,9 @@ CANCEL_WAIT_S = 300.0   # the current step (a sweep, a marking job) ends before 
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Exit 0 when the calibration succeeded, 1 when it failed or timed out, 2 on bad arguments,
+    """Run gls-calibrate; return its exit code.
+
+    Exit 0 when the calibration succeeded, 1 when it failed or timed out, 2 on bad arguments,
     130 when canceled with Ctrl-C.
     """
     own_arguments, ros_arguments = split_ros_arguments(argv)

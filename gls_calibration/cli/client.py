@@ -1,4 +1,6 @@
-"""What the operator tools share: ROS arguments, waiting for a service answer, a progress bar, the
+"""What the operator tools share: ROS arguments, service waits, a progress bar, the summary.
+
+What the operator tools share: ROS arguments, waiting for a service answer, a progress bar, the
 summary table.
 """
 from __future__ import annotations
@@ -24,7 +26,9 @@ from unique_identifier_msgs.msg import UUID
 
 
 def split_ros_arguments(argv: Sequence[str] | None) -> tuple[list[str], list[str]]:
-    """(the tool's own arguments, the whole command line for rclpy, which reads only what follows
+    """Split a command line into the tool's own arguments and the command line for rclpy.
+
+    (the tool's own arguments, the whole command line for rclpy, which reads only what follows
     ``--ros-args``) of e.g. ``gls-calibrate --iterations 2 --ros-args -r __ns:=/cell2``; None means
     sys.argv[1:].
     """
@@ -33,7 +37,9 @@ def split_ros_arguments(argv: Sequence[str] | None) -> tuple[list[str], list[str
 
 
 def ros_rules(argv: Sequence[str], *flags: str) -> list[str]:
-    """The values given to ``flags`` (e.g. ``-p``, ``--param``) among the ROS arguments of ``argv`` (from
+    """Return the values given to ``flags`` among the ROS arguments of ``argv``, in their order.
+
+    The values given to ``flags`` (e.g. ``-p``, ``--param``) among the ROS arguments of ``argv`` (from
     ``--ros-args`` to ``--`` or the end), in their order: rcl applies them so, the last one of a name wins.
     """
     rules, inside, tokens = [], False, iter(argv)
@@ -50,7 +56,9 @@ def ros_rules(argv: Sequence[str], *flags: str) -> list[str]:
 @contextmanager
 def client_node(name: str, namespace: str, ros_arguments: Sequence[str] = ()
                 ) -> Iterator[tuple[Node, SingleThreadedExecutor]]:
-    """An initialised rclpy (with ``ros_arguments``: remaps, namespace, parameters) and one node for
+    """Initialise rclpy and give one node for an operator tool; shut both down afterwards.
+
+    An initialised rclpy (with ``ros_arguments``: remaps, namespace, parameters) and one node for
     an operator tool, shut down afterwards. rclpy's signal handlers stay off, so Ctrl-C raises
     KeyboardInterrupt where the tool can answer it.
     """
@@ -98,7 +106,9 @@ def call_and_wait(executor: Executor, client, request: Any, timeout_s: float,
 
 def send_goal(executor: Executor, node: Node, client, action_type: type, action_name: str, goal: Any,
               wait_s: float, feedback_callback=None, resend_after_s: Optional[float] = RESEND_AFTER_S):
-    """Send ``goal`` through ``client``, an ActionClient of ``node`` for ``action_type`` named
+    """Send ``goal`` through ``client`` and return its accepted goal handle, or None.
+
+    Send ``goal`` through ``client``, an ActionClient of ``node`` for ``action_type`` named
     ``action_name``, and return its accepted goal handle, or None when the server refused it or gave
     no sign within ``wait_s``.
 
@@ -133,7 +143,9 @@ def send_goal(executor: Executor, node: Node, client, action_type: type, action_
 
 def _send_until_answered(executor: Executor, send, sent: list, timeout_s: float,
                          resend_after_s: Optional[float], what: str, given_up=lambda: False):
-    """Call ``send()`` (it returns a future, kept in ``sent``) and spin ``executor`` until one of its
+    """Call ``send()`` and spin ``executor`` until a future is done, or give up.
+
+    Call ``send()`` (it returns a future, kept in ``sent``) and spin ``executor`` until one of its
     futures is done (returned), ``given_up()`` holds or ``timeout_s`` has passed (None). With
     ``resend_after_s``, send again when unanswered that long, then after twice as long, and so on.
     """

@@ -1,4 +1,6 @@
-"""gls-correct: corrected targets, mirror angles and focus shift for targets from a CSV (x,y[,z] in mm,
+"""gls-correct: corrected targets, mirror angles and focus shift for targets from a CSV.
+
+gls-correct: corrected targets, mirror angles and focus shift for targets from a CSV (x,y[,z] in mm,
 gls frame), from a calibration file (``--calibration FILE``, no running cell needed) or from the
 running cell's correction node (``correct_setpoints_batch``).
 
@@ -45,7 +47,9 @@ def read_targets(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def corrected_csv_text(x, y, z, k_x, k_y, alpha_x, alpha_y, focus_shift, inside, within, uncertainty) -> str:
-    """The output table: OUTPUT_COLUMNS, floats at full precision, flags as 0/1; the uncertainty
+    """Format the output table: OUTPUT_COLUMNS, floats at full precision, flags as 0/1.
+
+    The output table: OUTPUT_COLUMNS, floats at full precision, flags as 0/1; the uncertainty
     (mm, 95 % radius) ``nan`` outside the calibrated field or without the calibration's map.
     """
     lines = [",".join(OUTPUT_COLUMNS)]
@@ -80,7 +84,9 @@ per target on a 2-core machine), so that a slow answer is not taken for a lost o
 
 
 def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: Sequence[str] = ()):
-    """The same from the running cell's correction node (``ros_arguments``: remaps, namespace), through
+    """Correct the targets through the running cell's ``correct_setpoints_batch`` service.
+
+    The same from the running cell's correction node (``ros_arguments``: remaps, namespace), through
     ``correct_setpoints_batch``: a file of targets is a large request, whose answer on
     ``correct_setpoints`` would hold up other clients' single targets. RuntimeError when it gives no
     usable answer.
@@ -113,7 +119,9 @@ def correct_by_service(namespace: str, timeout: float, x, y, z, ros_arguments: S
 
 
 def main(argv: Optional[list[str]] = None) -> int:
-    """Exit 0 on success, 1 when targets are unreachable or the service failed, 2 on bad input. ROS
+    """Run gls-correct; return its exit code.
+
+    Exit 0 on success, 1 when targets are unreachable or the service failed, 2 on bad input. ROS
     arguments (remaps, namespace) follow ``--ros-args``.
     """
     from gls_calibration.cli import timeout_seconds

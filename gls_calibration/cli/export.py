@@ -47,7 +47,9 @@ points), so the limit keeps an export near 2.5 GB; it allows a 0.2 mm pitch over
 
 
 def axis_points(low: float, high: float, pitch_mm: float) -> float:
-    """Table points along one axis from ``low`` to ``high`` at ``pitch_mm`` (inf when absurdly many:
+    """Count the table points along one axis from ``low`` to ``high`` at ``pitch_mm``.
+
+    Table points along one axis from ``low`` to ``high`` at ``pitch_mm`` (inf when absurdly many:
     counted as a float first, so a tiny pitch never reaches an allocation).
     """
     ratio = (high - low) / pitch_mm
@@ -66,7 +68,9 @@ def table_axes(correction: Correction, pitch_mm: float) -> tuple[np.ndarray, np.
 
 
 def table_size_problem(correction: Correction, pitch_mm: float, heights: int) -> str:
-    """Why a table at ``pitch_mm`` cannot be exported (empty when it can), decided before anything is
+    """Say why a table at ``pitch_mm`` cannot be exported (empty when it can).
+
+    Why a table at ``pitch_mm`` cannot be exported (empty when it can), decided before anything is
     allocated: more than MAX_TABLE_POINTS points, or no cell inside the calibrated field, where the
     interpolation error would be checked.
     """

@@ -128,7 +128,9 @@ def load_cloud(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def plate_extent(xyz: np.ndarray) -> tuple[float, float]:
-    """Sides (short, long) of the minimum-area rectangle holding the cloud's points on their best-fit
+    """Return the sides (short, long) of the cloud's minimum-area rectangle on its best-fit plane.
+
+    Sides (short, long) of the minimum-area rectangle holding the cloud's points on their best-fit
     plane, in the cloud's own units (no unit is assumed: the plane is the points' principal one).
     """
     points = xyz.reshape(-1, 3)
@@ -145,7 +147,9 @@ def plate_extent(xyz: np.ndarray) -> tuple[float, float]:
 
 def cloud_units(extent: tuple[float, float], units: str | None, grid: int, size_mm: float,
                 ring_radius_mm: float) -> str:
-    """The cloud's unit (``mm`` or ``m``): ``units`` when given, else the one in which ``extent`` (short,
+    """Return the cloud's unit (``mm`` or ``m``): ``units`` when given, else the one that fits.
+
+    The cloud's unit (``mm`` or ``m``): ``units`` when given, else the one in which ``extent`` (short,
     long side in the cloud's units) holds the grid without exceeding it ``MAX_EXTENT_RATIO`` times.
     ValueError naming both sizes when the extent cannot hold the grid. A 1x1 grid is one fiducial:
     its centres span nothing, whatever ``size_mm`` says.
@@ -256,7 +260,9 @@ def summary(measurement: FiducialMeasurement, pose: PlatePose, args, seconds: fl
 
 
 def measure_cloud(xyz: np.ndarray, intensity: np.ndarray, args) -> tuple[PlatePose, FiducialMeasurement, float]:
-    """Plate pose and fiducials of one cloud (mm) as the tool measures them, and the seconds it took;
+    """Measure the plate pose and fiducials of one cloud (mm) and the seconds it took.
+
+    Plate pose and fiducials of one cloud (mm) as the tool measures them, and the seconds it took;
     ValueError for no plane or 1 to 3 fiducials (too few to use).
     """
     start = time.perf_counter()

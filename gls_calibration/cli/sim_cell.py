@@ -68,7 +68,9 @@ GRID_MAX = 101            # the manager's range of ``grid.per_side`` (3 to 101)
 
 
 def max_iterations() -> int:
-    """Most iterations the cell's manager accepts: ``max_iterations`` of config/gls.yaml, the file it
+    """Return the most iterations the cell's manager accepts (``max_iterations`` of gls.yaml).
+
+    Most iterations the cell's manager accepts: ``max_iterations`` of config/gls.yaml, the file it
     is given (``procedure.ProcedureSettings``' default when the file does not say).
     """
     from gls_calibration.calibration.procedure import ProcedureSettings
@@ -87,7 +89,9 @@ def max_iterations() -> int:
 
 
 def manager_parameter_override(ros_arguments: list[str], namespace: str, name: str) -> Optional[str]:
-    """The ``-p``/``--param`` rule of ``ros_arguments`` that sets the cell manager's parameter ``name``
+    """Return the ``-p`` rule of ``ros_arguments`` that sets the manager's parameter ``name``.
+
+    The ``-p``/``--param`` rule of ``ros_arguments`` that sets the cell manager's parameter ``name``
     (None when none does), as rcl picks it: the last ``calibration_manager:name:=V``, which beats any
     ``name:=V`` but reaches only a manager in the root namespace (rcl matches the node's full name), else
     the last ``name:=V``. ``namespace``: the cell's, unless a ``-r __ns:=...`` rule moves the nodes.
@@ -107,7 +111,9 @@ def manager_parameter_override(ros_arguments: list[str], namespace: str, name: s
 
 
 def iterations_limit(override: Optional[str]) -> int:
-    """The manager's ``max_iterations`` given by the ``-p`` rule ``override`` (config/gls.yaml's
+    """Return the manager's ``max_iterations`` given by the ``-p`` rule ``override``.
+
+    The manager's ``max_iterations`` given by the ``-p`` rule ``override`` (config/gls.yaml's
     without one); ValueError naming the rule when the manager would not take its value.
     """
     if override is None:
@@ -124,7 +130,9 @@ def iterations_limit(override: Optional[str]) -> int:
 
 
 def output_folder_problem(folder: Path) -> str:
-    """Why ``folder`` cannot be the cell's output folder (empty when it can): it must be a folder or
+    """Say why ``folder`` cannot be the cell's output folder (empty when it can).
+
+    Why ``folder`` cannot be the cell's output folder (empty when it can): it must be a folder or
     not exist yet, below an existing folder (nothing is created here).
     """
     if folder.exists() or folder.is_symlink():
@@ -136,7 +144,9 @@ def output_folder_problem(folder: Path) -> str:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    """Command line of gls-sim-cell; ROS arguments after ``--ros-args`` go to every node (after the
+    """Parse the command line of gls-sim-cell.
+
+    Command line of gls-sim-cell; ROS arguments after ``--ros-args`` go to every node (after the
     cell's own, so that they win).
     """
     own_arguments, user_ros_arguments = split_ros_arguments(argv)
@@ -279,7 +289,9 @@ def cell_namespace(args: argparse.Namespace) -> str:
 
 
 def reference_plan(args: argparse.Namespace):
-    """The plan the calibration of this command line would run: config/gls.yaml's, with the
+    """Return the sweep plan the calibration of this command line would run.
+
+    The plan the calibration of this command line would run: config/gls.yaml's, with the
     ``--sweep-plan`` and ``--placement`` the cell's manager is given (see ``ros_arguments``).
     """
     from gls_calibration.simulation.reference_plate import calibration_plan
@@ -289,7 +301,9 @@ def reference_plan(args: argparse.Namespace):
 
 
 def private_stream_remaps(args: argparse.Namespace) -> list[str]:
-    """``-r`` rules that move the split cell's absolute topics (``/tf``, ``/tf_static``, the motion
+    """Return ``-r`` rules that move a one-shot split cell's absolute topics into its namespace.
+
+    ``-r`` rules that move the split cell's absolute topics (``/tf``, ``/tf_static``, the motion
     contract, the profiles) into a one-shot cell's private namespace: its robot and scanner must not
     meet another cell's stream acquisition on the same ROS domain (seen: two runs at once, lines
     refused and profiles of the other cell's motions). None for a served cell or a ``--namespace``
@@ -433,8 +447,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run_calibration(args: argparse.Namespace, manager: CalibrationManager, threads: NodeThreads) -> int:
-    """Call ``calibrate`` from a client node of the cell, with a progress bar; print the summary and
-    the time budget.
+    """Call ``calibrate`` from a client node of the cell, with a progress bar.
+
+    Print the summary and the time budget.
     """
     client_node = rclpy.create_node("sim_cell_client", namespace=manager.get_namespace(), context=manager.context)
     bar = ProgressBar(sys.stderr)
@@ -467,7 +482,9 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager, threa
 
 
 def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, float]) -> str:
-    """``report_dir/time_budget.json`` (the run's cell time, wall time per stage, CPU per node; see
+    """Write ``report_dir/time_budget.json`` and return the table printed from it.
+
+    ``report_dir/time_budget.json`` (the run's cell time, wall time per stage, CPU per node; see
     ``time_budget``) and the table printed from it. The simulated nodes' CPU (``sim_*``) is the
     simulation's, not the pipeline's; CPU in threads a node does not own is not attributed.
     """
@@ -494,7 +511,9 @@ def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, fl
 
 
 def measure_chain_map_file(args: argparse.Namespace) -> Path:
-    """Measure the chain map of the calibration's lines on the simulated robot (the certified plate
+    """Measure the chain map of the calibration's lines on the simulated robot.
+
+    Measure the chain map of the calibration's lines on the simulated robot (the certified plate
     swept along them, as a real cell would): DIR/chain_map.yaml.
     """
     from gls_calibration.registration.chain_map import save_chain_map
@@ -508,7 +527,9 @@ def measure_chain_map_file(args: argparse.Namespace) -> Path:
 
 
 def measure_reference_check(args: argparse.Namespace) -> Path:
-    """Measure the simulated reference plate with the calibration's plan, on the same robot, before
+    """Measure the simulated reference plate with the calibration's plan before the calibration.
+
+    Measure the simulated reference plate with the calibration's plan, on the same robot, before
     the calibration (as a real cell checks its chain with a certified plate), with the run's chain map
     applied when it has one: DIR/reference_check.yaml.
     """

@@ -52,7 +52,9 @@ def grid_per_side() -> int:
 
 
 def run_recording(args: argparse.Namespace) -> int:
-    """Calibrate the direct simulated cell once, recording to ``args.record``; exit 0 on success,
+    """Calibrate the direct simulated cell once, recording to ``args.record``; return an exit code.
+
+    Calibrate the direct simulated cell once, recording to ``args.record``; exit 0 on success,
     1 when the calibration failed (the bag is kept: it shows what happened), 2 when nothing could be
     recorded.
     """

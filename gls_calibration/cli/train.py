@@ -34,7 +34,9 @@ COLUMNS = ("x_cmd", "y_cmd", "x_meas", "y_meas")
 
 
 def read_measured(path: Path) -> tuple[np.ndarray, np.ndarray, Optional[float]]:
-    """Commanded (N, 2) and measured (N, 2) points and the mean ``z_cmd`` (None without that column)
+    """Read commanded (N, 2) and measured (N, 2) points and the mean ``z_cmd`` from the CSV.
+
+    Commanded (N, 2) and measured (N, 2) points and the mean ``z_cmd`` (None without that column)
     from the CSV; ValueError naming the problem.
     """
     try:
@@ -77,7 +79,9 @@ def _flatten(parameters: Mapping, prefix: str = "") -> dict[str, Any]:
 
 
 def _package_parameter_names() -> set[str]:
-    """Every parameter name of the package's own parameter files (gls.yaml, head.yaml, sim.yaml): what
+    """Return every parameter name of the package's own parameter files.
+
+    Every parameter name of the package's own parameter files (gls.yaml, head.yaml, sim.yaml): what
     the cell's nodes read from the ``/**`` block they share.
     """
     names: set[str] = set(TRAINER_PARAMETER_NAMES)
@@ -93,7 +97,9 @@ def _known(name: str, known: set[str]) -> bool:
 
 
 def trainer_parameters(document: Any) -> dict[str, Any]:
-    """The rbf_trainer's parameters of a ROS parameter file: the ``/**`` block every node reads, then
+    """Return the rbf_trainer's parameters of a ROS parameter file.
+
+    The rbf_trainer's parameters of a ROS parameter file: the ``/**`` block every node reads, then
     the ``rbf_trainer`` block (which wins, as for the node; a namespaced ``/ns/rbf_trainer`` too).
     ValueError when neither holds a grid-search parameter or a block names a parameter nobody reads.
     """

@@ -34,7 +34,9 @@ from gls_calibration.scan.bag_io import BagLayout, read_recording
 
 
 def plates_in(motion_count: int, settings: ProcedureSettings) -> int:
-    """Plates a bag of ``motion_count`` motions (sweeps and stand-stills) holds; ValueError when it does not
+    """Count the plates a bag of ``motion_count`` motions holds.
+
+    Plates a bag of ``motion_count`` motions (sweeps and stand-stills) holds; ValueError when it does not
     hold whole plates.
     """
     standstills = 1 if settings.standstill_height else 0
@@ -49,7 +51,9 @@ def plates_in(motion_count: int, settings: ProcedureSettings) -> int:
 
 def recording_settings(grid: int | None, size_mm: float | None, sweep_plan: str | None,
                        plain_sweeps: int | None, standstill: bool | None = None) -> ProcedureSettings:
-    """Grid, plan, plain sweeps and stand-still height as given, else as ``config/gls.yaml`` has them;
+    """Return grid, plan, plain sweeps and stand-still height as given, else as gls.yaml has them.
+
+    Grid, plan, plain sweeps and stand-still height as given, else as ``config/gls.yaml`` has them;
     ValueError naming a bad one.
     """
     from gls_calibration.cli.sim_record import grid_per_side, grid_size_mm, standstill_height
@@ -65,7 +69,8 @@ def recording_settings(grid: int | None, size_mm: float | None, sweep_plan: str 
 
 
 def train_from_bag(args: argparse.Namespace, settings: ProcedureSettings) -> int:
-    """Run the calibration from ``args.bag``; exit 0, 1 when the calibration failed, 2 on bad input.
+    """Run the calibration from ``args.bag``; exit 0, 1 if the calibration failed, 2 on bad input.
+
     ``settings``: grid, plan and plain sweeps of the recording (the mounting is taken from the bag).
     """
     report_dir = args.out.with_name(args.out.name + ".report")

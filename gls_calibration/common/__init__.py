@@ -1,3 +1,5 @@
-"""Shared by every stage: input validation, robust statistics, config files, atomic files, parameter records,
+"""Shared by every stage: validation, statistics, config and atomic files, parameters, timing.
+
+Shared by every stage: input validation, robust statistics, config files, atomic files, parameter records,
 time budget.
 """

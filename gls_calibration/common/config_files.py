@@ -1,4 +1,6 @@
-"""Where the package's config/ files are: the source tree (editable install), else the share folder
+"""Where the package's config/ files are: the source tree, else the installed share folder.
+
+Where the package's config/ files are: the source tree (editable install), else the share folder
 of an installed package (colcon/ament).
 """
 from __future__ import annotations

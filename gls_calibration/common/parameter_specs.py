@@ -1,5 +1,7 @@
-"""A node's parameter as one record (name, default, description, range, kind): the node declares it from
-the record and the offline tools check a parameter file's value against the same record (no rclpy here).
+"""A node's parameter as one record (name, default, description, range, kind).
+
+The node declares it from the record and the offline tools check a parameter file's value against
+the same record (no rclpy here).
 
 Ranges are ROS's: inclusive, and a side left open is bounded by what ``GlsNode.declare`` puts in the
 descriptor (``INTEGER_LIMITS``, ``FLOAT_LIMITS``). Types are ROS's too: a parameter file's ``5`` is an
@@ -20,9 +22,11 @@ KINDS = ("integer", "number", "numbers", "flag")
 
 @dataclass(frozen=True)
 class ParameterSpec:
-    """One parameter of a node. ``kind``: ``integer``, ``number`` (a double), ``flag`` (a bool) or
-    ``numbers`` (a list of finite doubles, positive or, with ``minimum=0.0``, not negative; ROS ranges
-    do not apply to lists, the node checks them at start).
+    """One parameter of a node.
+
+    ``kind``: ``integer``, ``number`` (a double), ``flag`` (a bool) or ``numbers`` (a list of finite
+    doubles, positive or, with ``minimum=0.0``, not negative; ROS ranges do not apply to lists, the
+    node checks them at start).
     """
 
     name: str
@@ -51,7 +55,9 @@ class ParameterSpec:
         return self.minimum != 0.0
 
     def check(self, value: Any, what: str) -> Any:
-        """``value`` of a parameter file (as YAML reads it) when the node would take it; ValueError naming
+        """Return ``value`` of a parameter file when the node would take it; ValueError otherwise.
+
+        ``value`` of a parameter file (as YAML reads it) when the node would take it; ValueError naming
         ``what`` and the parameter otherwise.
         """
         key = f"{what} {self.name!r}"

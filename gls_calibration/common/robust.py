@@ -1,4 +1,6 @@
-"""Robust spread: the standard deviation a normal sample would have, read from its median absolute
+"""Robust spread: a normal sample's standard deviation read from the median absolute departure.
+
+Robust spread: the standard deviation a normal sample would have, read from its median absolute
 departure, so that the outliers being looked for do not set it.
 """
 from __future__ import annotations
@@ -11,7 +13,9 @@ NORMAL_MAD_SCALE = float(1.0 / stats.norm.ppf(0.75))
 
 
 def robust_sigma(departures) -> float:
-    """``NORMAL_MAD_SCALE`` x the median of ``|departures|`` (any shape, departures from a centre
+    """Return ``NORMAL_MAD_SCALE`` x the median of ``|departures|``.
+
+    ``NORMAL_MAD_SCALE`` x the median of ``|departures|`` (any shape, departures from a centre
     already taken off; finite values only).
     """
     return NORMAL_MAD_SCALE * float(np.median(np.abs(departures)))

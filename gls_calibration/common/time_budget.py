@@ -37,7 +37,9 @@ SWEEP_STAGE = "sweep_marked"
 
 @dataclass(frozen=True)
 class StageTimes:
-    """Wall time per stage (s, in the order the stages first came) and from the last marked-plate
+    """Return the wall time per stage (s) and from the last marked-plate sweep to the result (s).
+
+    Wall time per stage (s, in the order the stages first came) and from the last marked-plate
     sweep to the result (s; NaN without a marked-plate sweep followed by another message).
     """
 
@@ -76,7 +78,9 @@ class StageClock:
 
 
 def thread_cpu_s(thread: threading.Thread) -> float:
-    """CPU time (s) a running thread has used so far; NaN when it has ended or the platform cannot
+    """Return the CPU time (s) a running thread has used so far; NaN when it cannot be told.
+
+    CPU time (s) a running thread has used so far; NaN when it has ended or the platform cannot
     tell (``time.pthread_getcpuclockid``).
     """
     if not thread.is_alive():    # the ident of an ended thread names no clock (pthread: undefined)

@@ -196,7 +196,9 @@ class Correction:
         return Correction(self.geometry, self.models + (model,), combined, self.taper_mm)
 
     def prepare(self) -> None:
-        """Build what the models evaluate large requests with (a spline's tiles: 60-150 ms) now, not
+        """Build what the models evaluate large requests with now, not on the first large request.
+
+        Build what the models evaluate large requests with (a spline's tiles: 60-150 ms) now, not
         on the first large request; safe to call from another thread while this correction serves.
         """
         for model in self.models:
@@ -410,7 +412,9 @@ def available_workers() -> int:
 
 
 def _worker_slices(count: int, workers: int) -> list[slice]:
-    """Contiguous parts of ``count`` targets for up to ``workers`` threads, cut at multiples of BLOCK_ROWS,
+    """Cut ``count`` targets into contiguous parts for up to ``workers`` threads.
+
+    Contiguous parts of ``count`` targets for up to ``workers`` threads, cut at multiples of BLOCK_ROWS,
     none shorter than ``_MIN_ROWS_PER_WORKER`` (a short last part joins the one before it).
     """
     workers = max(1, min(workers, count // _MIN_ROWS_PER_WORKER))
@@ -425,7 +429,9 @@ def _worker_slices(count: int, workers: int) -> list[slice]:
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
-    """A shared pool of at least ``workers`` threads (started once, not per request). From its start
+    """Return a shared pool of at least ``workers`` threads (started once, not per request).
+
+    A shared pool of at least ``workers`` threads (started once, not per request). From its start
     on, BLAS runs on one thread in this process.
     """
     with _pool_lock:

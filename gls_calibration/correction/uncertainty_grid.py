@@ -93,7 +93,9 @@ class UncertaintyGrid:
         return bilinear(self.x_mm, self.y_mm, self.u_k2_mm, np.asarray(x, float), np.asarray(y, float))
 
     def inside_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """U at points of the calibrated field: clamped to the grid's box (no NaN), with the fast
+        """Return U at points of the calibrated field, clamped to the grid's box (no NaN).
+
+        U at points of the calibrated field: clamped to the grid's box (no NaN), with the fast
         cell lookup when the nodes are equally spaced (the documented evaluator clamps the same way).
         """
         if self._uniform:

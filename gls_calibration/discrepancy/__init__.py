@@ -1,4 +1,6 @@
-"""Discrepancy workflow: where does the head disagree with its model, and which named effect is missing?
+"""Discrepancy workflow: where the head disagrees with its model and which effect is missing.
+
+Discrepancy workflow: where does the head disagree with its model, and which named effect is missing?
 
 Given commanded targets ``Q`` (gls frame, mm) and measured mark positions ``M`` (any 2-D frame that is
 a rigid motion away from gls, mm), the workflow

@@ -1,4 +1,6 @@
-"""The measurements the discrepancy workflow reads: a table of commanded and measured marks, or a
+"""The measurements the discrepancy workflow reads, checked row by row.
+
+The measurements the discrepancy workflow reads: a table of commanded and measured marks, or a
 calibration run's ``fiducials.csv``, checked row by row (exact messages, lines named).
 """
 from __future__ import annotations

@@ -87,7 +87,9 @@ def estimate_noise_floor(points_xy, residual_xy, t=None, *, fitted_parameters: i
 
 def structure_test(points_xy, residual_xy, noise: NoiseFloor, t=None, *, fitted_parameters: int = 0,
                    alpha: float = 1e-3, min_sigma_mm: float = 1e-4) -> StructureTest:
-    """F-test: does a smooth field explain the (rigidly aligned) residual better than nothing?
+    """F-test whether a smooth field explains the rigidly aligned residual better than nothing.
+
+    F-test: does a smooth field explain the (rigidly aligned) residual better than nothing?
 
     The null model is the rigid alignment alone (3 parameters, already applied to the residual); the
     alternative is the smooth field of :func:`estimate_noise_floor`. The residual is structure when the

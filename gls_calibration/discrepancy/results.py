@@ -257,7 +257,10 @@ class Implausible:
 
 @dataclass(frozen=True)
 class Verdict:
-    """Is the gap explained by the named effects, measured against the independent floor?"""
+    """Whether the gap is explained by the named effects, against the independent floor.
+
+    Is the gap explained by the named effects, measured against the independent floor?
+    """
 
     verdict: str                   # explained | unexplained_structure
     unexplained_rms_mm: float      # residual RMS above the floor, in quadrature; with below_floor the RMS

@@ -159,7 +159,9 @@ def rivals_after_pruning(selection: Selection, best: str, model: EffectsFit) -> 
 
 def screen(selection: Selection, current: EffectsFit, remaining: Sequence[str],
            base_information: float) -> dict[str, EffectsFit]:
-    """Every remaining candidate added to ``current``: one Gauss-Newton step for all, a full fit for the
+    """Screen every remaining candidate added to ``current``: a step each, full fits for the best.
+
+    Every remaining candidate added to ``current``: one Gauss-Newton step for all, a full fit for the
     ``FULL_FITS`` whose step drops the chi-square most unless even that cannot pay for its parameters
     (a drop below half its penalty). For the others the step stands: its chi-square is that of a real
     model, so it never overstates their gain.

@@ -1,4 +1,6 @@
-"""Separability: can the data tell a fitted effect from the rigid motion and from the other candidates?
+"""Separability: whether the data tell a fitted effect from the rigid motion and the others.
+
+Separability: can the data tell a fitted effect from the rigid motion and from the other candidates?
 
 A fitted effect is named only when the part of its field that survives the rigid alignment and the
 other named effects is large against its standard error at the noise the fit used. For an effect E
@@ -90,7 +92,9 @@ def _z(effect: np.ndarray, values: np.ndarray, others: np.ndarray) -> float:
 
 def separability(predict: Predictor, model: EffectsFit, known: HeadEffects, pool: Sequence[str], sigma_axis_mm,
                  *, threshold: float = SEPARABLE_AT) -> tuple[Separability, ...]:
-    """:class:`Separability` of each effect of ``model`` (in its order) against the rigid motion, the
+    """Return the :class:`Separability` of each effect of ``model`` (in its order).
+
+    :class:`Separability` of each effect of ``model`` (in its order) against the rigid motion, the
     other named effects and every candidate of ``pool``.
 
     ``sigma_axis_mm`` is the per-axis noise (a number or one per point) the standard errors refer to.

@@ -1,4 +1,6 @@
-"""The verdict: does what is left after the named effects stay at the noise floor, and if not, where is it?
+"""The verdict: whether the rest after the named effects stays at the noise floor, and where.
+
+The verdict: does what is left after the named effects stay at the noise floor, and if not, where is it?
 
 ``explained`` needs the final residual to be consistent with the floor (chi-square test at
 ``alpha``, or an RMS within 10 % of the floor, which a slightly mis-stated sigma gives) AND no smooth

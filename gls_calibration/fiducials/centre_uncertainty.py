@@ -1,4 +1,6 @@
-"""The standard uncertainty of a fitted ring centre: sector jackknife, the edge noise's spectrum,
+"""The standard uncertainty of a fitted ring centre (step 4 of the fiducial measurement).
+
+The standard uncertainty of a fitted ring centre: sector jackknife, the edge noise's spectrum,
 moderation towards the plate's typical variance (step 4 of :mod:`gls_calibration.fiducials.measure`).
 """
 from __future__ import annotations
@@ -42,7 +44,9 @@ def _harmonic_design(angles: np.ndarray) -> np.ndarray:
 
 
 def _sector_sums(values: np.ndarray, sector_of_ray: np.ndarray) -> np.ndarray:
-    """Sums of ``values`` (M, A, ...) over the rays of each sector (M, SECTORS, ...); the rays of a
+    """Sum ``values`` (M, A, ...) over the rays of each sector (M, SECTORS, ...).
+
+    Sums of ``values`` (M, A, ...) over the rays of each sector (M, SECTORS, ...); the rays of a
     sector are contiguous and ``sector_of_ray`` is sorted, so this is one ``reduceat``.
     """
     starts = np.searchsorted(sector_of_ray, np.arange(SECTORS))
@@ -51,7 +55,9 @@ def _sector_sums(values: np.ndarray, sector_of_ray: np.ndarray) -> np.ndarray:
 
 def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarray,
                        sector_of_ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Covariance (M, 2, 2) of the fitted centre (plate axes, mm^2) from the radial residuals, and its
+    """Return the centre's covariance (M, 2, 2) from the radial residuals, and its dof (M,).
+
+    Covariance (M, 2, 2) of the fitted centre (plate axes, mm^2) from the radial residuals, and its
     degrees of freedom (M,): per candidate the larger (by trace) of two estimates, each blind to
     what the other sees.
 
@@ -77,7 +83,9 @@ def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarra
 
 def _spectral_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarray
                          ) -> tuple[np.ndarray, np.ndarray]:
-    """Covariance (M, 2, 2) of the fitted centre from the edge noise's spectrum around the ring, and
+    """Return the centre's covariance (M, 2, 2) from the edge noise spectrum, and its dof (M,).
+
+    Covariance (M, 2, 2) of the fitted centre from the edge noise's spectrum around the ring, and
     its degrees of freedom (M,).
 
     The edge errors of neighbouring rays are correlated (speckle grains span several rays), and their
@@ -121,7 +129,9 @@ def _spectral_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndar
 
 
 def _moderated(covariance: np.ndarray, dof: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """Centre covariances (M, 2, 2) with each axis' variance raised to its empirical-Bayes
+    """Raise each axis' variance of centre covariances (M, 2, 2) to its empirical-Bayes posterior.
+
+    Centre covariances (M, 2, 2) with each axis' variance raised to its empirical-Bayes
     posterior, never lowered.
 
     A variance estimated from ~24 sectors (``dof`` (M,) degrees of freedom) comes out well below the

@@ -1,4 +1,6 @@
-"""Ring candidates in the plate image: log intensity, prewhitening, normalised cross-correlation with
+"""Ring candidates in the plate image (step 2 of :mod:`gls_calibration.fiducials.measure`).
+
+Ring candidates in the plate image: log intensity, prewhitening, normalised cross-correlation with
 the double-ring template (step 2 of :mod:`gls_calibration.fiducials.measure`).
 """
 from __future__ import annotations
@@ -35,7 +37,9 @@ about 1 / sqrt(floor), so spectral bins the periodogram put near zero by chance 
 
 
 def _log_intensity(intensity: np.ndarray) -> np.ndarray:
-    """Log intensity (H, W) float32: speckle is multiplicative, so it becomes additive and equal on
+    """Return the log intensity (H, W) float32: it makes the multiplicative speckle additive.
+
+    Log intensity (H, W) float32: speckle is multiplicative, so it becomes additive and equal on
     steel and marks. Intensities below 1 % of the typical one are clipped there.
     """
     # Every 4th pixel per axis gives the median to ~0.1 % at a 16th of the cost.
@@ -44,7 +48,9 @@ def _log_intensity(intensity: np.ndarray) -> np.ndarray:
 
 
 def _refinement_image(log_intensity: np.ndarray) -> np.ndarray:
-    """Whitened image for detection and ring tracking: the log intensity minus its Gaussian blur of
+    """Return the whitened image for detection and ring tracking (a high-passed log intensity).
+
+    Whitened image for detection and ring tracking: the log intensity minus its Gaussian blur of
     ``HIGH_PASS_SIGMA_PX`` (removes shading and the coarse part of correlated speckle, keeps the
     thin ring lines).
     """
@@ -92,7 +98,9 @@ def _prewhitening_kernel(log_intensity: np.ndarray, candidates_px: np.ndarray,
 
 
 def _ring_template(pitch: tuple[float, float], radii: np.ndarray, line_sigma_mm: float) -> np.ndarray:
-    """Darkness template of the rings (rows, cols) at the given (row, column) pitch, negated: dark
+    """Return the negated darkness template of the rings (rows, cols) at the given pitch.
+
+    Darkness template of the rings (rows, cols) at the given (row, column) pitch, negated: dark
     rings correlate positively. Gaussian lines of ``line_sigma_mm`` tolerate blur and tilt.
     """
     half = radii[-1] + 3 * line_sigma_mm

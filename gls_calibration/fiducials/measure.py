@@ -159,7 +159,9 @@ def _duplicates(centres: np.ndarray, sigma: np.ndarray, distance: float) -> np.n
 
 
 def _signature_band_mm(radii_nominal: np.ndarray, pitch: tuple[float, float]) -> float:
-    """Half-width (mm) about the mid-ring of the pixels the pair signature is fitted on: the rings,
+    """Return the half-width (mm) about the mid-ring of the pixels the pair signature is fitted on.
+
+    Half-width (mm) about the mid-ring of the pixels the pair signature is fitted on: the rings,
     their lines and the prewhitening filter's reach beyond them.
     """
     spread = float(np.ptp(radii_nominal)) / 2

@@ -53,7 +53,9 @@ CANDIDATE_BLOCK = 32
 
 
 def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm: float):
-    """Bin centres (B,) and the mean profile with its first and second derivatives (each (B,)) of
+    """Return bin centres (B,) and the mean profile of ``values`` against ``rho`` with derivatives.
+
+    Bin centres (B,) and the mean profile with its first and second derivatives (each (B,)) of
     ``values`` against ``rho`` (1-D, mm); empty bins take their neighbours' values.
     """
     edges = np.arange(-band_mm - 3 * bin_mm, band_mm + 3 * bin_mm + 0.5 * bin_mm, bin_mm)
@@ -69,7 +71,9 @@ def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm:
 
 
 def _window(pitch_mm: tuple[float, float], jacobian: np.ndarray, inner_mm: float, outer_mm: float):
-    """Pixel offsets (N, 2) as (column, row) around a candidate's centre pixel that can fall between
+    """Return the pixel offsets around a candidate's centre within the annulus, and a sector index.
+
+    Pixel offsets (N, 2) as (column, row) around a candidate's centre pixel that can fall between
     ``inner_mm`` and ``outer_mm`` of it (the plate's typical pixel map, a pixel of slack), and an
     index (S, L) of them per angular sector, padded with N (a row of zeros is appended there).
     """
@@ -94,7 +98,9 @@ def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray
                    mid_radius_mm: np.ndarray, harmonic_mm: np.ndarray, reference: np.ndarray,
                    pitch_mm: tuple[float, float], band_mm: float
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each candidate's pair signature over its amplitude (M, 5), its delete-one-sector jackknife
+    """Fit each candidate's pair signature (M, 5) with its jackknife covariance and sector count.
+
+    Each candidate's pair signature over its amplitude (M, 5), its delete-one-sector jackknife
     covariance (M, 5, 5) and the number of sectors that entered it (M,); NaN where it cannot be fitted.
 
     ``image`` (H, W) is the image the centres were fitted on, marks positive or negative alike;

@@ -1,4 +1,6 @@
-"""The plate as an image: an organized cloud as it is, an unorganized one rasterised on the plate plane
+"""The plate as an image (step 1 of :mod:`gls_calibration.fiducials.measure`).
+
+The plate as an image: an organized cloud as it is, an unorganized one rasterised on the plate plane
 (step 1 of :mod:`gls_calibration.fiducials.measure`).
 """
 from __future__ import annotations
@@ -63,8 +65,10 @@ the image's median."""
 
 @dataclass(frozen=True)
 class _PlateImage:
-    """Intensity image with a per-pixel plane position: the organized cloud's point (through the plate
-    pose) or uv = raster_origin + raster_matrix @ (col, row).
+    """Intensity image with a per-pixel plane position.
+
+    The organized cloud's point (through the plate pose) or uv = raster_origin + raster_matrix @
+    (col, row).
     """
 
     intensity: np.ndarray          # (H, W) float32, marks dark, no NaN
@@ -76,7 +80,9 @@ class _PlateImage:
 
 
 def _fill_missing(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Fill invalid pixels with the mean of the valid ones in the smallest box of ``FILL_BOX_SIZES``
+    """Fill invalid pixels with the mean of the valid ones in the smallest box holding any.
+
+    Fill invalid pixels with the mean of the valid ones in the smallest box of ``FILL_BOX_SIZES``
     around them holding any (borders reflected as ``cv2.BORDER_REFLECT``); beyond the largest, the
     median of the valid pixels.
     """
@@ -134,7 +140,9 @@ def _finite_points(xyz: np.ndarray, intensity: np.ndarray) -> np.ndarray:
 
 
 def _median_spacing(lines_uv: np.ndarray, axis: int) -> float:
-    """Median distance (mm) between neighbouring pixels' plane positions ``lines_uv`` (..., 2) along
+    """Return the median distance (mm) between neighbouring pixels' plane positions along ``axis``.
+
+    Median distance (mm) between neighbouring pixels' plane positions ``lines_uv`` (..., 2) along
     image axis ``axis``.
     """
     with np.errstate(invalid="ignore", over="ignore"):     # missing or absurd points drop out below
@@ -158,7 +166,9 @@ def _organized_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose) ->
 
 
 def _scan_lattice(uv: np.ndarray, pixel_size_mm: float) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Raster for an unorganized cloud: ``(to_pixel (2, 2), shift (2,), on_lattice)`` with pixel
+    """Return the raster for an unorganized cloud: ``(to_pixel (2, 2), shift (2,), on_lattice)``.
+
+    Raster for an unorganized cloud: ``(to_pixel (2, 2), shift (2,), on_lattice)`` with pixel
     (col, row) = to_pixel @ uv + shift, pixel centres on the points of a regular scan where it has
     them (``on_lattice`` True).
 
@@ -244,7 +254,9 @@ def _point_spacing(xyz: np.ndarray, keep: np.ndarray, pose: PlatePose, turn: np.
 
 
 def _edge_turn(points: np.ndarray) -> np.ndarray:
-    """Rotation (2, 2) that turns 2-D ``points`` (N, 2) so that the edges of their minimum-area
+    """Return the rotation (2, 2) aligning the minimum-area rectangle of ``points`` with the axes.
+
+    Rotation (2, 2) that turns 2-D ``points`` (N, 2) so that the edges of their minimum-area
     rectangle lie along the axes (by at most 45 deg).
     """
     with np.errstate(over="ignore", invalid="ignore"):     # absurd coordinates fail the size check later

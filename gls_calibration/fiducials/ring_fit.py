@@ -1,4 +1,6 @@
-"""Sub-pixel double-ring centres: rays in plate millimetres, edge points, the ring model's weighted fit
+"""Sub-pixel double-ring centres (step 3 of :mod:`gls_calibration.fiducials.measure`).
+
+Sub-pixel double-ring centres: rays in plate millimetres, edge points, the ring model's weighted fit
 (step 3 of :mod:`gls_calibration.fiducials.measure`).
 """
 from __future__ import annotations
@@ -45,7 +47,9 @@ start is within about 20 um, where the ring model's first-order centre is exact 
 
 
 def _sample_bicubic(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
-    """Bicubic samples (``cv2.INTER_CUBIC``) of ``image`` at float32 (column, row) positions (M, ...);
+    """Sample ``image`` bicubically at float32 (column, row) positions (M, ...); NaN outside.
+
+    Bicubic samples (``cv2.INTER_CUBIC``) of ``image`` at float32 (column, row) positions (M, ...);
     NaN outside.
     """
     count = len(map_x)
@@ -103,7 +107,9 @@ def _peak(score: np.ndarray, low: np.ndarray, width: int):
 
 
 def _row_nanquantile(values: np.ndarray, quantile: float) -> np.ndarray:
-    """Per row of ``values`` (M, N) the ``quantile`` (0-1, linear interpolation) of its finite entries,
+    """Return per row of ``values`` (M, N) the ``quantile`` (0-1) of its finite entries.
+
+    Per row of ``values`` (M, N) the ``quantile`` (0-1, linear interpolation) of its finite entries,
     NaN for a row without any: ``np.nanpercentile`` along rows, with one sort for all rows instead of
     numpy's loop over the rows that hold a NaN.
     """
@@ -118,7 +124,9 @@ def _row_nanquantile(values: np.ndarray, quantile: float) -> np.ndarray:
 
 
 def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, usable: np.ndarray, strength: np.ndarray | None = None):
-    """Weighted least-squares fit of the radial model to edge radii (M, A) over the ``usable`` rays,
+    """Fit the radial model to edge radii (M, A) by weighted least squares over the usable rays.
+
+    Weighted least-squares fit of the radial model to edge radii (M, A) over the ``usable`` rays,
     each weighted by its ``strength`` (M, A; default 1), with one 3-sigma trimming round.
 
     Returns the centre shift (M, 2), mean radius (M,), the fitted radius along every ray (M, A),
@@ -144,7 +152,9 @@ def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, usable: np.ndarray, s
 
 
 def _edge_weights(peak_score: np.ndarray, usable: np.ndarray) -> np.ndarray:
-    """Weight (M, A) of every ray's edge point in the ring fit: its darkness contrast (the profile's
+    """Return the weight (M, A) of every ray's edge point in the ring fit.
+
+    Weight (M, A) of every ray's edge point in the ring fit: its darkness contrast (the profile's
     correlation with the rings at the edge) over the candidate's median one, to the power
     ``EDGE_WEIGHT_POWER``, at most ``EDGE_WEIGHT_MAX``.
 

@@ -6,7 +6,9 @@ import numpy as np
 
 def sector_jackknife(sector_normal: np.ndarray, sector_right: np.ndarray, present: np.ndarray,
                      total_right: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Delete-one-sector jackknife of a least-squares fit given per sector (the rays of a ring are
+    """Return the delete-one-sector jackknife covariance (M, P, P) of a fit and its sector count.
+
+    Delete-one-sector jackknife of a least-squares fit given per sector (the rays of a ring are
     correlated, whole sectors much less): covariance (M, P, P) of the solution and the number of
     sectors g (M,) that entered it.
 

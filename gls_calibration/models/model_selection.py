@@ -1,4 +1,6 @@
-"""Choosing a deviation model: cross-validation (folds, spatially blocked when points are given) and
+"""Choosing a deviation model: cross-validation and the grid search of its parameters.
+
+Choosing a deviation model: cross-validation (folds, spatially blocked when points are given) and
 the grid search over the RBF spread and the spline's smoothing.
 """
 from __future__ import annotations
@@ -72,7 +74,9 @@ def _summarise(residuals: np.ndarray, split: list[np.ndarray]) -> CrossValidatio
 
 def cross_validate(make_model: Callable[[np.ndarray, np.ndarray], DeviationModel], X, Y,
                    folds: int = 5, seed=0, block_mm: Optional[float] = None) -> CrossValidation:
-    """K-fold cross-validation of ``make_model(X_train, Y_train)`` on a seeded random split
+    """Cross-validate ``make_model(X_train, Y_train)`` over K folds of a seeded random split.
+
+    K-fold cross-validation of ``make_model(X_train, Y_train)`` on a seeded random split
     (``block_mm``: whole square blocks held out together).
     """
     X, Y = as_matching_points(X, Y, "X", "Y", 2)

@@ -1,4 +1,6 @@
-"""The Gaussian RBF network trained by orthogonal least squares (forward selection of centres, as
+"""The Gaussian RBF network trained by orthogonal least squares: the seed paper's model.
+
+The Gaussian RBF network trained by orthogonal least squares (forward selection of centres, as
 MATLAB's ``newrb``): the seed paper's model.
 """
 from __future__ import annotations

@@ -90,7 +90,9 @@ class ThinPlateSplineModel:
         self._tiled()
 
     def _tiled(self) -> Optional[tps_tiles.TiledKernelSum]:
-        """The tiled evaluator, built once on first use (60-150 ms; loading a file stays fast), or None
+        """Return the tiled evaluator, built once on first use, or None where it failed its check.
+
+        The tiled evaluator, built once on first use (60-150 ms; loading a file stays fast), or None
         where it failed its accuracy check.
         """
         if self._tiles is None:
@@ -138,7 +140,9 @@ class ThinPlateSplineModel:
         return self._blocks(points, result)
 
     def _blocks(self, points: np.ndarray, result: Optional[np.ndarray] = None) -> np.ndarray:
-        """The spline (M, 2) at ``points`` (M, 2) summed exactly block by block (added to ``result``
+        """Evaluate the spline (M, 2) at ``points`` (M, 2), summed exactly block by block.
+
+        The spline (M, 2) at ``points`` (M, 2) summed exactly block by block (added to ``result``
         when given: its affine part).
         """
         if result is None:

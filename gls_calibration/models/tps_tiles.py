@@ -30,7 +30,9 @@ _TINY = np.finfo(float).tiny
 
 
 def exact_kernel_sum(points: np.ndarray, centres: np.ndarray, half_weights: np.ndarray) -> np.ndarray:
-    """``sum_i 2 half_weights_i phi(|p - c_i|)`` (M, K) from plain differences; points (M, 2), centres (N, 2),
+    """Return ``sum_i 2 half_weights_i phi(|p - c_i|)`` (M, K) from plain differences.
+
+    ``sum_i 2 half_weights_i phi(|p - c_i|)`` (M, K) from plain differences; points (M, 2), centres (N, 2),
     half_weights (N, K) (``0.5 w``: ``phi = 0.5 r^2 ln r^2``).
     """
     return _kernel_sum_by_rows(points[:, 0], points[:, 1], centres, half_weights).T
@@ -161,7 +163,9 @@ class TiledKernelSum:
 
 def build(centres: np.ndarray, half_weights: np.ndarray, tiles: int = TILES,
           degree: int = DEGREE) -> Optional[TiledKernelSum]:
-    """The tiled evaluator of ``sum_i 2 half_weights_i phi(|p - c_i|)``, or None where it would not be
+    """Build the tiled evaluator of ``sum_i 2 half_weights_i phi(|p - c_i|)``, or None.
+
+    The tiled evaluator of ``sum_i 2 half_weights_i phi(|p - c_i|)``, or None where it would not be
     within ``TOLERANCE_MM`` of the exact sum (checked) or the centres span no area.
 
     centres (N, 2) mm, half_weights (N, K). Costs about (tiles * (degree + 1))^2 * N logarithms.

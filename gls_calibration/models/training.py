@@ -73,7 +73,9 @@ GRID_SEARCH_PARAMETERS = ("spreads_mm", "mse_goals_mm2", "tps_smoothings", "fold
 
 
 def training_options_from(values: Mapping[str, Any]) -> TrainingOptions:
-    """The grid search of checked trainer parameter values (names as in TRAINER_PARAMETERS; a missing
+    """Return the grid search of checked trainer parameter values.
+
+    The grid search of checked trainer parameter values (names as in TRAINER_PARAMETERS; a missing
     one keeps its default).
     """
     options = {("block_mm" if name == "cv_block_mm" else name): values[name]

@@ -1,4 +1,6 @@
-"""calibration_manager: serves ``calibrate`` (an action with feedback and cancel, and a service for
+"""calibration_manager: serves ``calibrate`` and ``explain_deviations``, publishes progress.
+
+calibration_manager: serves ``calibrate`` (an action with feedback and cancel, and a service for
 simple clients) and ``explain_deviations``, publishes progress.
 
 It implements the procedure's ``Cell`` with service calls to the scanner, the galvo and the
@@ -166,7 +168,9 @@ class ServiceCell:
         return conversions.trained_model_from_response(response)
 
     async def use_candidate(self, candidate) -> None:
-        """Evaluate ``candidate`` here from now on (its correction as built, not its file read again);
+        """Evaluate ``candidate`` here from now on; the correction node does not see it.
+
+        Evaluate ``candidate`` here from now on (its correction as built, not its file read again);
         the correction node does not see it.
         """
         self.candidate = candidate.correction
@@ -261,7 +265,9 @@ class CalibrationManager(GlsNode):
         self.arrow_scale, self.colour_full_scale_mm = config.arrow_scale, config.colour_full_scale_mm
 
     def _apply_settable(self, requested: dict) -> Optional[str]:
-        """``ros2 param set`` of settable parameters (``requested``: every settable one, the requested
+        """Handle ``ros2 param set`` of settable parameters: refused during a run or when invalid.
+
+        ``ros2 param set`` of settable parameters (``requested``: every settable one, the requested
         values in): refused during a run or when invalid (the reason returned), otherwise in use from
         the next run.
         """
@@ -348,7 +354,9 @@ class CalibrationManager(GlsNode):
 
     async def _run(self, request, response, feedback: Optional[Callable[[str, float, str], None]],
                    cancel_requested: Callable[[], bool]) -> str:
-        """One calibration into ``response`` (service response or action result); its final status:
+        """Run one calibration into ``response``; return its final status.
+
+        One calibration into ``response`` (service response or action result); its final status:
         "succeeded", "aborted" or "canceled". Whatever ends it early, the active calibration stays.
         """
         began = time.monotonic()

@@ -1,7 +1,8 @@
-"""correction: serves ``correct_setpoints`` with the store's ACTIVE calibration, and
-``correction/load`` (reload the active calibration, e.g. after an activation); its companion node
-``correction_batch`` (same process, same calibration, its own executor thread) serves the same as
-``correct_setpoints_batch`` for large requests.
+"""correction: serves ``correct_setpoints`` with the store's ACTIVE calibration.
+
+And ``correction/load`` (reload the active calibration, e.g. after an activation); its companion
+node ``correction_batch`` (same process, same calibration, its own executor thread) serves the same
+as ``correct_setpoints_batch`` for large requests.
 
 It never serves anything else: a calibration run evaluates its candidate inside the calibration
 manager, so other nodes are never corrected by a calibration that has not passed. Every answer
@@ -35,7 +36,9 @@ NOMINAL_ID = "nominal"
 
 @dataclass(frozen=True)
 class Served:
-    """What answers corrections, swapped as one value (the batch service reads it from another
+    """What answers corrections, swapped as one value.
+
+    What answers corrections, swapped as one value (the batch service reads it from another
     thread): the correction (None: refused with ``problem``), its id and creation time, the file it
     came from ("" for the nominal model) and its description in the diagnostics.
     """
@@ -139,8 +142,9 @@ class CorrectionNode(GlsNode):
     def _serve(self, correction: Optional[Correction], file: str, problem: str,
                calibration_id: str = NOMINAL_ID, created: Optional[datetime] = None,
                summary: Optional[dict] = None) -> None:
-        """Serve ``correction`` (None: refuse corrections with ``problem``); ``summary`` describes it
-        in the diagnostics (default: the nominal model's).
+        """Serve ``correction`` (None: refuse corrections with ``problem``).
+
+        ``summary`` describes it in the diagnostics (default: the nominal model's).
         """
         if correction is None:
             self.served = Served(None, "", None, problem, file, {"active_calibration_id": "none"})
@@ -171,7 +175,9 @@ class CorrectionNode(GlsNode):
         return await self.answer(self, request, response)
 
     async def answer(self, worker: GlsNode, request, response):
-        """Fill ``response`` for ``request``; between chunks, ``worker`` (the node whose executor runs
+        """Fill ``response`` for ``request``, letting ``worker`` serve others between chunks.
+
+        Fill ``response`` for ``request``; between chunks, ``worker`` (the node whose executor runs
         this) serves what else is waiting.
         """
         # One snapshot: a reload between chunks must not mix two calibrations in one answer.
@@ -213,7 +219,9 @@ class CorrectionNode(GlsNode):
 
 
 class BatchCorrectionNode(GlsNode):
-    """``correct_setpoints_batch``: the same answers as ``correct_setpoints`` (same calibration, same
+    """``correct_setpoints_batch``: the answers of ``correct_setpoints`` on an executor of its own.
+
+    ``correct_setpoints_batch``: the same answers as ``correct_setpoints`` (same calibration, same
     limits, from its owner), on an executor of its own.
     """
 

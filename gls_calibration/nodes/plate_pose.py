@@ -37,7 +37,9 @@ class PlatePoseNode(GlsNode):
 
 
 def head_direction(value) -> tuple[float, float, float]:
-    """The ``head_direction`` parameter's value as 3 floats; ValueError unless 3 finite numbers, not all
+    """Return the ``head_direction`` parameter's value as 3 floats; ValueError if unusable.
+
+    The ``head_direction`` parameter's value as 3 floats; ValueError unless 3 finite numbers, not all
     zero (a zero direction orients no normal; checked at start, not at the first request).
     """
     items = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else []

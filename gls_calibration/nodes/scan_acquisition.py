@@ -1,4 +1,6 @@
-"""scan_acquisition: serves ``scan/acquire``; starts a sweep, collects ``scan/points`` profiles and
+"""scan_acquisition: serves ``scan/acquire`` and returns the sweep as one organized cloud.
+
+scan_acquisition: serves ``scan/acquire``; starts a sweep, collects ``scan/points`` profiles and
 returns them assembled as one organized cloud in the scanner base frame, each profile placed by the
 robot's reported sensor pose (``scan/pose``, PoseStamped, metres, interpolated at the profile's
 stamp) when that stream covers the sweep, else by its stamp and the sweep's nominal motion.
@@ -207,7 +209,9 @@ class ScanAcquisitionNode(GlsNode):
         return collector.members(self.rules.stamp_window_s(done.profiles, done.step_mm, done.speed_mm_s))
 
     def _end_problem(self, done: SweepDone, collector: SweepCollector) -> str:
-        """Why an end of sweep with this sweep's id cannot be its end (empty when it can): its count
+        """Say why an end of sweep with this sweep's id cannot be its end (empty when it can).
+
+        Why an end of sweep with this sweep's id cannot be its end (empty when it can): its count
         must be the scanner's announcement when complete, and no less than what already came.
         """
         if done.complete and done.profiles != self.expected_profiles:
@@ -221,7 +225,9 @@ class ScanAcquisitionNode(GlsNode):
         return ""
 
     def _sweep_over(self) -> bool:
-        """Every profile of the sweep kept (or over the bounds); or, once the end of the sweep is
+        """Tell whether every profile of the sweep is kept or, after a grace time, accounted for.
+
+        Every profile of the sweep kept (or over the bounds); or, once the end of the sweep is
         ``MALFORMED_GRACE_S`` old, accounted for with the dropped ones (the sweep then fails).
 
         An end of sweep that contradicts the scanner's announcement or what was received is not
@@ -252,7 +258,9 @@ class ScanAcquisitionNode(GlsNode):
         return await self._acquire(request, response, standstill=False)
 
     async def on_acquire_standstill(self, request, response):
-        """Profiles taken standing still (as many as a sweep of the request's length and step), as
+        """Take profiles standing still as an organized cloud placed by the reported pose.
+
+        Profiles taken standing still (as many as a sweep of the request's length and step), as
         an organized cloud placed by the reported pose; refused without the pose stream.
         """
         if not self.use_poses:
@@ -351,7 +359,9 @@ class ScanAcquisitionNode(GlsNode):
         return response
 
     async def _wait_for_unfinished(self, timeout_s: float) -> None:
-        """Before a sweep: await the end of the sweep a failed acquisition left running, so that the
+        """Await the end of a sweep a failed acquisition left running, so that the scanner is free.
+
+        Before a sweep: await the end of the sweep a failed acquisition left running, so that the
         scanner is free. At most ``timeout_s`` (this sweep's limit), and no longer than the larger of
         that acquisition's limit and ``timeout_s`` (the parameter) after it failed; a scanner that leaves
         the graph ends the wait. Then the sweep is asked for anyway (the scanner says if it is busy).
@@ -374,7 +384,9 @@ class ScanAcquisitionNode(GlsNode):
         self.unfinished = None
 
     def _unit_problem(self, points: np.ndarray, stamp_s: float) -> bool:
-        """True (the first such profile's problem kept for the answer) when the profile's median point
+        """Tell whether the profile's median range lies outside ``RANGE_WINDOW_MM``.
+
+        True (the first such profile's problem kept for the answer) when the profile's median point
         distance from the sensor lies outside ``RANGE_WINDOW_MM``: not in ``profile_unit``.
         """
         median = median_point_distance(np.stack([points["x"], points["y"], points["z"]], axis=-1))
@@ -400,7 +412,9 @@ class ScanAcquisitionNode(GlsNode):
         return ", ".join(f"{count} profile(s) {why}" for count, why in parts if count)
 
     async def _wait_for_scanner_topics(self) -> None:
-        """Wait (at most ``SCANNER_TOPICS_WAIT_S``) until the profile and end-of-sweep subscriptions
+        """Wait until the profile and end-of-sweep subscriptions have matched a publisher.
+
+        Wait (at most ``SCANNER_TOPICS_WAIT_S``) until the profile and end-of-sweep subscriptions
         have matched a publisher.
 
         A scanner that has just (re)started may send its first profiles before this node's readers

@@ -40,7 +40,8 @@ class SimGalvoNode(GlsNode):
         self.create_service(Trigger, "sim/exchange_plate", self.on_exchange_plate)
 
     def on_mark(self, request, response):
-        """Mark every polyline; ``success=false`` with the reason on malformed or unreachable commands.
+        """Mark every polyline; ``success=false`` with the reason on malformed or unreachable ones.
+
         A repeated request id gets the first answer again and marks nothing.
         """
         return self.answered.answer(request.request_id, lambda: self._mark(request, response))

@@ -1,7 +1,9 @@
-"""sim_line_scanner: the simulated laser-line scanner of the streaming cell, as off-the-shelf drivers
-behave: one ``sensor_msgs/PointCloud2`` per profile on ``/scanner/profile`` while switched on, in its
-optical frame (``frame_id``), in metres, stamped when taken; nothing else (no sweep id, no start or
-end of sweep). ``scanner/enable`` (``std_srvs/SetBool``) switches it on and off (on at start).
+"""sim_line_scanner: the simulated laser-line scanner of the streaming cell.
+
+As off-the-shelf drivers behave: one ``sensor_msgs/PointCloud2`` per profile on ``/scanner/profile``
+while switched on, in its optical frame (``frame_id``), in metres, stamped when taken; nothing else
+(no sweep id, no start or end of sweep). ``scanner/enable`` (``std_srvs/SetBool``) switches it on
+and off (on at start).
 
 The simulation computes a motion's profiles together with the robot's poses, so this node streams the
 profiles of the motions of the :class:`~gls_calibration.nodes.sim_robot.SimRobotNode` it is given

@@ -87,15 +87,17 @@ class SimScannerNode(GlsNode):
 
     @answers_errors(ValueError)
     async def on_start_sweep(self, request, response):
-        """Load the plate's marks, then start publishing the sweep; a repeated request id gets the
-        first answer again and starts nothing.
+        """Load the plate's marks, then start publishing the sweep.
+
+        A repeated request id gets the first answer again and starts nothing.
         """
         return await self.answered.answer_async(request.request_id, lambda: self._start_sweep(request, response))
 
     @answers_errors(ValueError)
     async def on_start_standstill(self, request, response):
-        """Load the plate's marks, then publish profiles taken standing still; a repeated request id
-        gets the first answer again.
+        """Load the plate's marks, then publish profiles taken standing still.
+
+        A repeated request id gets the first answer again.
         """
         return await self.answered.answer_async(request.request_id,
                                                 lambda: self._start_sweep(request, response, standstill=True))

@@ -1,4 +1,6 @@
-"""stream_acquisition: serves ``scan/acquire`` (and ``scan/acquire_standstill``) from what real drivers
+"""stream_acquisition: serves ``scan/acquire`` from what real drivers give.
+
+stream_acquisition: serves ``scan/acquire`` (and ``scan/acquire_standstill``) from what real drivers
 give: a scanner streaming profiles, the robot's flange pose on TF and the motion contract.
 
 For each request it commands the robot's straight line on ``/motion/line`` (see
@@ -224,7 +226,9 @@ class StreamAcquisitionNode(GlsNode):
         return start @ to_flange, end @ to_flange, duration
 
     def _complete(self) -> bool:
-        """The motion ended and a profile and a flange pose stamped after its end came, or the streams have
+        """Tell whether the motion's streams are complete or quiet for ``end_grace_s``.
+
+        The motion ended and a profile and a flange pose stamped after its end came, or the streams have
         been quiet for ``end_grace_s`` since.
         """
         session = self.session      # read once: the acquisition may close it in another executor thread

@@ -77,7 +77,9 @@ MAX_ERROR_MM = 5.0
 
 
 def travel_axis(line: str) -> int:
-    """Index of the B axis along which line ``line`` (a sweep-plan label) travels: 1 (y) for the
+    """Return the index of the B axis along which line ``line`` travels.
+
+    Index of the B axis along which line ``line`` (a sweep-plan label) travels: 1 (y) for the
     sensor as mounted, 0 (x) for the sensor turned 90 deg.
     """
     (item,) = parse_plan(line)
@@ -140,7 +142,9 @@ class LineMap:
         return self.first_knot_mm + self.knot_spacing_mm * np.arange(self.error_x_mm.size)
 
     def error_mm(self, xy_mm: np.ndarray) -> np.ndarray:
-        """The line's error (N, 2) (B x, y, mm) at points ``xy_mm`` (N, 2+) of B; ValueError for a
+        """Return the line's error (N, 2) (B x, y, mm) at points ``xy_mm`` (N, 2+) of B.
+
+        The line's error (N, 2) (B x, y, mm) at points ``xy_mm`` (N, 2+) of B; ValueError for a
         point beyond the first or last knot (the map says nothing there).
         """
         xy = np.asarray(xy_mm, dtype=float)
@@ -161,9 +165,11 @@ class LineMap:
 
 @dataclass(frozen=True)
 class ChainMap:
-    """Repeating errors of the programmed lines (one :class:`LineMap` each), as measured against a
-    plate with known centres (``reference``), averaged over ``sweeps_per_line`` sweeps per line;
-    ``residual_rms_mm`` the per-axis RMS (B x, y) of the reference centres about the fit.
+    """Repeating errors of the programmed lines (one :class:`LineMap` each).
+
+    As measured against a plate with known centres (``reference``), averaged over
+    ``sweeps_per_line`` sweeps per line; ``residual_rms_mm`` the per-axis RMS (B x, y) of the
+    reference centres about the fit.
     """
 
     lines: tuple[LineMap, ...]
@@ -220,7 +226,9 @@ class ChainMap:
         return centres
 
     def correct_measurement(self, found, item: SweepPass, pose) -> Any:
-        """A ``FiducialMeasurement`` of a sweep ``item`` with its centres corrected (B frame) and its
+        """Correct a sweep ``item``'s ``FiducialMeasurement`` (B frame) on the plate ``pose``.
+
+        A ``FiducialMeasurement`` of a sweep ``item`` with its centres corrected (B frame) and its
         plate coordinates recomputed on the plate ``pose`` (``PlatePose``).
         """
         centres = self.correct(item.label, found.centres)
@@ -228,7 +236,9 @@ class ChainMap:
 
     @property
     def identity(self) -> str:
-        """``sha256:`` and 16 hex digits of the map's content: what a reference check and a calibration
+        """Return ``sha256:`` and 16 hex digits of the map's content.
+
+        ``sha256:`` and 16 hex digits of the map's content: what a reference check and a calibration
         record to say which map their sweeps were corrected with.
         """
         text = json.dumps(self.to_dict(), sort_keys=True)
@@ -251,7 +261,9 @@ def chain_map_identity(chain_map: Optional[ChainMap]) -> str:
 
 def correct_measurements(chain_map: Optional[ChainMap], measurements: Sequence, passes: Sequence[SweepPass],
                          pose) -> list:
-    """Every sweep's measurement with the map of its line removed (``measurements`` in the order of
+    """Remove from every sweep's measurement the map of its line.
+
+    Every sweep's measurement with the map of its line removed (``measurements`` in the order of
     ``passes``); unchanged when ``chain_map`` is None. ValueError when a line is not mapped.
     """
     if chain_map is None:
@@ -265,9 +277,11 @@ def correct_measurements(chain_map: Optional[ChainMap], measurements: Sequence, 
 
 @dataclass(frozen=True)
 class ReferenceSweep:
-    """One sweep of a plate with known centres: its line (sweep-plan label), which plate placement
-    it saw (``plate``: sweeps of one placement share the plate's unknown pose), the known centres
-    (M, 2, the plate's own frame, mm) and where the sweep measured them (M, 2+, B frame, mm).
+    """One sweep of a plate with known centres.
+
+    Its line (sweep-plan label), which plate placement it saw (``plate``: sweeps of one placement
+    share the plate's unknown pose), the known centres (M, 2, the plate's own frame, mm) and where
+    the sweep measured them (M, 2+, B frame, mm).
     """
 
     line: str
@@ -278,7 +292,9 @@ class ReferenceSweep:
 
 @dataclass(frozen=True)
 class ChainMapFit:
-    """How the map is fitted: knot spacing (mm), the knots' reach beyond the measured centres (mm),
+    """How the map is fitted: knots, reach, smoothness prior, ridge and measurement sigma.
+
+    How the map is fitted: knot spacing (mm), the knots' reach beyond the measured centres (mm),
     the smoothness prior (std of a second difference of knot values, mm), the ridge fixing a common
     shift of every line (mm), and the per-centre measurement sigma that weighs the data (mm).
     """

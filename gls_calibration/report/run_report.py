@@ -118,7 +118,9 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: Ru
 
 
 def _stored_uncertainty(outcome: CalibrationOutcome):
-    """The candidate record's ``uncertainty`` mapping (the budget), or None (the record in hand, not
+    """Return the candidate record's ``uncertainty`` mapping (the budget), or None.
+
+    The candidate record's ``uncertainty`` mapping (the budget), or None (the record in hand, not
     its file read back).
     """
     record = outcome.candidate.record
@@ -126,7 +128,9 @@ def _stored_uncertainty(outcome: CalibrationOutcome):
 
 
 def training_csv_text(run) -> str:
-    """The first plate's fiducials as gls-train reads them: commanded targets, the height they were
+    """Return the first plate's fiducials as gls-train reads them.
+
+    The first plate's fiducials as gls-train reads them: commanded targets, the height they were
     commanded at and the measured centres (gls frame, mm). Training from it reproduces the run's
     model when the plate was marked through the nominal model (the first calibration of a head).
     """

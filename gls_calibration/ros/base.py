@@ -72,7 +72,9 @@ class GlsNode(Node):
         return thread
 
     def join_workers(self, timeout_s: float) -> list[str]:
-        """Join the threads of :meth:`start_worker` (``timeout_s`` for all); the names of those still
+        """Join the threads of :meth:`start_worker`; return the names of those still running.
+
+        Join the threads of :meth:`start_worker` (``timeout_s`` for all); the names of those still
         running, each logged.
         """
         deadline = time.monotonic() + timeout_s
@@ -129,7 +131,9 @@ class GlsNode(Node):
 
     def declare_numbers(self, name: str, default: list, description: str, *, positive: bool = True,
                         allow_empty: bool = False, length: int | None = None) -> list[float]:
-        """Declare a list-of-numbers parameter and check it at start (ROS ranges do not apply to lists):
+        """Declare a list-of-numbers parameter and check it at start.
+
+        Declare a list-of-numbers parameter and check it at start (ROS ranges do not apply to lists):
         finite, positive (or not negative), not empty unless allowed, of ``length`` when given.
         ValueError naming the parameter otherwise, so a bad value stops the node at start with the reason.
         """
@@ -158,7 +162,9 @@ class GlsNode(Node):
         return values
 
     def client(self, srv_type: type, name: str):
-        """A client in the reentrant group, so that coroutine callbacks can await it, with a deep
+        """Create a client in the reentrant group with a deep answer queue (``CLIENT_QOS``).
+
+        A client in the reentrant group, so that coroutine callbacks can await it, with a deep
         answer queue (``CLIENT_QOS``).
         """
         return self.create_client(srv_type, name, qos_profile=CLIENT_QOS, callback_group=self.reentrant_group)
@@ -206,7 +212,9 @@ class GlsNode(Node):
 
     async def wait_for_peers(self, endpoints: Sequence, matched: Callable[[Any], int], timeout_s: float,
                              nobody: str, anyway: str) -> None:
-        """Await every one of ``endpoints`` (publishers or subscriptions) having a matched peer
+        """Await a matched peer for every one of ``endpoints``, at most ``timeout_s``.
+
+        Await every one of ``endpoints`` (publishers or subscriptions) having a matched peer
         (``matched(endpoint) > 0``), at most ``timeout_s``; then warn "``nobody`` <topics> after ..:
         ``anyway``" for those without one and return: the caller goes on regardless.
 

@@ -47,7 +47,9 @@ NOMINAL_SUMMARY = {"active_calibration_id": "nominal", "model_type": "none (nomi
 
 
 def record_summary(record: Mapping) -> dict[str, object]:
-    """Diagnostic values of the active calibration's record: id, creation time, model types and
+    """Return the diagnostic values of the active calibration's record.
+
+    Diagnostic values of the active calibration's record: id, creation time, model types and
     the RMS measured last; :func:`with_age` turns the creation time into an age.
     """
     content_hash, created = record_identity(record)

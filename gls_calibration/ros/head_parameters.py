@@ -48,7 +48,9 @@ def head_geometry_from(values: dict) -> HeadGeometry:
 
 
 def scanner_to_gls_from(translation_mm, rpy_rad) -> RigidTransform:
-    """The CAD mounting of the scanner (sweep start frame -> gls frame) from its parameter values;
+    """Return the CAD mounting of the scanner from its parameter values.
+
+    The CAD mounting of the scanner (sweep start frame -> gls frame) from its parameter values;
     ValueError naming the parameter unless each is 3 finite numbers.
     """
     checked = []

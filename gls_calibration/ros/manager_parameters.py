@@ -1,5 +1,7 @@
-"""The calibration manager's parameters as one table: name, default, description, range, and whether an
-operator may set it while the node runs (``ros2 param set``) or why not.
+"""The calibration manager's parameters as one table.
+
+Name, default, description, range, and whether an operator may set it while the node runs (``ros2
+param set``) or why not.
 
 A settable parameter applies from the NEXT calibration run: a change while a run is in progress is
 refused with a message (the run keeps the settings it started with), an invalid value is refused with
@@ -182,7 +184,9 @@ class ManagerConfig:
 
 
 def numbers_value(name: str, value: Any) -> tuple[float, ...]:
-    """A list-of-numbers parameter's value as floats; ValueError naming ``name`` when it is not one
+    """Return a list-of-numbers parameter's value as floats; ValueError naming ``name``.
+
+    A list-of-numbers parameter's value as floats; ValueError naming ``name`` when it is not one
     (rcl reads ``[]`` as no value at all: None).
     """
     items = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else None
@@ -222,7 +226,9 @@ def value_problem(parameter: ManagerParameter, value: Any) -> str:
 
 
 def manager_config(values: Mapping[str, Any]) -> ManagerConfig:
-    """The manager's configuration from the value of every parameter of the table; ValueError naming
+    """Build the manager's configuration from the value of every parameter of the table.
+
+    The manager's configuration from the value of every parameter of the table; ValueError naming
     the parameter when a value cannot be used (also for a combination, e.g. default_iterations above
     max_iterations).
     """

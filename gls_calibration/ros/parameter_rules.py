@@ -23,7 +23,9 @@ _SPECIAL_FLOATS = {".nan": math.nan, ".inf": math.inf, "+.inf": math.inf, "-.inf
 
 
 def parameter_rules(argv: Sequence[str]) -> list[str]:
-    """The ``-p``/``--param`` rules among the ROS arguments of ``argv`` (from ``--ros-args`` to
+    """Return the ``-p``/``--param`` rules among the ROS arguments of ``argv``, in their order.
+
+    The ``-p``/``--param`` rules among the ROS arguments of ``argv`` (from ``--ros-args`` to
     ``--`` or the end), in their order (rcl applies them so: the last one of a name wins).
     """
     rules, inside, tokens = [], False, iter(argv)
@@ -38,7 +40,9 @@ def parameter_rules(argv: Sequence[str]) -> list[str]:
 
 
 def _reaches(target: str, node: Node) -> Optional[str]:
-    """The parameter name of the rule target ``target`` when it reaches ``node`` (None otherwise):
+    """Return the parameter name of the rule ``target`` when it reaches ``node``, else None.
+
+    The parameter name of the rule target ``target`` when it reaches ``node`` (None otherwise):
     ``name`` reaches every node; ``node:name`` the node whose full name matches ``node``.
     """
     prefix, colon, name = target.rpartition(":")
@@ -113,7 +117,9 @@ def rule_applied(text: str, held: Any) -> bool:
 
 
 def unapplied_rule_problem(node: Node, argv: Sequence[str]) -> str:
-    """Why a ``-p`` rule of ``argv`` that reaches ``node`` is not what the node holds (empty when every
+    """Say why a ``-p`` rule of ``argv`` that reaches ``node`` is not what the node holds.
+
+    Why a ``-p`` rule of ``argv`` that reaches ``node`` is not what the node holds (empty when every
     one is). Only parameters the node declares are checked; the last rule of a name counts.
     """
     last: dict[str, tuple[str, str]] = {}

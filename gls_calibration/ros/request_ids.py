@@ -72,7 +72,9 @@ class AnsweredRequests:
         return answer.result()
 
     async def answer_async(self, request_id: UUID, serve: Callable[[], Awaitable[Any]]) -> Any:
-        """As :meth:`answer`, for coroutine handlers that interleave: a repeat that arrives while its
+        """Answer as :meth:`answer` does, for coroutine handlers that interleave.
+
+        As :meth:`answer`, for coroutine handlers that interleave: a repeat that arrives while its
         first request is being served awaits that service's answer.
         """
         key = id_key(request_id)

@@ -28,7 +28,9 @@ THREAD_JOIN_TIMEOUT_S = 10.0
 
 
 def with_companions(node: Node) -> tuple[Node, ...]:
-    """``node`` and its companions (``node.companions``: nodes of the same process that need an
+    """Return ``node`` and its companions, to be spun and destroyed with it.
+
+    ``node`` and its companions (``node.companions``: nodes of the same process that need an
     executor thread of their own, e.g. the correction's batch service), to be spun and destroyed
     with it.
     """
@@ -72,7 +74,9 @@ class NodeThreads:
                 node.get_logger().error(f"a callback failed (a bug); still serving:\n{traceback.format_exc()}")
 
     def cpu_s(self) -> dict[str, float]:
-        """CPU time (s) each node's executor thread has used so far, by node name (``time_budget``);
+        """Return the CPU time (s) each node's executor thread has used so far, by node name.
+
+        CPU time (s) each node's executor thread has used so far, by node name (``time_budget``);
         read it while the threads spin (an ended thread gives NaN).
         """
         from gls_calibration.common.time_budget import thread_cpu_s
@@ -127,8 +131,10 @@ class NodeThreads:
 
 
 class StopSignals:
-    """SIGINT and SIGTERM, handled once per process: the first one asks the process to stop, later
-    ones are noted and ignored (a second Ctrl-C must not break the ordered stop half-way).
+    """SIGINT and SIGTERM, handled once per process.
+
+    The first one asks the process to stop, later ones are noted and ignored (a second Ctrl-C must
+    not break the ordered stop half-way).
 
     While ``interrupting`` (a tool blocked in a call), the first signal raises KeyboardInterrupt in
     the main thread; otherwise it only sets :attr:`requested`, which the main loop waits on. Install
@@ -179,7 +185,9 @@ def exit_now_if_stuck(left: Sequence[str], status: int) -> None:
 
 
 def run_node(factory: Callable[..., Node], args: list[str] | None = None) -> int:
-    """Console-script entry: init rclpy (ROS arguments such as remaps apply), spin one node until
+    """Run one node as a console script, from rclpy's init to its ordered stop.
+
+    Console-script entry: init rclpy (ROS arguments such as remaps apply), spin one node until
     SIGINT or SIGTERM, then stop it (``NodeThreads.stop``) before the context shuts down.
 
     Exit status: 0 once stopped by a signal (a node's normal end, as launch expects it); 2 when the

@@ -1,4 +1,6 @@
-"""What RViz shows of a calibration: the plate pose (PoseStamped) and the fiducials with their
+"""What RViz shows of a calibration: the plate pose and the fiducials with deviation arrows.
+
+What RViz shows of a calibration: the plate pose (PoseStamped) and the fiducials with their
 deviation arrows before and after (MarkerArray), in the ``gls`` frame, in metres.
 
 Published transient-local, so an RViz started later still gets the last calibration

@@ -18,7 +18,9 @@ class DeadlineExpired(ServiceCallError):
 
 
 def answers_errors(*errors: type[BaseException]) -> Callable:
-    """Decorate a service handler ``(self, request, response)``: when it raises one of ``errors``
+    """Decorate a service handler so that its ``errors`` answer ``success=false`` with their text.
+
+    Decorate a service handler ``(self, request, response)``: when it raises one of ``errors``
     (default ValueError), answer ``success=false`` with the error's text instead of failing the call.
 
     Works on plain and coroutine handlers. Only expected, explained errors belong in ``errors``. Any

@@ -1,4 +1,6 @@
-"""Parameters of the simulation nodes: the sim configuration file, and the true defects as
+"""Parameters of the simulation nodes: the sim configuration file and the true defects.
+
+Parameters of the simulation nodes: the sim configuration file, and the true defects as
 parameters of their own so that a run can override one (``-p effects.galvo_gain_x:=[0.02]``).
 """
 from __future__ import annotations
@@ -13,7 +15,9 @@ from gls_calibration.simulation.world import SimConfig, load_sim_config
 
 
 def declare_sim_config(node: GlsNode) -> SimConfig:
-    """Load ``sim_config`` (default: the package's config/sim.yaml) with the ``effects.*`` and ``seed``
+    """Load ``sim_config`` with the ``effects.*`` and ``seed`` parameters applied.
+
+    Load ``sim_config`` (default: the package's config/sim.yaml) with the ``effects.*`` and ``seed``
     parameters applied; ValueError names a bad file or defect.
     """
     path = node.declare("sim_config", "", "sim configuration file (empty: the package's config/sim.yaml)")

@@ -102,7 +102,9 @@ class ReplayedSweep:
 
     @property
     def standstill(self) -> bool:
-        """Whether the robot stood still (travel below ``STANDSTILL_TRAVEL_MM``); ValueError when the
+        """Tell whether the robot stood still (travel below ``STANDSTILL_TRAVEL_MM``).
+
+        Whether the robot stood still (travel below ``STANDSTILL_TRAVEL_MM``); ValueError when the
         travel is unknown.
         """
         travel = self.travel_mm
@@ -217,7 +219,9 @@ class BagRecorder:
 
     def write_stream(self, profile_stamps_ns: Sequence[int], profiles_m: np.ndarray, flange_stamps_ns: Sequence[int],
                      base_to_flange_mm: np.ndarray) -> None:
-        """Profiles (H, W, 4: x, y, z in m, intensity) and flange poses (N, 4, 4, mm), in time order, poses
+        """Return the profiles and flange poses of a bag in time order.
+
+        Profiles (H, W, 4: x, y, z in m, intensity) and flange poses (N, 4, 4, mm), in time order, poses
         first at equal stamps; outside a motion they are what a scanner streams while the robot is not
         sweeping.
         """
@@ -307,7 +311,9 @@ def read_sweeps(path: str | Path, layout: BagLayout = BagLayout(), limits: Repla
 
 def read_recording(path: str | Path, layout: BagLayout = BagLayout(), limits: ReplayLimits = ReplayLimits()
                    ) -> tuple[list[ReplayedSweep], np.ndarray]:
-    """Every sweep of a bag, assembled and placed in ``layout.base_frame`` (see the module docstring), and
+    """Assemble every sweep of a bag in ``layout.base_frame``; return them and the gls pose.
+
+    Every sweep of a bag, assembled and placed in ``layout.base_frame`` (see the module docstring), and
     the pose of ``layout.gls_frame`` in that frame (4x4, mm) at the first motion's start.
 
     ValueError (naming the problem) for an unreadable bag, a missing topic or frame, a motion without

@@ -1,5 +1,7 @@
-"""The cell's fixed frames from one YAML file (``config/cell_frames.yaml``): frame names, the hand-eye
-mounting (sensor optical frame in the flange frame) and the galvo head in the robot base frame.
+"""The cell's fixed frames from one YAML file (``config/cell_frames.yaml``).
+
+Frame names, the hand-eye mounting (sensor optical frame in the flange frame) and the galvo head in
+the robot base frame.
 
 The robot node publishes both poses on ``/tf_static``; the streaming acquisition reads the frame
 names. Poses in the file are in metres and radians (REP 103); :class:`CellFrames` holds them as 4x4

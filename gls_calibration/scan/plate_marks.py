@@ -39,7 +39,9 @@ class MarkEvidence:
     cluster_radius_mm: float = 0.0
 
     def marked(self, max_outlying_points: int, max_cluster_points: int | None = None) -> bool:
-        """True when more points than ``max_outlying_points`` lie outside the texture, or more than
+        """Tell whether the points outside the texture are too many or form too large a cluster.
+
+        True when more points than ``max_outlying_points`` lie outside the texture, or more than
         ``max_cluster_points`` (when given) make one cluster.
         """
         return self.outlying_points > max_outlying_points or (
@@ -48,7 +50,9 @@ class MarkEvidence:
 
 def existing_marks(intensity, sigmas: float = 6.0, *, points=None, cluster_sigmas: float = 4.0,
                    cluster_radius_mm: float = 6.0) -> MarkEvidence:
-    """Count the points of ``intensity`` (any shape; NaN = no return) beyond ``sigmas`` robust deviations;
+    """Count the points of ``intensity`` beyond ``sigmas`` robust deviations, and their clusters.
+
+    Count the points of ``intensity`` (any shape; NaN = no return) beyond ``sigmas`` robust deviations;
     with ``points`` (intensity's shape + (3,), mm), also the largest cluster of points beyond
     ``cluster_sigmas`` within ``cluster_radius_mm`` (a fiducial's extent) of one of them.
     """

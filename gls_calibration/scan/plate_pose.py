@@ -208,7 +208,9 @@ MIN_HEIGHT_POINTS = 100
 
 
 def pose_at_height(pose: PlatePose, points, *, distance_threshold_mm: float = 0.2) -> PlatePose:
-    """``pose`` moved along its normal so that its plane runs through ``points`` ((N, 3) or (H, W, 3),
+    """Move ``pose`` along its normal so that its plane runs through ``points``.
+
+    ``pose`` moved along its normal so that its plane runs through ``points`` ((N, 3) or (H, W, 3),
     NaNs dropped): the plate height from profiles taken standing still, the tilt from ``pose``.
 
     Profiles taken without travel cover one line of the plate: they fix the height well (thousands of

@@ -78,7 +78,9 @@ class ProfileRules:
         return f"{self.field_type}, {'big' if self.big_endian else 'little'}-endian"
 
     def format_problem(self, field_types: dict[str, str], big_endian: bool) -> str:
-        """Why a profile whose fields declare ``field_types`` (name -> numpy type name) and byte order
+        """Say why a profile's fields are not in the sensor's declared format (empty if they are).
+
+        Why a profile whose fields declare ``field_types`` (name -> numpy type name) and byte order
         ``big_endian`` is not in the sensor's declared format (empty when it is; a missing field is
         for :func:`profile_problem`).
         """
@@ -91,7 +93,9 @@ class ProfileRules:
         return ""
 
     def announcement_problem(self, announced: int, length_mm: float, step_mm: float) -> str:
-        """Why a scanner's announced profile count contradicts a sweep's length and step (empty when
+        """Say why an announced profile count contradicts a sweep's length and step (empty if not).
+
+        Why a scanner's announced profile count contradicts a sweep's length and step (empty when
         it does not, or when either is 0: left to the driver): floor(L / s) + 1 profiles, within
         ``count_slack``.
         """
@@ -155,7 +159,9 @@ def profile_problem(stamp_s: float, profile: np.ndarray) -> str:
 
 
 def median_point_distance(xyz: np.ndarray) -> float:
-    """Median distance of the finite points (N, 3) from the sensor's origin, in their unit; NaN when none
+    """Return the median distance of the finite points (N, 3) from the sensor's origin.
+
+    Median distance of the finite points (N, 3) from the sensor's origin, in their unit; NaN when none
     is finite. A profile's unit shows in it: a line scanner sees its plate tens to hundreds of mm away.
     """
     xyz = np.asarray(xyz, dtype=float)
@@ -275,7 +281,9 @@ class SweepCollector:
         return True
 
     def members(self, window_s: float = math.inf) -> np.ndarray:
-        """Boolean mask of the kept profiles that form the sweep: the most common layout, and of
+        """Return a boolean mask of the kept profiles that form the sweep.
+
+        Boolean mask of the kept profiles that form the sweep: the most common layout, and of
         those the most that fit in one time window of ``window_s`` (see :func:`stamp_window_s`).
         """
         mask = np.zeros(len(self._profiles), dtype=bool)

@@ -99,7 +99,9 @@ class TfBuffer:
 
     def _edge(self, child: str, stamps_ns: np.ndarray, max_age_ns: int, where: str
               ) -> tuple[np.ndarray, dict[int, str]]:
-        """Poses of ``child`` in its parent at ``stamps_ns`` ((n, 4, 4) or one (4, 4) for a static edge) and
+        """Return the poses of ``child`` in its parent at ``stamps_ns`` and the failures.
+
+        Poses of ``child`` in its parent at ``stamps_ns`` ((n, 4, 4) or one (4, 4) for a static edge) and
         the failures (index of the stamp -> message; those rows are NaN).
         """
         if child in self._static:
@@ -139,7 +141,9 @@ class TfBuffer:
 
     def _to_root(self, frame: str, stamps_ns: np.ndarray, max_age_ns: int, where: str,
                  failures: list[Optional[str]]) -> tuple[str, Optional[np.ndarray]]:
-        """Root of ``frame``'s tree and the poses of ``frame`` in the root ((n, 4, 4); None: the identity);
+        """Return the root of ``frame``'s tree and the poses of ``frame`` in the root.
+
+        Root of ``frame``'s tree and the poses of ``frame`` in the root ((n, 4, 4); None: the identity);
         a stamp's first failing edge, walking up, is written into ``failures`` unless one is there.
         """
         pose = None
@@ -154,7 +158,9 @@ class TfBuffer:
 
     def try_lookup_many(self, target: str, source: str, stamps_ns: Sequence[int], max_age_ns: int,
                         where: str = "tf") -> tuple[np.ndarray, list[Optional[str]]]:
-        """Poses of ``source`` in ``target`` at each of ``stamps_ns`` ((n, 4, 4), mm; NaN where it failed) and
+        """Return the poses of ``source`` in ``target`` at ``stamps_ns`` and each stamp's failure.
+
+        Poses of ``source`` in ``target`` at each of ``stamps_ns`` ((n, 4, 4), mm; NaN where it failed) and
         for each stamp None or the message :meth:`lookup` raises at that stamp (prefixed ``where``).
         """
         stamps_ns = np.asarray(stamps_ns)
@@ -187,7 +193,9 @@ class TfBuffer:
 
     def lookup_many(self, target: str, source: str, stamps_ns: Sequence[int], max_age_ns: int,
                     where: str = "tf") -> np.ndarray:
-        """Poses of ``source`` in ``target`` at each of ``stamps_ns`` ((n, 4, 4), mm); ValueError: the first
+        """Return the poses of ``source`` in ``target`` at ``stamps_ns``; ValueError on a failure.
+
+        Poses of ``source`` in ``target`` at each of ``stamps_ns`` ((n, 4, 4), mm); ValueError: the first
         failing stamp's message, as :meth:`lookup` at that stamp raises it.
         """
         poses, failures = self.try_lookup_many(target, source, stamps_ns, max_age_ns, where)

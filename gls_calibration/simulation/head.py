@@ -103,7 +103,9 @@ class TruthHead:
         return landed
 
     def land(self, alpha_x, alpha_y, t=None, plane_offset_mm: float = 0.0) -> np.ndarray:
-        """Where commanded mechanical angles (rad) land (N, 3), gls, on the plane marked now: the
+        """Return where commanded mechanical angles (rad) land (N, 3, gls) on the plane marked now.
+
+        Where commanded mechanical angles (rad) land (N, 3), gls, on the plane marked now: the
         calibration plane moved by the plate's marking-pose error and by ``plane_offset_mm`` along
         gls z (towards the head when > 0).
         """

@@ -1,4 +1,6 @@
-"""The simulated cell split as a real one is: a robot that runs commanded straight lines of the flange
+"""The simulated cell split as a real one is: a robot and a line scanner streaming profiles.
+
+The simulated cell split as a real one is: a robot that runs commanded straight lines of the flange
 and a line scanner that streams profiles, both fed by one simulation of each motion.
 
 A line is commanded as the flange's start and end poses in the robot base frame (4x4, mm) and its
@@ -52,7 +54,9 @@ class MotionRun:
     data: SweepData
 
     def flange_at(self, stamps_ns: np.ndarray) -> np.ndarray:
-        """Reported flange poses (N, 4, 4) at ``stamps_ns``: linear in time between the profiles' poses
+        """Return the reported flange poses (N, 4, 4) at ``stamps_ns``.
+
+        Reported flange poses (N, 4, 4) at ``stamps_ns``: linear in time between the profiles' poses
         (slerp for the rotation), held before the first and after the last.
         """
         knots = self.profile_stamps_ns.astype(float)
@@ -67,7 +71,9 @@ class MotionRun:
         return poses
 
     def after_profiles(self) -> tuple[np.ndarray, np.ndarray]:
-        """Stamps (ns) and profiles the scanner streams after the motion's end (the robot stands at its
+        """Return the stamps (ns) and profiles the scanner streams after the motion's end.
+
+        Stamps (ns) and profiles the scanner streams after the motion's end (the robot stands at its
         end: the last profile again), as a running sensor keeps streaming.
         """
         period = int(self.profile_stamps_ns[1] - self.profile_stamps_ns[0]) if self.profile_stamps_ns.size > 1 \

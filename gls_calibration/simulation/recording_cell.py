@@ -63,7 +63,9 @@ class RecordingCell(DirectCell):
         return self._record(data)
 
     def _record(self, data) -> Cloud:
-        """Write one motion's stream (profiles, flange poses, start and end) and assemble it as a subscriber
+        """Write one motion's stream and assemble it as a subscriber would.
+
+        Write one motion's stream (profiles, flange poses, start and end) and assemble it as a subscriber
         would.
         """
         sensor_mm = data.sensor_points()
@@ -97,7 +99,9 @@ class RecordingCell(DirectCell):
 
 
 def base_to_gls(config) -> np.ndarray:
-    """The galvo head's frame in the recording's robot base frame (mm): ``config.scanner_to_gls`` (the
+    """Return the galvo head's frame in the recording's robot base frame (mm).
+
+    The galvo head's frame in the recording's robot base frame (mm): ``config.scanner_to_gls`` (the
     CAD mounting of a :class:`~gls_calibration.simulation.world.SimConfig`) inverted.
     """
     return np.linalg.inv(config.scanner_to_gls)

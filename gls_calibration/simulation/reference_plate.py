@@ -79,7 +79,9 @@ FIELD_PLATE = ReferencePlateDesign(pattern=(19, 19), pitch_mm=10.0, positions_mm
 
 @dataclass(frozen=True)
 class MeasurementPlan:
-    """How a plate is measured: the passes over it (``sweep_plan.SweepPass``), profiles placed by the
+    """How a plate is measured: passes, profile placement, plain sweeps and profile steps.
+
+    How a plate is measured: the passes over it (``sweep_plan.SweepPass``), profiles placed by the
     robot's reported pose or by time, the plain sweeps whose plate planes are averaged (0: the
     plane of the first pass), and the sweeps' profile steps (plain and marked plate).
     """
@@ -114,7 +116,9 @@ RAW_PLAN = MeasurementPlan()
 
 
 def calibration_plan(parameter_file: str | Path | None = None) -> MeasurementPlan:
-    """The plan the calibration manager runs with ``parameter_file`` (default: the package's
+    """Return the plan the calibration manager runs with ``parameter_file``.
+
+    The plan the calibration manager runs with ``parameter_file`` (default: the package's
     ``config/gls.yaml``): its ``sweep.plan``, ``sweep.placed_by_pose``, ``sweep.plain_repeats``,
     ``sweep.plain_step_mm`` and ``sweep.marked_step_mm``, the procedure's defaults for keys the file
     leaves out. ValueError naming the file and key.
@@ -167,7 +171,9 @@ def _reference_plate(config: SimConfig, offset_xy, seed,
 
 def measure_plate(config: SimConfig, plate: Plate, plan: MeasurementPlan, seed: int,
                   known_gls: np.ndarray, chain_map: ChainMap | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Measure ``plate`` with ``plan`` as the calibration measures its marked plate (with
+    """Measure ``plate`` with ``plan`` as the calibration measures its marked plate.
+
+    Measure ``plate`` with ``plan`` as the calibration measures its marked plate (with
     ``chain_map`` removed from every sweep when given); the measured centres (M, 3, gls frame through
     the CAD mounting) and the known ones (M, 3) they pair with.
     """
@@ -203,7 +209,9 @@ def measure_plate(config: SimConfig, plate: Plate, plan: MeasurementPlan, seed: 
 def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 1,
                           positions=None, design: ReferencePlateDesign = PAPER_PLATE,
                           chain_map: ChainMap | None = None) -> ReferencePlateResult:
-    """Scan the reference plate ``design`` at ``positions`` (plate-centre offsets, mm; None: the
+    """Scan the reference plate ``design`` at ``positions`` with ``plan``.
+
+    Scan the reference plate ``design`` at ``positions`` (plate-centre offsets, mm; None: the
     design's) with ``plan``; ``chain_map`` removed from every sweep when given (a calibration that
     runs with a chain map must state its accuracy from a check made with it).
     """
@@ -284,7 +292,9 @@ def measure_chain_map(config: SimConfig, plan: MeasurementPlan, seed: int = 1, r
 
 def chain_check(result: ReferencePlateResult, plan: MeasurementPlan, config: SimConfig, seed: int,
                 design: ReferencePlateDesign = PAPER_PLATE, chain_map: ChainMap | None = None) -> ChainCheck:
-    """The reference check of ``plan`` (``result`` of :func:`reference_plate_check` on ``design``, with
+    """Return the reference check of ``plan`` as the calibration manager reads it.
+
+    The reference check of ``plan`` (``result`` of :func:`reference_plate_check` on ``design``, with
     ``chain_map`` applied) as the calibration manager reads it (``stated_accuracy``): what the cell may
     state its accuracy from.
     """

@@ -206,7 +206,9 @@ class LaserLineScanner:
         return np.random.default_rng([seed, _PATH_STREAM]).uniform(-bound, bound, 3)
 
     def _robot_field(self, component: int, direction: int, orientation_deg: float):
-        """The robot's repeating error ``component`` (0 along, 1 across, 2 height; 3 the line's scale,
+        """Return the robot's repeating error ``component`` for this direction and orientation.
+
+        The robot's repeating error ``component`` (0 along, 1 across, 2 height; 3 the line's scale,
         a number) for lines of this travel direction and sensor orientation, drawn once and kept.
         """
         key = (component, direction, orientation_deg)
@@ -361,7 +363,9 @@ class LaserLineScanner:
     def standstill_data(self, plate: Plate, profiles: int, seed: int = 0, position_mm=(0.0, 100.0, 0.0),
                         marking_pose_error: tuple[float, float, float] = (0.0, 0.0, 0.0),
                         period_s: float | None = None) -> SweepData:
-        """``profiles`` profiles taken with the robot standing still at the marking pose (see :class:`SweepData`;
+        """Take ``profiles`` profiles with the robot standing still at the marking pose.
+
+        ``profiles`` profiles taken with the robot standing still at the marking pose (see :class:`SweepData`;
         ``step_mm`` 0, every reported pose the same).
 
         The sensor stands at ``position_mm`` of B, orientation 0. No travel, so none of the robot's
@@ -397,7 +401,9 @@ class LaserLineScanner:
     def standstill(self, plate: Plate, profiles: int, seed: int = 0, position_mm=(0.0, 100.0, 0.0),
                    marking_pose_error: tuple[float, float, float] = (0.0, 0.0, 0.0),
                    period_s: float | None = None) -> Iterator[Profile]:
-        """The profiles of :meth:`standstill_data` one by one (sensor frame, y = 0; the reported pose
+        """Yield the profiles of :meth:`standstill_data` one by one.
+
+        The profiles of :meth:`standstill_data` one by one (sensor frame, y = 0; the reported pose
         is where the sensor stands).
         """
         data = self.standstill_data(plate, profiles, seed, position_mm, marking_pose_error, period_s)
@@ -422,7 +428,9 @@ class LaserLineScanner:
     def sweep_cloud(self, plate: Plate, length_mm: float = 200.0, speed_mm_s: float | None = None,
                     step_mm: float | None = None, seed: int = 0, direction: int = 1,
                     orientation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-        """The whole sweep as an organized cloud placed by time: xyz (H, W, 3) and intensity (H, W),
+        """Return the whole sweep as an organized cloud placed by time.
+
+        The whole sweep as an organized cloud placed by time: xyz (H, W, 3) and intensity (H, W),
         float32, in the sweep's start frame (B for the default sweep). Same numbers as :meth:`sweep`.
         """
         data = self.sweep_data(plate, length_mm, speed_mm_s, step_mm, seed, direction, orientation_deg)

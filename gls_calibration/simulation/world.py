@@ -214,7 +214,9 @@ class SimulatedCell:
 
     def sweep_cloud(self, step_mm: float | None = None, seed: int | None = None, direction: int = 1,
                     orientation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-        """One sweep over the configured length placed by time: organized xyz (H, W, 3) and intensity
+        """Return one sweep over the configured length placed by time.
+
+        One sweep over the configured length placed by time: organized xyz (H, W, 3) and intensity
         (H, W), in the sweep's start frame (the scanner base frame for the default sweep).
         """
         data = self.sweep_data(step_mm, seed, direction, orientation_deg)
@@ -228,7 +230,9 @@ class SimulatedCell:
                                        direction=direction, orientation_deg=orientation_deg)
 
     def standstill_data(self, profiles: int, seed: int) -> SweepData:
-        """``profiles`` profiles with the robot standing still at the marking pose, the sensor over the
+        """Return ``profiles`` profiles with the robot standing still at the marking pose.
+
+        ``profiles`` profiles with the robot standing still at the marking pose, the sensor over the
         middle of the sweep (see ``LaserLineScanner.standstill_data``): the plate as the head sees it.
         """
         return self.scanner.standstill_data(self.plate, profiles, seed=seed,
