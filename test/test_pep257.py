@@ -10,7 +10,7 @@ from ament_pep257.main import main
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-NOT_YET = ["D105", "D401"]
+NOT_YET = ["D105"]
 
 
 @pytest.mark.linter

@@ -45,7 +45,7 @@ class CoreCell:
         self.reload_active_now()
 
     def points_and_intensities(self, cloud: Cloud) -> tuple[np.ndarray, np.ndarray]:
-        """The cloud is already (points, intensities) in this cell."""
+        """Return the cloud as it is: it is already (points, intensities) in this cell."""
         return cloud
 
     async def estimate_plate_pose(self, cloud: Cloud) -> PlatePose:
@@ -68,7 +68,7 @@ class CoreCell:
                         options=self.training)
 
     def start(self, step):
-        """The step itself: in process the steps compute when awaited, one after the other (``Cell.start``)."""
+        """Return the step itself: in process the steps compute when awaited, one after the other (``Cell.start``)."""
         return step
 
     async def use_candidate(self, candidate: Candidate) -> None:

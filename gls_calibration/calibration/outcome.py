@@ -54,11 +54,11 @@ class DeviationMetrics:
 
     @property
     def full(self) -> FieldMetrics:
-        """The metrics over every point."""
+        """Return the metrics over every point."""
         return self.fields[FULL_FIELD]
 
     def field(self, size_mm: Optional[float]) -> FieldMetrics:
-        """The metrics of the centred ``size_mm`` square (None: the full field); KeyError when not computed."""
+        """Return the metrics of the centred ``size_mm`` square (None: the full field); KeyError when not computed."""
         return self.fields[_field_name(size_mm)]
 
     def to_dict(self) -> dict:
@@ -233,7 +233,7 @@ class RunSummary:
     certificate_reference: str = ""
 
     def to_dict(self) -> dict:
-        """The summary as plain values, in field order (``summary.json``)."""
+        """Return the summary as plain values, in field order (``summary.json``)."""
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         values["iteration_rms_mm"] = list(self.iteration_rms_mm)
         values["reference_sigma_mm"] = list(self.reference_sigma_mm)
@@ -288,7 +288,7 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
 
 
 def _certificate(outcome: CalibrationOutcome, check: Optional[ChainCheck]) -> dict:
-    """The certificate's figures of the candidate's U map, and its coverage where the truth is known."""
+    """Return the certificate's figures of the candidate's U map, and its coverage where the truth is known."""
     correction = outcome.candidate.correction if outcome.candidate is not None else None
     grid = getattr(correction, "uncertainty", None)
     if grid is None:
@@ -330,7 +330,7 @@ def _kinds(outcome: CalibrationOutcome) -> dict:
 
 def _stated(measured: Optional[DeviationMetrics], check: Optional[ChainCheck], plan: str, placement: str,
             chain_map: str) -> dict:
-    """The stated-accuracy fields of the summary: only a validated run states a figure."""
+    """Return the stated-accuracy fields of the summary: only a validated run states a figure."""
     if measured is None or not math.isfinite(measured.full.rms_abs_mm):
         return {"stated_basis": SELF_CONSISTENCY,
                 "stated_explanation": "not validated: no figure of the calibration's accuracy"}

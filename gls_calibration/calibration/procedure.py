@@ -71,7 +71,7 @@ class Cell(Protocol):
         """
 
     async def estimate_plate_pose(self, cloud: Any) -> PlatePose:
-        """The plate plane fitted to ``cloud`` (scanner frame, normal towards the head)."""
+        """Fit the plate plane to ``cloud`` (scanner frame, normal towards the head)."""
 
     async def measure_fiducials(self, cloud: Any, pose: PlatePose, expected_count: int,
                                 ring_radii_mm: tuple[float, ...]) -> FiducialMeasurement:
@@ -232,7 +232,7 @@ def plane_height(pose: PlatePose, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def pose_in_frame(pose: PlatePose, transform: RigidTransform) -> PlatePose:
-    """The plate pose expressed in the frame ``transform`` maps into."""
+    """Return the plate pose expressed in the frame ``transform`` maps into."""
     rotation = transform.rotation @ pose.rotation
     return PlatePose(normal=rotation[:, 2].copy(), centre=transform.apply(pose.centre[None, :])[0],
                      rotation=rotation, flatness_rms_mm=pose.flatness_rms_mm,
@@ -411,7 +411,7 @@ async def measure_marked_plate(cell: Cell, settings: ProcedureSettings, pose_sca
 
 
 def fiducials_needed(settings: ProcedureSettings, expected_count: int) -> int:
-    """The fewest fiducials a sweep (and the pairing) must find of ``expected_count`` marked."""
+    """Return the fewest fiducials a sweep (and the pairing) must find of ``expected_count`` marked."""
     return math.ceil(settings.min_found_fraction * expected_count)
 
 

@@ -54,7 +54,7 @@ def calibration_record(geometry: HeadGeometry, *, plate_pose, models: Sequence[M
                        measured_xyz: np.ndarray, deviations_xy: np.ndarray, through_nominal_model: bool,
                        metrics: Mapping, source: Mapping | None = None,
                        uncertainty: Mapping | None = None) -> CalibrationRecord:
-    """The record of a calibration, built the same way by the calibrate flow and by ``gls-train``.
+    """Return the record of a calibration, built the same way by the calibrate flow and by ``gls-train``.
 
     ``models``: every model in order of application (earlier calibrations' first); ``trained``: the
     ones trained now (their hyper-parameters are recorded); the first plate's ``targets_xy`` (N, 2),
@@ -114,7 +114,7 @@ def save_candidate(store: CalibrationStore, record: CalibrationRecord, geometry:
 
 
 def record_models(record: Mapping) -> list[dict]:
-    """The model dicts of a record, in order of application."""
+    """Return the model dicts of a record, in order of application."""
     return [dict(model) for model in record["models"]]
 
 

@@ -67,7 +67,7 @@ class CalibrationRecord(Mapping):
         return f"CalibrationRecord(created_utc={self._data.get('created_utc')!r})"
 
     def to_dict(self) -> dict:
-        """A deep plain copy (to change and save as a new record)."""
+        """Return a deep plain copy (to change and save as a new record)."""
         return copy.deepcopy(self._data)
 
 
@@ -260,7 +260,7 @@ def _first_non_finite(value: Any, path: str) -> str | None:
 
 
 def head_geometry(record: Mapping) -> HeadGeometry:
-    """The HeadGeometry stored in a (validated) record."""
+    """Return the HeadGeometry stored in a (validated) record."""
     return HeadGeometry(**{key: record["head"][key] for key in HEAD_KEYS})
 
 
@@ -303,7 +303,7 @@ def _check_structure(text: str) -> None:
 
 
 def read_bounded_text(path: str | os.PathLike, limit_bytes: int = MAX_FILE_BYTES) -> str:
-    """The text of the regular file ``path``, read with a bound; CalibrationFileError otherwise.
+    """Return the text of the regular file ``path``, read with a bound; CalibrationFileError otherwise.
 
     Devices, FIFOs and directories are refused without blocking (opened non-blocking, checked with
     fstat on the open descriptor), and so is a file over ``limit_bytes``.

@@ -34,11 +34,11 @@ class ReplayCell(CoreCell):
         super().__init__(geometry, store, physics_first=physics_first, training=training)
 
     async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Cloud:
-        """The recording's next sweep, whatever the request (the recording fixed the plan)."""
+        """Return the recording's next sweep, whatever the request (the recording fixed the plan)."""
         return self._next(standstill=False)
 
     async def acquire_standstill(self, profiles: int) -> Cloud:
-        """The recording's next stand-still acquisition."""
+        """Return the recording's next stand-still acquisition."""
         return self._next(standstill=True)
 
     def _next(self, *, standstill: bool) -> Cloud:

@@ -100,7 +100,7 @@ class ChainCheck:
 
     @property
     def rms_2d_mm(self) -> float:
-        """The chain's 2-D RMS error at one centre, sqrt(sigma_x^2 + sigma_y^2)."""
+        """Return the chain's 2-D RMS error at one centre, sqrt(sigma_x^2 + sigma_y^2)."""
         return math.hypot(*self.sigma_mm)
 
     def to_dict(self) -> dict:
@@ -110,7 +110,7 @@ class ChainCheck:
 
 
 def chain_check_from_mapping(document: Any) -> ChainCheck:
-    """A :class:`ChainCheck` from the parsed file (``{reference_check: {...}}``); ValueError naming the key."""
+    """Return a :class:`ChainCheck` from the parsed file (``{reference_check: {...}}``); ValueError naming the key."""
     if not isinstance(document, Mapping) or not isinstance(document.get("reference_check"), Mapping):
         raise ValueError("a reference check file holds one mapping 'reference_check'")
     block = dict(document["reference_check"])
@@ -141,7 +141,7 @@ class StatedAccuracy:
 
 def stated_accuracy(measured_rms_mm: float, check: Optional[ChainCheck], *, plan: str,
                     placement: str, chain_map: str = NO_CHAIN_MAP) -> StatedAccuracy:
-    """The stated accuracy of a calibration validated at ``measured_rms_mm`` (2-D RMS, the same chain).
+    """Return the stated accuracy of a calibration validated at ``measured_rms_mm`` (2-D RMS, the same chain).
 
     Parameters
     ----------

@@ -116,7 +116,7 @@ class CalibrationStore:
         return self.history_directory / name
 
     def load_active(self) -> CalibrationRecord:
-        """The active calibration record, validated; CalibrationFileError if absent or unusable."""
+        """Return the active calibration record, validated; CalibrationFileError if absent or unusable."""
         path = self.active_path()
         if path is None:
             raise CalibrationFileError(self.pointer_path, "no active calibration (nothing saved yet)")

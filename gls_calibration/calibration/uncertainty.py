@@ -111,14 +111,14 @@ class UncertaintyBudget:
     pitch_mm: float
 
     def contribution(self, name: str) -> Contribution:
-        """The contribution called ``name``; KeyError when the budget has none."""
+        """Return the contribution called ``name``; KeyError when the budget has none."""
         for item in self.contributions:
             if item.name == name:
                 return item
         raise KeyError(name)
 
     def to_dict(self) -> dict:
-        """The record's ``uncertainty`` mapping: the grid and the budget (plain numbers)."""
+        """Return the record's ``uncertainty`` mapping: the grid and the budget (plain numbers)."""
         return {**self.grid.to_dict(),
                 "position_relative_to": "best-fit rigid frame of the field",
                 "u95_full_mm": self.u95_full_mm, "u95_central_150_mm": self.u95_central_mm,
@@ -131,7 +131,7 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
                        check: Optional[ChainCheck], check_matches: bool,
                        settings: CertificateSettings = CertificateSettings(),
                        removed_chain_rms_mm: Optional[float] = None) -> UncertaintyBudget:
-    """The budget and U grid of a calibration trained on ``trainings`` (one per iteration).
+    """Return the budget and U grid of a calibration trained on ``trainings`` (one per iteration).
 
     Parameters
     ----------
@@ -224,7 +224,7 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
 
 def blocked_cv_model_error(landed: np.ndarray, corrections: np.ndarray, sigma: np.ndarray,
                            model: Mapping[str, Any], settings: CertificateSettings) -> tuple[float, float, float]:
-    """The model's 2-D RMS error one pitch from the nearest fiducial and its growth exponent q.
+    """Return the model's 2-D RMS error one pitch from the nearest fiducial and its growth exponent q.
 
     The model is refitted with its hyper-parameters on folds of whole 2x2 and 3x3 fiducial blocks;
     each held-out residual's squared length, less the held-out centre's own noise (2 sigma^2), is
@@ -271,7 +271,7 @@ def blocked_cv_model_error(landed: np.ndarray, corrections: np.ndarray, sigma: n
 
 
 def _refit(model: Mapping[str, Any]):
-    """A function (X, Y) -> model refitted with ``model``'s hyper-parameters."""
+    """Return a function (X, Y) -> model refitted with ``model``'s hyper-parameters."""
     kind = model.get("type")
     if kind == "ols_rbf":
         spread, goal, limit = float(model["spread_mm"]), float(model.get("mse_goal_mm2", 0.0)), model.get("max_neurons")

@@ -185,7 +185,7 @@ class ProgressBar:
         self.line_open = False
 
     def update(self, message) -> None:
-        """Callback of ``calibration/progress`` messages and of the action's feedback."""
+        """Show a ``calibration/progress`` message or the action's feedback on the progress bar."""
         text = message.text if hasattr(message, "text") else message.message
         # The message comes from the network: a NaN or out-of-range fraction must not end the tool.
         fraction = min(max(message.fraction, 0.0), 1.0) if math.isfinite(message.fraction) else 0.0
@@ -212,7 +212,7 @@ def _mm(value: float) -> str:
 
 
 def summary_table(response) -> str:
-    """The ``calibrate`` answer as a small table for people."""
+    """Return the ``calibrate`` answer as a small table for people."""
     rows = [
         ("result", "success" if response.success else "FAILED", response.message),
         ("deviation before (measured)", f"RMS {_mm(response.pre_rms_mm)} mm", f"max {_mm(response.pre_max_mm)} mm"),

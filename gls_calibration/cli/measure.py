@@ -279,7 +279,7 @@ def measure_cloud(xyz: np.ndarray, intensity: np.ndarray, args) -> tuple[PlatePo
 
 def _outputs(xyz, intensity, args, source: str, units: str) -> tuple[dict[str, str], bytes, FiducialMeasurement,
                                                                      float]:
-    """The texts and picture of one cloud's results (``xyz`` in mm, read from ``units``; nothing written)."""
+    """Return the texts and picture of one cloud's results (``xyz`` in mm, read from ``units``; nothing written)."""
     pose, measurement, seconds = measure_cloud(xyz, intensity, args)
     texts = {"centres.csv": csv_text(measurement),
              "summary.json": json.dumps(summary(measurement, pose, args, seconds, source, units), indent=2) + "\n"}

@@ -284,7 +284,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def cell_namespace(args: argparse.Namespace) -> str:
-    """The namespace the cell's nodes get (a user's ``-r __ns:=...`` aside)."""
+    """Return the namespace the cell's nodes get (a user's ``-r __ns:=...`` aside)."""
     return args.namespace or ("gls" if args.serve else f"gls_sim_{os.getpid()}")
 
 
@@ -550,7 +550,7 @@ def measure_reference_check(args: argparse.Namespace) -> Path:
 
 
 def run_reference_plate(args: argparse.Namespace) -> int:
-    """The simulated reference-plate check (no ROS): write ``summary.json`` and print the figures."""
+    """Run the simulated reference-plate check (no ROS): write ``summary.json`` and print the figures."""
     from gls_calibration.simulation.reference_plate import (PATTERN, PITCH_MM, POSITIONS_MM, RAW_PLAN,
                                                             chain_check, reference_plate_check)
 

@@ -127,7 +127,7 @@ def trainer_parameters(document: Any) -> dict[str, Any]:
 
 
 def training_options(config: Path) -> TrainingOptions:
-    """The trainer's grid search from a parameter file (the keys the rbf_trainer node reads, with its ranges)."""
+    """Return the trainer's grid search from a parameter file (the keys the rbf_trainer node reads, with its ranges)."""
     def parse(document: Any) -> TrainingOptions:
         parameters = trainer_parameters(document)
         # the node's own table and checks: a value one refuses, the other refuses too

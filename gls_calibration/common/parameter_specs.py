@@ -43,7 +43,7 @@ class ParameterSpec:
 
     @property
     def bounds(self) -> Optional[tuple[float, float]]:
-        """The inclusive range of an integer or number parameter with a range (None otherwise)."""
+        """Return the inclusive range of an integer or number parameter with a range (None otherwise)."""
         if self.kind not in ("integer", "number") or (self.minimum is None and self.maximum is None):
             return None
         low, high = INTEGER_LIMITS if self.kind == "integer" else FLOAT_LIMITS

@@ -64,7 +64,7 @@ class StageClock:
         return stamped
 
     def times(self) -> StageTimes:
-        """The stage times of the messages so far."""
+        """Return the stage times of the messages so far."""
         with self._lock:
             events = list(self._events)
         wall: dict[str, float] = {}

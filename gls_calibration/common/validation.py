@@ -105,7 +105,7 @@ def require_key(data: Mapping, key: str, what: str = "model description") -> Any
 
 
 def require_type(data: Any, expected: str) -> Mapping:
-    """A stored model description: a mapping whose ``type`` is ``expected`` (ValueError otherwise)."""
+    """Return a stored model description: a mapping whose ``type`` is ``expected`` (ValueError otherwise)."""
     require_mapping(data, "model description")
     if data.get("type") != expected:
         raise ValueError(f"model type must be '{expected}', got {data.get('type')!r}")
@@ -113,7 +113,7 @@ def require_type(data: Any, expected: str) -> Mapping:
 
 
 def as_config_number(value: Any, key: str, what: str) -> float:
-    """A finite number read from a configuration file (bools refused); ValueError names ``what`` ``key``."""
+    """Return a finite number read from a configuration file (bools refused); ValueError names ``what`` ``key``."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise ValueError(f"{what} {key!r} must be a finite number, got {value!r}")
     return float(value)

@@ -74,7 +74,7 @@ class CalibratedRegion:
         return cls(float(low[0]), float(high[0]), float(low[1]), float(high[1]), plane_z_mm)
 
     def contains(self, x, y) -> np.ndarray:
-        """True for points inside the box or on its boundary (1e-9 mm tolerance)."""
+        """Return True for points inside the box or on its boundary (1e-9 mm tolerance)."""
         x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
         tolerance = _INSIDE_TOLERANCE_MM
         return ((x >= self.x_min - tolerance) & (x <= self.x_max + tolerance)
@@ -182,7 +182,7 @@ class Correction:
         self.uncertainty = uncertainty if models else None     # U describes these models only
 
     def with_model(self, model: DeviationModel, region: Optional[CalibratedRegion] = None) -> "Correction":
-        """A new correction with ``model`` added after the existing ones.
+        """Return a new correction with ``model`` added after the existing ones.
 
         The region becomes the overlap of the current one and ``region`` (either may be absent,
         not both when this is the first model). The U map describes the old models only: it is dropped.
@@ -207,7 +207,7 @@ class Correction:
                 prepare()
 
     def deviation(self, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Summed, clamped and tapered model correction (dx, dy) in mm and the inside flags."""
+        """Return the summed, clamped and tapered model correction (dx, dy) in mm and the inside flags."""
         x, y, _ = as_coordinate_arrays(x, y)
         if not self.models:
             zeros = np.zeros_like(x)

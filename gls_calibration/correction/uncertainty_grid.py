@@ -120,7 +120,7 @@ class UncertaintyGrid:
 
     @classmethod
     def from_dict(cls, data: Any, key: str = UNCERTAINTY_KEY) -> "UncertaintyGrid":
-        """The grid of a record's ``uncertainty`` mapping; ValueError naming ``key`` and the field."""
+        """Return the grid of a record's ``uncertainty`` mapping; ValueError naming ``key`` and the field."""
         if not isinstance(data, Mapping):
             raise ValueError(f"key '{key}' must be a mapping")
         for name in ("x_mm", "y_mm", "u_k2_mm"):

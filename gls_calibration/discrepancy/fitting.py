@@ -65,7 +65,7 @@ class Predictor:
         return landing
 
     def subset(self, keep: np.ndarray) -> "Predictor":
-        """The same predictor for the points ``keep`` (a boolean mask or indices)."""
+        """Return the same predictor for the points ``keep`` (a boolean mask or indices)."""
         return Predictor(self.geometry, self.commanded_xy[keep], None if self.t is None else self.t[keep],
                          tuple(self.user_effects.values()))
 
@@ -77,14 +77,14 @@ def typical_scales(specs: Sequence[EffectSpec], t: np.ndarray | None) -> np.ndar
 
 
 def aligned_residual(predicted_xy: np.ndarray, measured_xy: np.ndarray) -> tuple[RigidAlignment2D, np.ndarray]:
-    """The rigid motion measured -> prediction and the residual ``aligned measurement - prediction``."""
+    """Return the rigid motion measured -> prediction and the residual ``aligned measurement - prediction``."""
     alignment, aligned = align_rigid_2d(measured_xy, predicted_xy)
     return alignment, aligned - predicted_xy
 
 
 def split_values(predict: Predictor, names: Sequence[str], vector: np.ndarray,
                  known: HeadEffects) -> tuple[HeadEffects, dict[str, tuple[float, ...]]]:
-    """The flat vector of ``names`` as library effects (on top of ``known``) and user-effect values."""
+    """Return the flat vector of ``names`` as library effects (on top of ``known``) and user-effect values."""
     library = dict(known.values)
     user: dict[str, tuple[float, ...]] = {}
     start = 0
@@ -132,7 +132,7 @@ def fit(predict: Predictor, measured_xy: np.ndarray, names: Sequence[str], known
 def evaluate(predict: Predictor, measured_xy: np.ndarray, names: Sequence[str], known: HeadEffects,
              vector: np.ndarray, sigma_axis_mm, covariance: np.ndarray, success: bool = True,
              evaluations: int = 1) -> EffectsFit:
-    """The fit record of ``names`` at ``vector`` (on top of ``known``): landing, aligned residual, chi-square."""
+    """Return the fit record of ``names`` at ``vector`` (on top of ``known``): landing, aligned residual, chi-square."""
     names = tuple(names)
     sigma = np.asarray(sigma_axis_mm, dtype=float)
     effects, user = split_values(predict, names, vector, known)
@@ -238,7 +238,7 @@ def rigid_correlation(predict: Predictor, model: EffectsFit, sigma_axis_mm) -> d
 
 
 def check_inputs(commanded_xy, measured_xy, t) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Validated (N, 2) commanded and measured points and optional (N,) marking time."""
+    """Return validated (N, 2) commanded and measured points and optional (N,) marking time."""
     commanded_xy = as_points(commanded_xy, "commanded_xy", 2, min_length=MIN_POINTS)
     measured_xy = as_points(measured_xy, "measured_xy", 2, min_length=MIN_POINTS)
     if measured_xy.shape != commanded_xy.shape:

@@ -87,7 +87,7 @@ def independent_noise(measured, sigma_mm=None) -> IndependentNoise:
 
 
 def floor_evidence(evidence: IndependentNoise, residual_estimate: NoiseFloor) -> FloorEvidence:
-    """The floor the verdict uses and the cross-check against the residual's roughness."""
+    """Return the floor the verdict uses and the cross-check against the residual's roughness."""
     estimate = residual_estimate.noise_floor_mm
     if evidence.sigma_axis_mm is None:
         return FloorEvidence("residual", residual_estimate.sigma_axis_mm, estimate, estimate, 1,

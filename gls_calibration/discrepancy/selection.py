@@ -56,7 +56,7 @@ class Selection:
 
     @property
     def observations(self) -> int:
-        """Number of scalar observations (2 per point)."""
+        """Return the number of scalar observations (2 per point)."""
         return 2 * len(self.measured_xy)
 
     def information(self, model: EffectsFit) -> float:
@@ -221,7 +221,7 @@ def step(selection: Selection, current: EffectsFit, dropped: set[str], notes: li
 
 
 def time_follows_position(points_xy: np.ndarray, t: np.ndarray, threshold: float = 0.9) -> bool:
-    """True when a plane in x, y explains more than ``threshold`` of the variance of the marking time."""
+    """Return True when a plane in x, y explains more than ``threshold`` of the variance of the marking time."""
     design = np.column_stack([np.ones(len(points_xy)), points_xy])
     fitted = design @ np.linalg.lstsq(design, t, rcond=None)[0]
     variance = float(np.var(t))
@@ -230,7 +230,7 @@ def time_follows_position(points_xy: np.ndarray, t: np.ndarray, threshold: float
 
 def candidate_pool(candidates: Sequence[str] | None, t: np.ndarray | None,
                    user_effects: Sequence[UserEffect] = ()) -> tuple[str, ...]:
-    """The candidate effects (default: the whole table and the user effects), thermal_drift left out without time."""
+    """Return the candidate effects (default: the whole table and user effects); thermal_drift needs time."""
     user = [effect.name for effect in user_effects]
     if len(set(user)) != len(user):
         raise ValueError(f"user effect names must be unique, got {user}")

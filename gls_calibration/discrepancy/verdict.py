@@ -95,7 +95,7 @@ def smooth_share(points_xy: np.ndarray, residual_xy: np.ndarray) -> float:
 
 def dominant_pattern(points_xy: np.ndarray, residual_xy: np.ndarray, location: ResidualLocation,
                      structure: StructureTest) -> str:
-    """The pattern that carries most of the residual, in words."""
+    """Return the pattern that carries most of the residual, in words."""
     share, centre, radius = local_pattern(points_xy, residual_xy)
     if share >= 0.5:
         return (f"local near (x, y) = ({centre[0]:.0f}, {centre[1]:.0f}) mm within ~{radius:.0f} mm "
@@ -127,7 +127,7 @@ def against_floor(residual_xy: np.ndarray, floor: FloorEvidence, fitted_paramete
 
 def judge(points_xy: np.ndarray, residual_xy: np.ndarray, floor: FloorEvidence, structure: StructureTest,
           location: ResidualLocation, fitted_parameters: int, *, alpha: float = 1e-3) -> Verdict:
-    """The verdict on the final residual against the floor."""
+    """Return the verdict on the final residual against the floor."""
     residual_rms = rms(residual_xy)
     consistent, p_value, ratio = against_floor(residual_xy, floor, fitted_parameters, alpha=alpha)
     unexplained = math.sqrt(max(residual_rms ** 2 - floor.noise_floor_mm ** 2, 0.0))
@@ -147,7 +147,7 @@ def judge(points_xy: np.ndarray, residual_xy: np.ndarray, floor: FloorEvidence, 
 
 
 def unexplained_phrase(verdict: Verdict, floor: FloorEvidence) -> str:
-    """What is left unexplained, in words consistent with the verdict's figure."""
+    """Return what is left unexplained, in words consistent with the verdict's figure."""
     if verdict.below_floor:
         return (f"{verdict.unexplained_rms_mm:.4f} mm RMS of smooth structure (F-test) remains below the "
                 f"{floor.source} noise floor")
@@ -155,7 +155,7 @@ def unexplained_phrase(verdict: Verdict, floor: FloorEvidence) -> str:
 
 
 def naming_phrase(result: DiscrepancyResult) -> str:
-    """The named effects and groups in words: ``a, b and one of c / d`` (``no effect`` when none)."""
+    """Return the named effects and groups in words: ``a, b and one of c / d`` (``no effect`` when none)."""
     parts = list(result.named_effects) + [f"one of {' / '.join(group)}" for group in result.named_groups]
     if not parts:
         return "no effect"
@@ -163,7 +163,7 @@ def naming_phrase(result: DiscrepancyResult) -> str:
 
 
 def verdict_lines(result: DiscrepancyResult) -> list[str]:
-    """The verdict in a few Markdown lines, for the discrepancy report and the calibration run's report."""
+    """Return the verdict in a few Markdown lines, for the discrepancy report and the calibration run's report."""
     verdict, floor = result.verdict, result.floor
     named = naming_phrase(result)
     if verdict.verdict == "explained":

@@ -42,7 +42,7 @@ def ring_segment_count(radius_mm: float, max_chord_error_mm: float) -> int:
 
 
 def ring_polyline(centre_xy, radius_mm: float, max_chord_error_mm: float = 0.005) -> np.ndarray:
-    """Closed polyline (M, 2) approximating a circle; the first vertex is repeated at the end.
+    """Return a closed polyline (M, 2) approximating a circle; the first vertex is repeated at the end.
 
     Vertices lie on the circle, so the chord error is the sagitta of each segment; the segment
     count is the smallest that keeps it within ``max_chord_error_mm``.

@@ -34,7 +34,7 @@ class ParameterSpec:
     per_run: bool = False     # ``typical`` is a change over the whole run (a rate per second otherwise)
 
     def plausible(self, value: float) -> bool:
-        """True when ``value`` lies in the plausible range."""
+        """Return True when ``value`` lies in the plausible range."""
         return self.low <= value <= self.high
 
 
@@ -53,7 +53,7 @@ class EffectSpec:
 
     @property
     def units(self) -> tuple[str, ...]:
-        """Unit of each parameter, in vector order."""
+        """Return the unit of each parameter, in vector order."""
         return tuple(p.unit for p in self.parameters)
 
 
@@ -138,7 +138,7 @@ class UserEffect:
 
     @property
     def name(self) -> str:
-        """The effect's name."""
+        """Return the effect's name."""
         return self.spec.name
 
 

@@ -39,7 +39,7 @@ HEAD_DEFAULTS: dict[str, float] = {
 
 
 def default_head_config_path() -> Path:
-    """The package's ``config/head.yaml``."""
+    """Return the package's ``config/head.yaml``."""
     return config_path("head.yaml")
 
 
@@ -63,7 +63,7 @@ def _undot(mapping: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def parameters_block(document: Any) -> dict[str, Any]:
-    """The parameter mapping of a ROS parameter file or of a plain mapping."""
+    """Return the parameter mapping of a ROS parameter file or of a plain mapping."""
     if document is None:
         return {}
     if not isinstance(document, Mapping):

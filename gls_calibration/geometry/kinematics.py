@@ -53,7 +53,7 @@ class JointSetpoints:
 
     @property
     def within_limits(self) -> np.ndarray:
-        """True where both mirrors and the focus module can reach the target."""
+        """Return True where both mirrors and the focus module can reach the target."""
         return self.within_mirror_limits & self.within_focus_range
 
 

@@ -46,7 +46,7 @@ def _check_effect_name(name: str) -> None:
 
 
 def parameter_count(names: Iterable[str]) -> int:
-    """Number of parameters of the listed effects (their flat vector length)."""
+    """Return the number of parameters of the listed effects (their flat vector length)."""
     names = list(names)
     for name in names:
         _check_effect_name(name)
@@ -117,7 +117,7 @@ class HeadEffects:
         return self.nonzero() == other.nonzero()
 
     def nonzero(self) -> dict[str, tuple[float, ...]]:
-        """The effects with at least one non-zero parameter."""
+        """Return the effects with at least one non-zero parameter."""
         return {name: values for name, values in self.values.items() if any(values)}
 
     def get(self, name: str) -> tuple[float, ...]:
@@ -210,7 +210,7 @@ class PhysicalHead:
         return f"PhysicalHead({self.geometry!r}, {self.effects.nonzero()!r})"
 
     def mechanical_angles(self, alpha_x, alpha_y, t=None) -> tuple[np.ndarray, np.ndarray]:
-        """True mechanical angles (rad) for commanded ones: gain, offset and thermal drift applied."""
+        """Return the true mechanical angles (rad) for commanded ones: gain, offset and thermal drift applied."""
         alpha_x, alpha_y, t = self._inputs(alpha_x, alpha_y, t)
         gain_rate, offset_rate = self.effects.get("thermal_drift")
         gain_x = 1.0 + self.effects.get("galvo_gain_x")[0] + gain_rate * t

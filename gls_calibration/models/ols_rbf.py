@@ -23,12 +23,12 @@ _USABLE_FRACTION = 1e-6      # squared-norm share a candidate must keep outside 
 
 
 def sigma_from_spread(spread_mm: float) -> float:
-    """Standard deviation of the Gaussian ``exp(-r^2 / (2 sigma^2))`` equal to a MATLAB-spread unit."""
+    """Return the standard deviation of the Gaussian ``exp(-r^2 / (2 sigma^2))`` equal to a MATLAB-spread unit."""
     return as_positive_number(spread_mm, "spread_mm") / math.sqrt(2.0 * LN2)
 
 
 def gaussian_design(points: np.ndarray, centres: np.ndarray, spread_mm: float) -> np.ndarray:
-    """Unit outputs (N, K) of Gaussian units at ``centres`` for ``points`` (MATLAB spread convention)."""
+    """Return the outputs (N, K) of Gaussian units at ``centres`` for ``points`` (MATLAB spread convention)."""
     squared = np.sum((points[:, None, :] - centres[None, :, :]) ** 2, axis=2)
     return np.exp(-(LN2 / spread_mm ** 2) * squared)
 
@@ -163,7 +163,7 @@ class OLSRBFNetwork:
 
     @property
     def neuron_count(self) -> int:
-        """Number of Gaussian units (the bias not counted)."""
+        """Return the number of Gaussian units (the bias not counted)."""
         return self.centres.shape[0]
 
     def __call__(self, points) -> np.ndarray:

@@ -94,7 +94,7 @@ class PhysicalDeviationModel:
     @classmethod
     def from_discrepancy(cls, result: DiscrepancyResult, targets_xy, measured_xy, *,
                          inverse: bool = True) -> "PhysicalDeviationModel":
-        """The model of a discrepancy result, aligned onto the measurement ``measured_xy`` of ``targets_xy``.
+        """Return the model of a discrepancy result, aligned onto the measurement ``measured_xy`` of ``targets_xy``.
 
         The rigid motion is the least-squares fit of the model's landing onto the measured points
         (the exact inverse of the alignment the discrepancy fit applies to the measurement).
@@ -178,7 +178,7 @@ class SumModel:
         self.models = models
 
     def __call__(self, points) -> np.ndarray:
-        """Summed outputs (M, 2) in mm at ``points`` (M, 2) in mm."""
+        """Return the summed outputs (M, 2) in mm at ``points`` (M, 2) in mm."""
         points = as_points(points, "points", 2, min_length=0)
         total = np.zeros_like(points)
         for model in self.models:
@@ -225,7 +225,7 @@ class PhysicsTrainingReport:
 
     @property
     def uses_physics(self) -> bool:
-        """True when the trained model holds a physical part."""
+        """Return True when the trained model holds a physical part."""
         return self.physical_model is not None
 
     @property

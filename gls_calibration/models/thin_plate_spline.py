@@ -116,7 +116,7 @@ class ThinPlateSplineModel:
 
     @property
     def neuron_count(self) -> int:
-        """Number of kernel centres."""
+        """Return the number of kernel centres."""
         return self.centres.shape[0]
 
     def __call__(self, points) -> np.ndarray:

@@ -85,7 +85,7 @@ class TiledKernelSum:
     coefficients: np.ndarray
 
     def inside(self, points: np.ndarray) -> np.ndarray:
-        """Flags (M,): points this evaluator handles (within its box)."""
+        """Return flags (M,): the points this evaluator handles (within its box)."""
         high = self.origin + self.tiles * self.tile_size
         return ((points >= self.origin) & (points <= high)).all(axis=1)
 

@@ -90,7 +90,7 @@ def training_options_from(values: Mapping[str, Any]) -> TrainingOptions:
 
 def train_correction(landed_xy, corrections, geometry: Optional[HeadGeometry] = None, *,
                      physics_first: bool = False, options: TrainingOptions = TrainingOptions()) -> TrainedModel:
-    """A correction model trained at the landed points ``landed_xy`` on ``corrections`` (both (N, 2), mm).
+    """Train a correction model at the landed points ``landed_xy`` on ``corrections`` (both (N, 2), mm).
 
     ``physics_first``: the named effects are fitted first (discrepancy workflow, needs a plate
     marked through the nominal model, which was then commanded at ``Q = P + correction``) and the

@@ -80,12 +80,12 @@ class ServiceCell:
 
     @property
     def timeout_s(self) -> float:
-        """The node's service time limit (settable between runs)."""
+        """Return the node's service time limit (settable between runs)."""
         return self.node.service_timeout_s
 
     @property
     def deadlines(self):
-        """The node's job time limits (settable between runs)."""
+        """Return the node's job time limits (settable between runs)."""
         return self.node.deadlines
 
     async def _checked(self, client, request, timeout_s: Optional[float] = None, *, idempotent: bool = True,
@@ -196,7 +196,7 @@ class ServiceCell:
         await self._checked(self.exchange, Trigger.Request(), idempotent=False)
 
     def start(self, step):
-        """A task of the node's executor running ``step`` beside the procedure (``Cell.start``).
+        """Return a task of the node's executor running ``step`` beside the procedure (``Cell.start``).
 
         Awaiting the task returns the step's result or raises its error; the step's service calls run
         on the reentrant group like the procedure's own.
@@ -208,7 +208,7 @@ class ServiceCell:
         return conversions.cloud_arrays_from_msg(cloud)
 
     async def true_marks(self):
-        """The marks where they truly landed, from a simulated galvo; None in a real cell."""
+        """Return the marks where they truly landed, from a simulated galvo; None in a real cell."""
         if self.truth is None:
             return None
         paths = (await self._checked(self.truth, GetMarkedPaths.Request())).paths
@@ -287,7 +287,7 @@ class CalibrationManager(GlsNode):
         return None
 
     def health(self) -> Health:
-        """What /diagnostics says: state, the last run, the store's active calibration."""
+        """Return what /diagnostics says: state, the last run, the store's active calibration."""
         state = "running" if self._running else ("failed" if self.last_failed else "idle")
         values: dict[str, object] = {"state": state, "last_run": self.last_message,
                                      "last_measured_rms_mm": f"{self.last_rms_mm:.4f}"}
@@ -309,7 +309,7 @@ class CalibrationManager(GlsNode):
         self.get_logger().info(f"[{fraction:4.0%}] {stage}: {text}")
 
     def busy(self) -> bool:
-        """A calibration is running (stopping: it ends at its next step, canceled)."""
+        """Tell whether a calibration is running (stopping: it ends at its next step, canceled)."""
         return self._running
 
     def on_goal(self, goal_request) -> GoalResponse:
@@ -472,12 +472,12 @@ class CalibrationManager(GlsNode):
 
 
 def _plain(value):
-    """A parameter value with a list as a list (rclpy gives arrays of numbers as ``array.array``)."""
+    """Return a parameter value with a list as a list (rclpy gives arrays of numbers as ``array.array``)."""
     return list(value) if hasattr(value, "tolist") and not isinstance(value, (str, bytes)) else value
 
 
 def _fill_response(response, summary: RunSummary) -> None:
-    """The ``calibrate`` answer: the run summary's figures."""
+    """Fill the ``calibrate`` answer with the run summary's figures."""
     response.success = True
     response.message = summary.message
     for name in ("pre_rms_mm", "pre_max_mm", "post_rms_mm", "post_max_mm", "fiducials_expected",

@@ -89,7 +89,7 @@ class CorrectionNode(GlsNode):
         publish_diagnostics(self, self.health)
 
     def health(self) -> Health:
-        """What /diagnostics says about this node."""
+        """Return what /diagnostics says about this node."""
         served = self.served
         values = {"state": "failed" if served.problem else "serving",
                   "calibration_file": served.file or "none"} | with_age(served.summary)

@@ -189,11 +189,11 @@ class ScanAcquisitionNode(GlsNode):
 
     @property
     def done(self) -> Optional[SweepDone]:
-        """The end of the sweep being acquired, once it came and was believed."""
+        """Return the end of the sweep being acquired, once it came and was believed."""
         return None if self.end is None else self.end[0]
 
     def _ignored(self, done: SweepDone, collector: SweepCollector) -> bool:
-        """True (with a warning) when ``done``, of this node's sweep, cannot be its end."""
+        """Return True (with a warning) when ``done``, of this node's sweep, cannot be its end."""
         problem = self._end_problem(done, collector)
         if problem:
             self.ignored_end = f"an end of sweep {done.sweep_id} was ignored: {problem}"
@@ -402,7 +402,7 @@ class ScanAcquisitionNode(GlsNode):
         return True
 
     def _junk_phrase(self, foreign: int, collector: Optional[SweepCollector]) -> str:
-        """The profiles dropped from ``collector``'s sweep, by reason ('' when none)."""
+        """Return the profiles dropped from ``collector``'s sweep, by reason ('' when none)."""
         parts = [(self.malformed, "malformed"),
                  (self.wrong_format, f"not in the scanner's declared format ({self.rules.describe()}; parameters "
                                      "profile_field_type, profile_big_endian)"),

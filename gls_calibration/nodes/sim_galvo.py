@@ -89,7 +89,7 @@ class SimGalvoNode(GlsNode):
         return response
 
     def on_marked_paths(self, request, response):
-        """The marks of the loaded plate."""
+        """Answer with the marks of the loaded plate."""
         points = np.vstack(self.landed) if self.landed else np.empty((0, 3))
         starts = np.cumsum([0] + [len(path) for path in self.landed[:-1]]) if self.landed else []
         response.paths = MarkedPaths(

@@ -99,7 +99,7 @@ class SimRobotNode(GlsNode):
         self.timer.reset()
 
     async def _load_marks(self) -> None:
-        """The plate's marks as the simulated galvo landed them (the simulation's truth, as sim_scanner loads it)."""
+        """Load the plate's marks as the simulated galvo landed them (the simulation's truth, as sim_scanner does)."""
         answer = await self.call(self.marks_client, GetMarkedPaths.Request(), 10.0, resend_after_s=MARKS_RESEND_AFTER_S)
         paths, plate = answer.paths, self.motion.sim.plate
         plate.load_clean(self.motion.sim.config.plate_seed(paths.plate_id), paths.plate_id)
@@ -110,7 +110,7 @@ class SimRobotNode(GlsNode):
                 plate.add_mark(polyline)
 
     def publish_batch(self) -> None:
-        """The next TF samples of the running line; after the last, the end of the motion."""
+        """Publish the next TF samples of the running line; after the last, the end of the motion."""
         if self.job is None:
             self.timer.cancel()
             return

@@ -203,7 +203,7 @@ class SimScannerNode(GlsNode):
 
 
 def reported_pose_message(pose: np.ndarray, stamp) -> PoseStamped:
-    """A 4x4 sensor pose (mm) as a PoseStamped in the scanner base frame (metres)."""
+    """Convert a 4x4 sensor pose (mm) to a PoseStamped in the scanner base frame (metres)."""
     message = PoseStamped()
     message.header.stamp = stamp
     message.header.frame_id = "scanner_base"

@@ -285,7 +285,7 @@ class StreamAcquisitionNode(GlsNode):
         return response
 
     def _sweep(self, session: Session):
-        """The assembled sweep; ValueError naming the first problem of the streams."""
+        """Return the assembled sweep; ValueError naming the first problem of the streams."""
         if session.problems:
             more = f" (and {len(session.problems) - 1} more problem(s))" if len(session.problems) > 1 else ""
             raise ValueError(f"sweep refused: {session.problems[0]}{more}")

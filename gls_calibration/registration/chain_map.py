@@ -200,11 +200,11 @@ class ChainMap:
 
     @property
     def labels(self) -> tuple[str, ...]:
-        """The programmed lines this map covers, in its order."""
+        """Return the programmed lines this map covers, in its order."""
         return tuple(line.line for line in self.lines)
 
     def line_map(self, line: str) -> LineMap:
-        """The map of line ``line`` (a sweep-plan label); ValueError when the map has none."""
+        """Return the map of line ``line`` (a sweep-plan label); ValueError when the map has none."""
         label = parse_plan(line)[0].label
         for item in self.lines:
             if item.line == label:
@@ -461,7 +461,7 @@ def fit_chain_map(sweeps: Sequence[ReferenceSweep], reference: str, fit: ChainMa
 
 
 def chain_map_from_mapping(document: Any) -> ChainMap:
-    """A :class:`ChainMap` from the parsed file (``{chain_map: {...}}``); ValueError naming the key."""
+    """Return a :class:`ChainMap` from the parsed file (``{chain_map: {...}}``); ValueError naming the key."""
     if not isinstance(document, Mapping) or not isinstance(document.get("chain_map"), Mapping):
         raise ValueError("a chain map file holds one mapping 'chain_map'")
     block = dict(document["chain_map"])

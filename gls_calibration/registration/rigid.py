@@ -44,7 +44,7 @@ class RigidTransform:
 
     @classmethod
     def identity(cls) -> "RigidTransform":
-        """The transform that leaves every point in place."""
+        """Return the transform that leaves every point in place."""
         return cls(np.eye(3), np.zeros(3))
 
     def apply(self, points) -> np.ndarray:
@@ -53,7 +53,7 @@ class RigidTransform:
         return array @ self.rotation.T + self.translation
 
     def inverse(self) -> "RigidTransform":
-        """The transform that undoes this one."""
+        """Return the transform that undoes this one."""
         return RigidTransform(self.rotation.T, -self.rotation.T @ self.translation)
 
     def as_matrix(self) -> np.ndarray:

@@ -87,7 +87,7 @@ class Shape:
     values_mm: np.ndarray
 
     def __call__(self, coordinate_mm) -> np.ndarray:
-        """The error at ``coordinate_mm`` along the travel, mm (linear between knots)."""
+        """Return the error at ``coordinate_mm`` along the travel, mm (linear between knots)."""
         return np.interp(np.asarray(coordinate_mm, dtype=float), self.knots_mm, self.values_mm)
 
 

@@ -41,7 +41,7 @@ class SweepPass:
 
 
 def parse_plan(text: str) -> tuple[SweepPass, ...]:
-    """Passes from a comma-separated list such as ``"0+,0-,90+,90-"`` (orientation deg, direction)."""
+    """Parse passes from a comma-separated list such as ``"0+,0-,90+,90-"`` (orientation deg, direction)."""
     passes = []
     for item in (part.strip() for part in str(text).split(",")):
         if len(item) < 2 or item[-1] not in "+-":
@@ -58,7 +58,7 @@ def parse_plan(text: str) -> tuple[SweepPass, ...]:
 
 
 def plan_label(passes: Sequence[SweepPass]) -> str:
-    """The plan as ``parse_plan`` reads it."""
+    """Return the plan as ``parse_plan`` reads it."""
     return ",".join(item.label for item in passes)
 
 

@@ -68,7 +68,7 @@ def plot_u_map(path: Path, grid, targets_xy: Optional[np.ndarray]) -> Path:
 
 
 def certificate_lines(stored: Optional[Mapping[str, Any]], summary: Any, map_name: Optional[str]) -> list[str]:
-    """The certificate section of report.md from the calibration's ``uncertainty`` mapping and the summary."""
+    """Return the certificate section of report.md from the calibration's ``uncertainty`` mapping and the summary."""
     if stored is None:
         return ["No uncertainty map: the calibration was not trained in this run, or its model admits none "
                 "(the file then serves NaN)."]
@@ -101,7 +101,7 @@ def certificate_lines(stored: Optional[Mapping[str, Any]], summary: Any, map_nam
 
 
 def write_certificate_files(out_dir: Path, grid, validation) -> tuple[Optional[str], tuple[str, ...]]:
-    """The U map PNG and validation.csv beside the report; (the map's file name or None, Files lines)."""
+    """Write the U map PNG and validation.csv beside the report; return (its file name or None, Files lines)."""
     files: list[str] = []
     map_name = None
     if grid is not None:

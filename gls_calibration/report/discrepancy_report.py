@@ -195,7 +195,7 @@ def _report_markdown(result: DiscrepancyResult, measured: Path, model: Path | No
 
 
 def _effect_spec(result: DiscrepancyResult, name: str):
-    """The table entry (library or user effect) that defines ``name``'s parameters."""
+    """Return the table entry (library or user effect) that defines ``name``'s parameters."""
     from gls_calibration.geometry.effect_table import EFFECT_TABLE
 
     for effect in result.user_effects:

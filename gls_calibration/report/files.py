@@ -123,7 +123,7 @@ def json_safe(value: Any) -> Any:
 
 
 def summary_json(summary: Mapping[str, Any]) -> str:
-    """The summary as strict JSON (NaN written as null)."""
+    """Return the summary as strict JSON (NaN written as null)."""
     return json.dumps(json_safe(summary), indent=2, allow_nan=False)
 
 
@@ -144,7 +144,7 @@ def format_value(value: Any) -> str:
 
 
 def format_mm(value: Any) -> str:
-    """A length in the Table 1 style (three decimals, mm); n/a for missing or NaN."""
+    """Return a length in the Table 1 style (three decimals, mm); n/a for missing or NaN."""
     if value is None:
         return "n/a"
     value = float(value)
@@ -268,7 +268,7 @@ def save_figure(figure: Figure, path: Path) -> Path:
 
 
 def _nice_step(value: float) -> float:
-    """The largest 1/2/5 x 10^k not above ``value`` (for arrow scale keys)."""
+    """Return the largest 1/2/5 x 10^k not above ``value`` (for arrow scale keys)."""
     if not math.isfinite(value) or value <= 0.0:
         return 1.0
     exponent = math.floor(math.log10(value))
@@ -289,7 +289,7 @@ def _typical_spacing(points: np.ndarray) -> float:
 
 
 def _arrow_scale(targets: np.ndarray, deviations_list: list[np.ndarray]) -> tuple[float, float]:
-    """A round magnification (the longest arrow spans 0.75-1.5 grid spacings) and key length (mm)."""
+    """Return a round magnification (the longest arrow spans 0.75-1.5 grid spacings) and key length (mm)."""
     longest = max(float(np.max(np.hypot(dev[:, 0], dev[:, 1]))) for dev in deviations_list)
     if longest <= 0.0:
         return 1.0, 1.0
@@ -353,7 +353,7 @@ def _plot_cumulative_histogram(path: Path, data: ReportData) -> Path:
 
 
 def _correction_grid(data: ReportData) -> CorrectionGrid:
-    """The correction as (X, Y, dX, dY): evaluated on a grid over the targets, or as given."""
+    """Return the correction as (X, Y, dX, dY): evaluated on a grid over the targets, or as given."""
     field_value = data.correction_field
     if callable(field_value):
         targets = data.targets_xy if data.targets_after is None else np.vstack([data.targets_xy, data.targets_after])

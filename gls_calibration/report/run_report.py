@@ -32,7 +32,7 @@ def figure_kind_lines(summary: RunSummary) -> tuple[str, ...]:
 
 
 def accuracy_lines(summary: RunSummary) -> tuple[str, ...]:
-    """What the cell states as its accuracy, and which of its figures are self-consistency."""
+    """Return what the cell states as its accuracy, and which of its figures are self-consistency."""
     basis = ("Every measured figure is SELF-CONSISTENCY of the measuring chain: the chain that measured the "
              "training plate measures every plate, so errors of the chain that repeat (robot lines, scanner "
              "shapes) were learned and cancel in them; INDEPENDENT below means only at positions the "
@@ -44,7 +44,7 @@ def accuracy_lines(summary: RunSummary) -> tuple[str, ...]:
 
 
 def measurement_lines(summary: RunSummary) -> tuple[str, ...]:
-    """What the report says about the measurement: sweep plan, cell time, uncertainty, separation."""
+    """Return what the report says about the measurement: sweep plan, cell time, uncertainty, separation."""
     chain = ([f"Simulated cell, measurement chain preset **{summary.measurement_preset}**: `post_rms_mm` / "
               "`post_max_mm` are MEASURED (as a real cell sees them), `true_post_*` are TRUE (simulation ground "
               "truth)."] if summary.measurement_preset else [])
@@ -68,7 +68,7 @@ def measurement_lines(summary: RunSummary) -> tuple[str, ...]:
 
 
 def _deviation_field(correction):
-    """The trained deviation (dx, dy) at (N, 2) points, for the plots; None without a trained model."""
+    """Return the trained deviation (dx, dy) at (N, 2) points, for the plots; None without a trained model."""
     if correction is None or not correction.models:
         return None
 

@@ -238,7 +238,7 @@ class GlsNode(Node):
             self.destroy_timer(timer)
 
     def server_names(self, client) -> str:
-        """The nodes that serve ``client``'s service, from the node graph (for messages)."""
+        """Return the nodes that serve ``client``'s service, from the node graph (for messages)."""
         names = []
         for name, namespace in self.get_node_names_and_namespaces():
             try:
@@ -310,7 +310,7 @@ class GlsNode(Node):
 
 
 def _first_answer(futures: Sequence[Future]) -> Future:
-    """A future done with the result of the first of ``futures`` to be done."""
+    """Return a future done with the result of the first of ``futures`` to be done."""
     first = Future()
 
     def take(future: Future) -> None:

@@ -40,35 +40,35 @@ __all__ = ["MM_PER_M", "array_to_pointcloud2", "cloud_arrays_from_msg", "cloud_f
 
 
 def float64_sequence(values: npt.ArrayLike) -> array.array:
-    """An ``array('d')`` for a float64[] field (one copy, no per-element objects)."""
+    """Return an ``array('d')`` for a float64[] field (one copy, no per-element objects)."""
     sequence = array.array("d")
     sequence.frombytes(np.ascontiguousarray(values, dtype=np.float64).tobytes())
     return sequence
 
 
 def uint32_sequence(values: npt.ArrayLike) -> array.array:
-    """An ``array('I')`` for a uint32[] field."""
+    """Return an ``array('I')`` for a uint32[] field."""
     sequence = array.array("I")
     sequence.frombytes(np.ascontiguousarray(values, dtype=np.uint32).tobytes())
     return sequence
 
 
 def flag_array(sequence) -> np.ndarray:
-    """A bool array from a uint8[] flag field (0 = false, anything else = true)."""
+    """Return a bool array from a uint8[] flag field (0 = false, anything else = true)."""
     if isinstance(sequence, (array.array, bytes)):
         return np.frombuffer(sequence, dtype=np.uint8) != 0
     return np.asarray(sequence, dtype=np.uint8).reshape(-1) != 0
 
 
 def float64_array(sequence) -> np.ndarray:
-    """A float64 numpy array over a float64[] field's buffer (a copy when it is a list)."""
+    """Return a float64 numpy array over a float64[] field's buffer (a copy when it is a list)."""
     if isinstance(sequence, array.array):
         return np.frombuffer(sequence, dtype=np.float64) if len(sequence) else np.empty(0)
     return np.asarray(sequence, dtype=np.float64)
 
 
 def time_to_msg(seconds: float) -> Time:
-    """A builtin_interfaces Time from seconds since the epoch (UTC)."""
+    """Return a builtin_interfaces Time from seconds since the epoch (UTC)."""
     nanoseconds = int(round(seconds * 1e9))
     return Time(sec=nanoseconds // 1_000_000_000, nanosec=nanoseconds % 1_000_000_000)
 
@@ -112,7 +112,7 @@ def fiducials_to_response(measurement: FiducialMeasurement, response) -> None:
 
 
 def fiducials_from_response(response, pose: PlatePose) -> FiducialMeasurement:
-    """A ``fiducials.FiducialMeasurement`` from a MeasureFiducials response and the pose it used."""
+    """Return a ``fiducials.FiducialMeasurement`` from a MeasureFiducials response and the pose it used."""
     centres = np.column_stack([float64_array(response.x), float64_array(response.y), float64_array(response.z)])
     return FiducialMeasurement(
         centres=centres, centres_plane=pose.to_plane(centres) if len(centres) else np.empty((0, 2)),
@@ -163,7 +163,7 @@ def setpoints_to_response(result, response) -> None:
 
 
 def setpoints_from_response(response) -> CorrectedSetpoints:
-    """A ``correction.CorrectedSetpoints`` from a CorrectSetpoints response."""
+    """Return a ``correction.CorrectedSetpoints`` from a CorrectSetpoints response."""
     return CorrectedSetpoints(x=float64_array(response.x), y=float64_array(response.y),
                               alpha_x=float64_array(response.alpha_x), alpha_y=float64_array(response.alpha_y),
                               focus_shift=float64_array(response.focus_shift),
@@ -174,7 +174,7 @@ def setpoints_from_response(response) -> CorrectedSetpoints:
 
 
 def trained_model_from_response(response) -> TrainedModel:
-    """A ``training.TrainedModel`` from a TrainCorrection response (ValueError on a bad model)."""
+    """Return a ``training.TrainedModel`` from a TrainCorrection response (ValueError on a bad model)."""
     model = yaml.safe_load(response.model_yaml)
     if not isinstance(model, dict) or "type" not in model:
         raise ValueError("the trainer answered with a model that is not a mapping with a 'type'")

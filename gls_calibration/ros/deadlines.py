@@ -33,7 +33,7 @@ class Deadlines:
             raise ValueError(f"factor must be at least 1, got {self.factor}")
 
     def limit_s(self, work_s: float) -> float:
-        """The time limit of a job expected to take ``work_s``."""
+        """Return the time limit of a job expected to take ``work_s``."""
         return self.factor * work_s + self.margin_s
 
     def sweep_s(self) -> float:

@@ -40,7 +40,7 @@ def declare_head_geometry(node: GlsNode, *, dynamic: bool = False) -> HeadGeomet
 
 
 def head_geometry_from(values: dict) -> HeadGeometry:
-    """The HeadGeometry of the ``head.*`` parameter values (names as in HEAD_PARAMETERS)."""
+    """Return the HeadGeometry of the ``head.*`` parameter values (names as in HEAD_PARAMETERS)."""
     return HeadGeometry(working_distance_mm=values["head.working_distance_mm"],
                         mirror_distance_mm=values["head.mirror_distance_mm"],
                         mirror_limit_rad=math.radians(values["head.mirror_limit_deg"]),

@@ -50,7 +50,7 @@ class ManagerParameter:
 
     @property
     def full_description(self) -> str:
-        """The description the node declares: what it is, then settable or read-only and why."""
+        """Return the description the node declares: what it is, then settable or read-only and why."""
         return f"{self.description} [{NEXT_RUN if self.settable else 'read-only: ' + self.read_only_because}]"
 
 

@@ -79,14 +79,14 @@ def _scalar(text: str, like: Any) -> tuple[bool, Any]:
 
 
 def _same(rule_value: Any, held: Any) -> bool:
-    """True when the node's value ``held`` is the rule's (NaN equals NaN)."""
+    """Return True when the node's value ``held`` is the rule's (NaN equals NaN)."""
     if isinstance(held, float) and isinstance(rule_value, (int, float)) and not isinstance(rule_value, bool):
         return rule_value == held or (math.isnan(held) and math.isnan(rule_value))
     return type(rule_value) is type(held) and rule_value == held
 
 
 def rule_applied(text: str, held: Any) -> bool:
-    """True when ``held``, the value the node declared, is what the rule value ``text`` says."""
+    """Return True when ``held``, the value the node declared, is what the rule value ``text`` says."""
     stripped = text.strip()
     is_list = stripped.startswith("[") and stripped.endswith("]")
     if held is None:                      # rcl sets nothing for "[]"

@@ -38,7 +38,7 @@ _XYZ = ("x", "y", "z")
 
 
 def point_field_type_name(datatype: int) -> str:
-    """The numpy name of a PointField datatype code (e.g. "float32"); "unknown <code>" for others."""
+    """Return the numpy name of a PointField datatype code (e.g. "float32"); "unknown <code>" for others."""
     numpy_type = _POINT_FIELD_TYPES.get(datatype)
     return numpy_type.name if numpy_type is not None else f"unknown {datatype}"
 
@@ -158,7 +158,7 @@ def _field_code(name: str, field_type: np.dtype) -> tuple[int, int]:
 
 
 def _is_dense(points: np.ndarray) -> bool:
-    """True unless some point has a NaN x, y or z (clouds without x, y, z count as dense)."""
+    """Return True unless some point has a NaN x, y or z (clouds without x, y, z count as dense)."""
     if not all(name in points.dtype.names for name in _XYZ):
         return True
     return not any(np.isnan(points[name]).any() for name in _XYZ)
@@ -270,7 +270,7 @@ MM_PER_M = 1000.0
 
 
 def cloud_to_msg(points_mm: np.ndarray, frame_id: str, stamp: Time | None = None) -> PointCloud2:
-    """A PointCloud2 in metres (float32 x, y, z, intensity) of a structured cloud in mm."""
+    """Return a PointCloud2 in metres (float32 x, y, z, intensity) of a structured cloud in mm."""
     _require_fields(points_mm, _XYZ + ("intensity",))
     wire = np.empty(points_mm.shape, dtype=xyzi_dtype())
     for name in _XYZ:   # float32 division is correctly rounded: as exact as float32 metres can be

@@ -22,12 +22,12 @@ RESEND_WITH_ID_AFTER_S = 2.0
 
 
 def new_request_id() -> UUID:
-    """A fresh random id (UUID version 4) for one request and its repeats."""
+    """Return a fresh random id (UUID version 4) for one request and its repeats."""
     return UUID(uuid=list(uuid.uuid4().bytes))
 
 
 def id_key(request_id: UUID) -> bytes:
-    """The 16 bytes of ``request_id``: the key under which its answer is kept."""
+    """Return the 16 bytes of ``request_id``: the key under which its answer is kept."""
     return bytes(bytearray(request_id.uuid))
 
 
@@ -52,7 +52,7 @@ class AnsweredRequests:
         return answer
 
     def answer(self, request_id: UUID, serve: Callable[[], Any]) -> Any:
-        """``serve()``'s answer, or the kept answer of an earlier request with the same id.
+        """Return ``serve()``'s answer, or the kept answer of an earlier request with the same id.
 
         For handlers that run one at a time (a mutually exclusive callback group): a repeat never
         finds its first request still being served.

@@ -163,7 +163,7 @@ class StopSignals:
             raise KeyboardInterrupt
 
     def stopping(self) -> None:
-        """The stop has begun: a signal from now on must not raise into it."""
+        """Note that the stop has begun: a signal from now on must not raise into it."""
         self.interrupting = False
 
     @property
@@ -233,5 +233,5 @@ def discard(node: Node) -> None:
 
 
 def _program() -> str:
-    """The name of the running console script."""
+    """Return the name of the running console script."""
     return os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else "gls node"

@@ -29,7 +29,7 @@ FIDUCIAL_DIAMETER_M = 0.0054          # the outer ring (2 x 2.7 mm)
 
 
 def plate_pose_msg(pose: PlatePose, stamp) -> PoseStamped:
-    """The plate frame in the gls frame (metres)."""
+    """Return the plate frame in the gls frame (metres)."""
     message = PoseStamped()
     message.header.frame_id, message.header.stamp = FRAME_ID, stamp
     centre = np.asarray(pose.centre, dtype=float) / MM_PER_M
@@ -68,7 +68,7 @@ def deviation_arrows(run: PlateRun, namespace: str, stamp, arrow_scale: float,
 
 
 def fiducial_spheres(run: PlateRun, namespace: str, stamp) -> Marker:
-    """The measured fiducial centres as one sphere list."""
+    """Return the measured fiducial centres as one sphere list."""
     marker = Marker(ns=namespace, id=0, type=Marker.SPHERE_LIST, action=Marker.ADD)
     marker.header.frame_id, marker.header.stamp = FRAME_ID, stamp
     marker.points = [_point(centre) for centre in run.measured_gls]

@@ -41,7 +41,7 @@ def static_qos() -> QoSProfile:
 
 
 def time_msg(stamp_ns: int) -> Time:
-    """A ROS time stamp of ``stamp_ns`` (integer nanoseconds)."""
+    """Return a ROS time stamp of ``stamp_ns`` (integer nanoseconds)."""
     sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     return Time(sec=sec, nanosec=nanosec)
 
@@ -52,7 +52,7 @@ def stamp_ns(stamp: Time) -> int:
 
 
 def pose_msg(pose_mm: np.ndarray) -> Pose:
-    """A 4x4 pose (mm) as a Pose (metres, quaternion)."""
+    """Return a 4x4 pose (mm) as a Pose (metres, quaternion)."""
     message = Pose()
     message.position.x, message.position.y, message.position.z = (float(v) / MM_PER_M for v in pose_mm[:3, 3])
     x, y, z, w = Rotation.from_matrix(pose_mm[:3, :3]).as_quat()
@@ -91,7 +91,7 @@ def transform_msg(parent: str, child: str, pose_mm: np.ndarray, stamp_ns_: int) 
 
 
 def line_msg(base_frame: str, start_flange_mm: np.ndarray, end_flange_mm: np.ndarray, duration_s: float) -> Path:
-    """The ``/motion/line`` command of a straight flange line."""
+    """Return the ``/motion/line`` command of a straight flange line."""
     message = Path()
     message.header.frame_id = base_frame
     for pose_mm, at_s in ((start_flange_mm, 0.0), (end_flange_mm, duration_s)):

@@ -364,7 +364,7 @@ class StreamAssembler:
         self.profiles: list[tuple[int, np.ndarray]] = []
 
     def topics(self) -> dict[str, str]:
-        """The topics it reads and their message types."""
+        """Return the topics it reads and their message types."""
         layout = self.layout
         return {layout.scan_topic: POINTCLOUD2, layout.tf_topic: TFMESSAGE, layout.tf_static_topic: TFMESSAGE,
                 layout.motion_start_topic: HEADER, layout.motion_end_topic: HEADER}
@@ -393,7 +393,7 @@ class StreamAssembler:
         return [self._sweep(number, start, end, stamps) for number, (start, end) in enumerate(windows, 1)]
 
     def take_last_sweep(self) -> ReplayedSweep:
-        """The latest motion's sweep; the profiles up to its end are dropped afterwards (live use)."""
+        """Return the latest motion's sweep; the profiles up to its end are dropped afterwards (live use)."""
         number = len(self.starts)
         if number == 0 or len(self.ends) != number:
             raise ValueError(f"{self.source}: no complete motion to assemble")

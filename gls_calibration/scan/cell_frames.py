@@ -79,6 +79,6 @@ def cell_frames_from_dict(document: Any) -> CellFrames:
 
 
 def load_cell_frames(path: str | Path | None = None) -> CellFrames:
-    """The cell frames file at ``path`` (None: the package's ``config/cell_frames.yaml``)."""
+    """Return the cell frames file at ``path`` (None: the package's ``config/cell_frames.yaml``)."""
     return read_config_file(config_path("cell_frames.yaml") if path is None else path, "cell frames file",
                             cell_frames_from_dict)

@@ -85,7 +85,7 @@ def _least_squares_plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, fl
 
 
 def _in_plane_x_axis(normal: np.ndarray) -> np.ndarray:
-    """The scan's x axis projected onto the plane (the y axis if the normal is along x)."""
+    """Return the scan's x axis projected onto the plane (the y axis if the normal is along x)."""
     for axis in (np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])):
         projected = axis - (axis @ normal) * normal
         length = np.linalg.norm(projected)
@@ -185,7 +185,7 @@ def estimate_plate_pose(points, *, distance_threshold_mm: float = 0.2, head_dire
 
 
 def mean_plate_pose(poses: list[PlatePose]) -> PlatePose:
-    """The average of poses of one plate measured in several sweeps.
+    """Return the average of poses of one plate measured in several sweeps.
 
     Each sweep's path is off by the robot's repeatability; averaging N sweeps divides that error
     of the plate height (and so of the field's scale, dr/r = dz/d) by sqrt(N).

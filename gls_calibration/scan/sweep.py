@@ -74,7 +74,7 @@ class ProfileRules:
                              f"least 0 s, got {self.stamp_window_factor} and {self.stamp_window_margin_s} s")
 
     def describe(self) -> str:
-        """The declared format in words, e.g. 'float32, little-endian'."""
+        """Return the declared format in words, e.g. 'float32, little-endian'."""
         return f"{self.field_type}, {'big' if self.big_endian else 'little'}-endian"
 
     def format_problem(self, field_types: dict[str, str], big_endian: bool) -> str:
@@ -212,7 +212,7 @@ class PoseTrack:
         return True
 
     def covers(self, stamps_s: np.ndarray, tolerance_s: float = 1e-6) -> bool:
-        """True when every stamp lies within the reported poses' time span."""
+        """Return True when every stamp lies within the reported poses' time span."""
         if len(self._stamps) < 2:
             return len(self._stamps) == 1 and bool(np.all(np.abs(stamps_s - self._stamps[0]) <= tolerance_s))
         return bool(stamps_s.min() >= min(self._stamps) - tolerance_s
@@ -301,12 +301,12 @@ class SweepCollector:
         return same & (stamps >= ordered[first]) & (stamps <= ordered[first] + window_s)
 
     def first_stamp_s(self, members: np.ndarray) -> float:
-        """The earliest stamp (s) of the profiles ``members`` selects."""
+        """Return the earliest stamp (s) of the profiles ``members`` selects."""
         return float(np.min(np.asarray(self._stamps)[np.asarray(members, dtype=bool)]))
 
     def assemble(self, motion: SweepMotion, start_pose: Optional[np.ndarray] = None,
                  poses: Optional[PoseTrack] = None, members: Optional[np.ndarray] = None) -> tuple[np.ndarray, bool]:
-        """The organized (profiles, points) structured cloud in the base frame, and whether by pose.
+        """Return the organized (profiles, points) structured cloud in the base frame, and whether by pose.
 
         Placed by ``poses`` when they cover every profile's stamp, else by ``motion`` in the start
         frame mapped by ``start_pose`` (4x4, start frame -> base frame; None: the identity).

@@ -76,5 +76,5 @@ class DirectCell(CoreCell):
         self.marks.clear()
 
     async def true_marks(self) -> Optional[list[np.ndarray]]:
-        """The marks where they truly landed on the simulated plate."""
+        """Return the marks where they truly landed on the simulated plate."""
         return list(self.marks)

@@ -73,7 +73,7 @@ class TruthHead:
 
     @property
     def effects(self) -> HeadEffects:
-        """The true effects (including the plate pose)."""
+        """Return the true effects (including the plate pose)."""
         return self.physical.effects
 
     def reset_clock(self) -> None:

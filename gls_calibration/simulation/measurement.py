@@ -131,7 +131,7 @@ class MeasurementChain:
 
     @property
     def robot_repeats(self) -> bool:
-        """True when the robot's reported pose carries an error that repeats per programmed line."""
+        """Return True when the robot's reported pose carries an error that repeats per programmed line."""
         return bool(self.robot_scale_error or self.robot_along_error_mm or self.robot_path_error_mm)
 
 
@@ -231,7 +231,7 @@ FIELD_HALF_SPAN_MM = 400.0
 
 
 def smooth_field(rng: np.random.Generator, std: float, correlation_mm: float):
-    """A smooth zero-mean random field over the base frame's x-y: a function ``f(xy_mm) -> (N,)``.
+    """Return a smooth zero-mean random field over the base frame's x-y: a function ``f(xy_mm) -> (N,)``.
 
     Standard deviation ``std``, Gaussian autocorrelation ``exp(-d^2 / (2 L^2))`` of length
     ``correlation_mm`` in every direction, over the square of half-side :data:`FIELD_HALF_SPAN_MM`
@@ -263,7 +263,7 @@ def smooth_field(rng: np.random.Generator, std: float, correlation_mm: float):
 
 
 def lateral_linearity_shape(x_mm, half_length_mm: float) -> np.ndarray:
-    """The sensor's fixed lateral linearity shape along the line, peak 1 over ``|x| <= half_length_mm``.
+    """Return the sensor's fixed lateral linearity shape along the line, peak 1 over ``|x| <= half_length_mm``.
 
     A property of the sensor, the same in every sweep: a smooth mix of low orders (its linear part
     is a scale error of the line, as a real sensor's calibration leaves one).

@@ -66,7 +66,7 @@ class PlateSettings:
 
     @property
     def pose_effects(self) -> dict[str, tuple[float, ...]]:
-        """The head effects that put the work plane on this plate."""
+        """Return the head effects that put the work plane on this plate."""
         return {"plate_tilt": (self.tilt_x_rad, self.tilt_y_rad), "working_distance": (self.delta_d_mm,)}
 
 
@@ -137,7 +137,7 @@ class Plate:
 
     @property
     def marks(self) -> tuple[np.ndarray, ...]:
-        """The marked polylines in plate coordinates, (M, 2) each, in marking order."""
+        """Return the marked polylines in plate coordinates, (M, 2) each, in marking order."""
         return tuple(self._marks)
 
     # ------------------------------------------------------------ frames
@@ -213,7 +213,7 @@ class Plate:
 
     # ------------------------------------------------------------ rendering
     def contains(self, uv) -> np.ndarray:
-        """True where plate coordinates (..., 2) lie on the plate."""
+        """Return True where plate coordinates (..., 2) lie on the plate."""
         uv = np.asarray(uv)
         half = 0.5 * self.settings.size_mm
         return (np.abs(uv[..., 0]) <= half) & (np.abs(uv[..., 1]) <= half)

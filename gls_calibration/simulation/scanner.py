@@ -226,7 +226,7 @@ class LaserLineScanner:
 
     def _placement(self, seed: int, rows: int, step: float, start: np.ndarray | None = None, direction: int = 1,
                    orientation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Reported travel, true travel, across and height deviation (rows,) of one sweep (mm).
+        """Return the reported travel, true travel, across and height deviation (rows,) of one sweep (mm).
 
         The reported travel is the robot's timing (what its encoders see); the true travel, across and
         height add what the robot cannot see: per-sweep wander and the errors that repeat per line,
@@ -439,7 +439,7 @@ class LaserLineScanner:
     def sweep_data(self, plate: Plate, length_mm: float = 200.0, speed_mm_s: float | None = None,
                    step_mm: float | None = None, seed: int = 0, direction: int = 1,
                    orientation_deg: float = 0.0) -> SweepData:
-        """The whole sweep with its stamps and reported poses (see :class:`SweepData`)."""
+        """Return the whole sweep with its stamps and reported poses (see :class:`SweepData`)."""
         parts = list(self._chunks(plate, length_mm, speed_mm_s, step_mm, seed, direction, orientation_deg))
         rows = sum(part[2].shape[0] for part in parts)
         _, speed, step = self.sweep_parameters(length_mm, speed_mm_s, step_mm)

@@ -81,12 +81,12 @@ class SimConfig:
         return self.seed if plate_id == 0 else [self.seed, int(plate_id)]
 
     def make_plate(self) -> Plate:
-        """A plate of this configuration (with the measurement chain's mark and plate effects)."""
+        """Return a plate of this configuration (with the measurement chain's mark and plate effects)."""
         return Plate(self.plate_settings, seed=self.plate_seed(0), chain=self.measurement,
                      beam_distance_mm=self.geometry.working_distance_mm + self.effects.get("working_distance")[0])
 
     def make_scanner(self) -> LaserLineScanner:
-        """The scanner of this configuration (with the measurement chain's robot and sensor effects)."""
+        """Return the scanner of this configuration (with the measurement chain's robot and sensor effects)."""
         return LaserLineScanner(self.scanner, self.scanner_to_gls, self.mounting_error, self.measurement,
                                 robot_seed=self.seed)
 
@@ -100,7 +100,7 @@ class SimConfig:
 
 
 def default_sim_config_path() -> Path:
-    """The package's ``config/sim.yaml``."""
+    """Return the package's ``config/sim.yaml``."""
     return config_path("sim.yaml")
 
 
