@@ -191,6 +191,7 @@ class ProcedureSettings:
     chain_map: Optional[ChainMap] = None   # the lines' repeating robot error, removed from every sweep (None: off)
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         radii = np.asarray(self.ring_radii_mm, dtype=float)
         if radii.ndim != 1 or radii.size == 0 or not np.all(np.isfinite(radii)) or np.any(radii <= 0.0) \
                 or np.any(np.diff(radii) <= 0.0):

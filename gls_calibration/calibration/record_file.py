@@ -55,15 +55,19 @@ class CalibrationRecord(Mapping):
         self._data = plain
 
     def __getitem__(self, key: str) -> Any:
+        """Return the record's value of ``key``."""
         return self._data[key]
 
     def __iter__(self) -> Iterator[str]:
+        """Iterate over the record's top-level keys."""
         return iter(self._data)
 
     def __len__(self) -> int:
+        """Return the number of top-level keys."""
         return len(self._data)
 
     def __repr__(self) -> str:
+        """Show the record's creation time."""
         return f"CalibrationRecord(created_utc={self._data.get('created_utc')!r})"
 
     def to_dict(self) -> dict:

@@ -76,6 +76,7 @@ class ChainCheck:
     chain_map: str = NO_CHAIN_MAP     # ``ChainMap.identity`` of the map applied while measuring it
 
     def __post_init__(self) -> None:
+        """Validate the fields and store them normalised (ValueError on the first bad one)."""
         sigma = tuple(self.sigma_mm) if isinstance(self.sigma_mm, (list, tuple)) else ()
         if len(sigma) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
                                       and math.isfinite(v) and v > 0.0 for v in sigma):

@@ -63,6 +63,7 @@ class CertificateSettings:
     cv_seed: int = 0
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         as_positive_number(self.grid_step_mm, "grid_step_mm")
         as_positive_number(self.plate_height_sigma_mm, "plate_height_sigma_mm")
         if isinstance(self.cv_folds, bool) or not isinstance(self.cv_folds, int) or self.cv_folds < 2:

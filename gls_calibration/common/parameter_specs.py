@@ -38,6 +38,7 @@ class ParameterSpec:
     allow_empty: bool = False          # numbers: [] is a valid value
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         if self.kind not in KINDS:
             raise ValueError(f"parameter {self.name}: kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
 

@@ -58,6 +58,7 @@ class CalibratedRegion:
     plane_z_mm: float = 0.0
 
     def __post_init__(self) -> None:
+        """Validate the fields and store them normalised (ValueError on the first bad one)."""
         values = [float(getattr(self, name)) for name in ("x_min", "x_max", "y_min", "y_max", "plane_z_mm")]
         if not all(math.isfinite(value) for value in values):
             raise ValueError(f"calibrated region bounds must be finite, got {values}")

@@ -29,6 +29,7 @@ class UncertaintyGrid:
     u_k2_mm: np.ndarray     # (ny, nx)
 
     def __post_init__(self) -> None:
+        """Validate the grid and keep what the one-target lookup needs (ValueError if bad)."""
         for name in ("x_mm", "y_mm", "u_k2_mm"):
             object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=float))
         check_grid(self.x_mm, self.y_mm, self.u_k2_mm, UNCERTAINTY_KEY)

@@ -138,6 +138,7 @@ class FiducialMeasurement:
     extra: int | None = None    # defaulted: the service response carries ``missing`` only
 
     def __post_init__(self) -> None:
+        """Fill the per-centre sigmas and coverage left as None with NaN."""
         count = len(np.asarray(self.centres).reshape(-1, 3))
         for name, shape in (("sigma_xy_mm", (count, 2)), ("sigma_plane_mm", (count, 2)), ("coverage", (count,))):
             if getattr(self, name) is None:

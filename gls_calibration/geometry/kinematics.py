@@ -32,6 +32,7 @@ class HeadGeometry:
     focus_range_mm: float = 25.0
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         for name in ("working_distance_mm", "mirror_limit_rad", "focus_range_mm"):
             value = getattr(self, name)
             if not math.isfinite(value) or value <= 0.0:

@@ -94,6 +94,7 @@ class HeadEffects:
     values: Mapping[str, tuple[float, ...]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        """Validate the fields and store them normalised (ValueError on the first bad one)."""
         if not isinstance(self.values, Mapping):
             raise ValueError(f"effects must be a mapping of effect name to parameters, "
                              f"got {type(self.values).__name__}")
@@ -109,9 +110,11 @@ class HeadEffects:
         object.__setattr__(self, "values", MappingProxyType(clean))
 
     def __hash__(self) -> int:
+        """Hash the non-zero effects, as equality compares them."""
         return hash(tuple(sorted(self.nonzero().items())))
 
     def __eq__(self, other: object) -> bool:
+        """Compare the non-zero effects: a zero effect equals an absent one."""
         if not isinstance(other, HeadEffects):
             return NotImplemented
         return self.nonzero() == other.nonzero()
@@ -207,6 +210,7 @@ class PhysicalHead:
         self.plate_normal = self.plate_rotation[:, 2].copy()
 
     def __repr__(self) -> str:
+        """Show the geometry and the non-zero effects."""
         return f"PhysicalHead({self.geometry!r}, {self.effects.nonzero()!r})"
 
     def mechanical_angles(self, alpha_x, alpha_y, t=None) -> tuple[np.ndarray, np.ndarray]:

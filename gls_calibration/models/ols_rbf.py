@@ -256,6 +256,7 @@ class OLSRBFNetwork:
         return model
 
     def __repr__(self) -> str:
+        """Show the spread, the MSE goal, the neuron count and the training MSE."""
         return (f"OLSRBFNetwork(spread_mm={self.spread_mm:g}, mse_goal_mm2={self.mse_goal_mm2:g}, "
                 f"neurons={self.neuron_count}, training_mse_mm2={self.training_mse_mm2:.3g})")
 

@@ -161,6 +161,7 @@ class PhysicalDeviationModel:
                    inverse=data.get("inverse", True))
 
     def __repr__(self) -> str:
+        """Show the non-zero effects, the rotation and whether the model is the inverse."""
         return (f"PhysicalDeviationModel(effects={self.effects.nonzero()!r}, "
                 f"rotation_rad={self.rotation_rad:.3g}, inverse={self.inverse})")
 
@@ -204,6 +205,7 @@ class SumModel:
         return cls([part_from_dict(part) for part in parts])
 
     def __repr__(self) -> str:
+        """Show the parts in order of application."""
         return f"SumModel({', '.join(repr(model) for model in self.models)})"
 
 

@@ -203,4 +203,5 @@ class ThinPlateSplineModel:
         return model
 
     def __repr__(self) -> str:
+        """Show the centre count and the smoothing."""
         return f"ThinPlateSplineModel(centres={self.neuron_count}, smoothing={self.smoothing:g})"

@@ -101,6 +101,7 @@ class LineMap:
     error_y_mm: np.ndarray
 
     def __post_init__(self) -> None:
+        """Validate the fields and store them normalised (ValueError on the first bad one)."""
         if not isinstance(self.line, str):
             raise ValueError(f"chain_map line must be a sweep plan item such as 0+, got {self.line!r}")
         try:
@@ -178,6 +179,7 @@ class ChainMap:
     residual_rms_mm: tuple[float, float]
 
     def __post_init__(self) -> None:
+        """Validate the fields and store them normalised (ValueError on the first bad one)."""
         lines = tuple(self.lines) if isinstance(self.lines, (list, tuple)) else None
         if not lines or not all(isinstance(line, LineMap) for line in lines):
             raise ValueError("chain_map.lines must hold one or more line maps")
@@ -306,6 +308,7 @@ class ChainMapFit:
     centre_sigma_mm: float = 0.005
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         for name in ("knot_spacing_mm", "curvature_sigma_mm", "ridge_sigma_mm", "centre_sigma_mm"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \

@@ -33,6 +33,7 @@ class RigidTransform:
     translation: np.ndarray
 
     def __post_init__(self) -> None:
+        """Validate the rotation (3, 3) and translation (3,) and store them as arrays."""
         rotation = as_finite_array(self.rotation, "rotation", ndim=2)
         translation = as_finite_array(self.translation, "translation", ndim=1)
         if rotation.shape != (3, 3):

@@ -70,6 +70,7 @@ class SeparationSettings:
     scale_from: str = "travel"           # "travel": trust the pose stream's travel; "line": the sensor's lateral scale
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         for name in ("lateral_knot_spacing_mm", "motion_knot_spacing_mm", "lateral_prior_sigma_mm",
                      "across_prior_sigma_mm", "along_prior_sigma_mm", "default_sigma_mm"):
             as_positive_number(getattr(self, name), f"separation {name}")

@@ -29,6 +29,7 @@ class SweepPass:
     orientation_deg: float = 0.0
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         if self.direction not in (1, -1):
             raise ValueError(f"sweep plan direction must be +1 or -1, got {self.direction!r}")
         if self.orientation_deg not in ORIENTATIONS_DEG:

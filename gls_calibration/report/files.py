@@ -74,6 +74,7 @@ class ReportData:
     full_field_label: str = "190x190 (full)"
 
     def __post_init__(self) -> None:
+        """Validate the fields and store them normalised (ValueError on the first bad one)."""
         def set_points(name: str, rows: int | None) -> None:
             value = getattr(self, name)
             if value is None:

@@ -26,6 +26,7 @@ class Deadlines:
     margin_s: float
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         for name in ("sweep_length_mm", "sweep_speed_mm_s", "marking_speed_mm_s", "factor", "margin_s"):
             as_positive_number(getattr(self, name), name)
         as_non_negative_number(self.jump_time_s, "jump_time_s")

@@ -40,6 +40,7 @@ class ManagerParameter:
     read_only_because: str = ""
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         if self.kind not in KINDS:
             raise ValueError(f"parameter {self.name}: kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
 

@@ -178,6 +178,7 @@ class BagRecorder:
         self.clock_ns = 0
 
     def __enter__(self) -> "BagRecorder":
+        """Open the scratch bag and its topics; remove the scratch folder if that fails."""
         try:
             self._writer.open()
             for topic, msgtype in ((self.layout.scan_topic, POINTCLOUD2), (self.layout.tf_topic, TFMESSAGE),
@@ -190,6 +191,7 @@ class BagRecorder:
         return self
 
     def __exit__(self, kind, value, traceback) -> None:
+        """Close the bag and, unless an exception ends the block, move it to ``path``; drop the scratch."""
         try:
             self._writer.close()
             if kind is None:

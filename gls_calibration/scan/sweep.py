@@ -63,6 +63,7 @@ class ProfileRules:
     count_slack: int = 1
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         if self.field_type not in ("float32", "float64"):
             raise ValueError(f"profile field type must be float32 or float64, got {self.field_type!r}")
         if self.max_points < 1 or self.count_slack < 0:
@@ -121,6 +122,7 @@ class SweepMotion:
     speed_mm_s: float
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         norm = float(np.linalg.norm(self.direction))
         if not np.isfinite(norm) or abs(norm - 1.0) > 1e-6:
             raise ValueError(f"sweep direction must be a unit vector, got {self.direction}")
@@ -198,6 +200,7 @@ class PoseTrack:
         self._quaternions: list[tuple[float, float, float, float]] = []
 
     def __len__(self) -> int:
+        """Return the number of poses kept."""
         return len(self._stamps)
 
     def add(self, stamp_s: float, position_mm, quaternion_xyzw) -> bool:
@@ -254,6 +257,7 @@ class SweepCollector:
         self.too_wide = 0       # over max_points_per_profile: dropped, the sweep goes on
 
     def __len__(self) -> int:
+        """Return the number of profiles kept."""
         return len(self._profiles)
 
     def add(self, stamp_s: float, profile: np.ndarray, layout: object = None) -> bool:

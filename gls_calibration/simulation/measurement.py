@@ -100,6 +100,7 @@ class MeasurementChain:
     straight_rays: float = 0.0                # 1: in-plane head terms become deviations of straight rays
 
     def __post_init__(self) -> None:
+        """Validate the fields and store bools as floats (ValueError on the first bad one)."""
         for item in fields(self):
             value = getattr(self, item.name)
             if isinstance(value, bool):

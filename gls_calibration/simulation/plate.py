@@ -52,6 +52,7 @@ class PlateSettings:
     mark_depth: float = 0.7
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         for name in ("size_mm", "texture_cell_mm", "texture_correlation_mm", "line_width_fwhm_mm"):
             as_positive_number(getattr(self, name), f"plate {name}")
         for name in ("tilt_x_rad", "tilt_y_rad", "delta_d_mm", "texture_std"):

@@ -93,6 +93,7 @@ class MeasurementPlan:
     marked_step_mm: float = ProcedureSettings.marked_sweep_step_mm
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         if not self.passes or not all(isinstance(item, SweepPass) for item in self.passes):
             raise ValueError(f"a plan needs one or more SweepPass, got {self.passes!r}")
         if not isinstance(self.placed_by_pose, bool):

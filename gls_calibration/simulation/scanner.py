@@ -92,6 +92,7 @@ class ScannerSettings:
     path_repeatability_mm: float = 0.05
 
     def __post_init__(self) -> None:
+        """Validate the fields (ValueError on the first bad one)."""
         for name in ("standoff_mm", "line_length_mm", "point_spacing_mm", "step_mm", "speed_mm_s",
                      "depth_max_mm", "gain"):
             as_positive_number(getattr(self, name), f"scanner {name}")

@@ -60,6 +60,7 @@ class SimConfig:
     measurement: MeasurementChain = PRESET_CHAINS["ideal"]
 
     def __post_init__(self) -> None:
+        """Fill the default mountings and validate the fields (ValueError on the first bad one)."""
         if self.scanner_to_gls is None:
             object.__setattr__(self, "scanner_to_gls", pose_matrix(
                 [0.0, 0.5 * self.sweep_length_mm, self.scanner.standoff_mm], [math.pi, 0.0, 0.0]))
