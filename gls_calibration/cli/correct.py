@@ -1,8 +1,8 @@
-"""gls-correct: corrected targets, mirror angles and focus shift for targets from a CSV.
+"""gls-correct: corrected setpoints for CSV targets, from a calibration file or the running cell.
 
-gls-correct: corrected targets, mirror angles and focus shift for targets from a CSV (x,y[,z] in mm,
-gls frame), from a calibration file (``--calibration FILE``, no running cell needed) or from the
-running cell's correction node (``correct_setpoints_batch``).
+Corrected targets, mirror angles and focus shift for targets from a CSV (x,y[,z] in mm, gls frame),
+from a calibration file (``--calibration FILE``, no running cell needed) or from the running cell's
+correction node (``correct_setpoints_batch``).
 
 One output row per target, in input order. Exit 0 when every target is reachable, 1 when some lie
 beyond the mirror limits or the focus range (the file is still written, complete, with its
