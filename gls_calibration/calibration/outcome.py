@@ -130,8 +130,8 @@ class PlateRun:
 class Candidate:
     """A calibration saved (not activated) during a run, with its validated record.
 
-    A calibration saved (not activated) during a run: its file, its validated record and the
-    correction it describes; it travels as this object (``Cell.use_candidate``), never re-read.
+    It holds its file, its validated record and the correction it describes; it travels as this
+    object (``Cell.use_candidate``), never re-read.
     """
 
     path: str

@@ -55,10 +55,10 @@ class Cell(Protocol):
     async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Any:
         """Sweep the scanner over the plate and return the cloud in the scanner (base) frame.
 
-        Sweep the scanner over the plate with ``step_mm`` between profiles, along the sensor's +y
-        (``direction`` 1) or -y (-1), the sensor turned by ``orientation_deg`` (0 or 90) about its
-        viewing axis; the cloud in the scanner (base) frame, whatever the direction and orientation,
-        placed by the robot's reported pose where the cell has one (see ``scan/sweep.py``).
+        Profiles are ``step_mm`` apart, along the sensor's +y (``direction`` 1) or -y (-1), the
+        sensor turned by ``orientation_deg`` (0 or 90) about its viewing axis. The cloud is in the
+        scanner (base) frame whatever the direction and orientation, placed by the robot's reported
+        pose where the cell has one (see ``scan/sweep.py``).
         """
 
     async def acquire_standstill(self, profiles: int) -> Any:
@@ -113,8 +113,8 @@ class Cell(Protocol):
     async def reload_active(self) -> None:
         """Make the cell correct through the store's active calibration again.
 
-        Make the cell correct through the store's active calibration again (the nominal model when
-        there is none): what a failed run calls to drop a candidate it loaded.
+        That is the nominal model when there is none. A failed run calls this to drop a candidate it
+        loaded.
         """
 
     async def exchange_plate(self) -> None:

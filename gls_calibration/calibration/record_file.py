@@ -43,9 +43,9 @@ HEAD_KEYS = tuple(field.name for field in dataclasses.fields(HeadGeometry))
 class CalibrationRecord(Mapping):
     """A calibration record validated once, when it was built or read; read-only.
 
-    A calibration record validated once, when it was built (:func:`new_record`) or read
-    (:func:`load_record`); read-only. Code that holds one need not validate it again (the store saves
-    it as it is); ``to_dict`` gives a plain copy to modify, which is validated again wherever it is used.
+    Built by :func:`new_record` or read by :func:`load_record`. Code that holds one need not
+    validate it again (the store saves it as it is); ``to_dict`` gives a plain copy to modify, which
+    is validated again wherever it is used.
     """
 
     __slots__ = ("_data",)

@@ -132,8 +132,8 @@ class CalibrationStore:
     def load(self, path: str | os.PathLike) -> CalibrationRecord:
         """Read and validate one calibration file of this store.
 
-        Read and validate one calibration file of this store (relative paths are taken inside the
-        history); a path that leads outside the store's directory, even through a symlink, is refused.
+        Relative paths are taken inside the history; a path that leads outside the store's
+        directory, even through a symlink, is refused.
         """
         return load_record(self.confined(path))
 

@@ -1,7 +1,6 @@
 """What the operator tools share: ROS arguments, service waits, a progress bar, the summary.
 
-What the operator tools share: ROS arguments, waiting for a service answer, a progress bar, the
-summary table.
+Splitting the ROS arguments off, waiting for a service answer, a progress bar and the summary table.
 """
 from __future__ import annotations
 

@@ -513,8 +513,8 @@ def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, fl
 def measure_chain_map_file(args: argparse.Namespace) -> Path:
     """Measure the chain map of the calibration's lines on the simulated robot.
 
-    Measure the chain map of the calibration's lines on the simulated robot (the certified plate
-    swept along them, as a real cell would): DIR/chain_map.yaml.
+    The certified plate is swept along them, as a real cell would; the map is written to
+    DIR/chain_map.yaml.
     """
     from gls_calibration.registration.chain_map import save_chain_map
     from gls_calibration.simulation.reference_plate import FIELD_PLATE, measure_chain_map
@@ -529,9 +529,8 @@ def measure_chain_map_file(args: argparse.Namespace) -> Path:
 def measure_reference_check(args: argparse.Namespace) -> Path:
     """Measure the simulated reference plate with the calibration's plan before the calibration.
 
-    Measure the simulated reference plate with the calibration's plan, on the same robot, before
-    the calibration (as a real cell checks its chain with a certified plate), with the run's chain map
-    applied when it has one: DIR/reference_check.yaml.
+    It is measured on the same robot (as a real cell checks its chain with a certified plate), with
+    the run's chain map applied when it has one; the check is written to DIR/reference_check.yaml.
     """
     from gls_calibration.registration.chain_map import load_chain_map
     from gls_calibration.simulation.reference_plate import FIELD_PLATE, chain_check, reference_plate_check

@@ -54,9 +54,8 @@ def grid_per_side() -> int:
 def run_recording(args: argparse.Namespace) -> int:
     """Calibrate the direct simulated cell once, recording to ``args.record``; return an exit code.
 
-    Calibrate the direct simulated cell once, recording to ``args.record``; exit 0 on success,
-    1 when the calibration failed (the bag is kept: it shows what happened), 2 when nothing could be
-    recorded.
+    Exit 0 on success, 1 when the calibration failed (the bag is kept: it shows what happened), 2
+    when nothing could be recorded.
     """
     config = replace(args.sim, seed=args.seed)
     plan = args.reference_plan

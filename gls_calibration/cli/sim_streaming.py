@@ -1,7 +1,7 @@
 """The nodes of ``gls-sim-cell --streaming``: the simulated cell split as a real one is.
 
-The nodes of ``gls-sim-cell --streaming``: the simulated cell split as a real one is (robot with TF
-and the motion contract, a line scanner streaming profiles, stream_acquisition), the rest as usual.
+A robot with TF and the motion contract, a line scanner streaming profiles and stream_acquisition;
+the rest as usual.
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Where the package's config/ files are: the source tree, else the installed share folder.
 
-Where the package's config/ files are: the source tree (editable install), else the share folder
-of an installed package (colcon/ament).
+The source tree serves an editable install; an installed package (colcon/ament) has them in its
+share folder.
 """
 from __future__ import annotations
 

@@ -199,8 +199,8 @@ class Correction:
     def prepare(self) -> None:
         """Build what the models evaluate large requests with now, not on the first large request.
 
-        Build what the models evaluate large requests with (a spline's tiles: 60-150 ms) now, not
-        on the first large request; safe to call from another thread while this correction serves.
+        For a spline that is its tiles (60-150 ms). Safe to call from another thread while this
+        correction serves.
         """
         for model in self.models:
             prepare = getattr(model, "prepare", None)

@@ -1,7 +1,7 @@
 """The standard uncertainty of a fitted ring centre (step 4 of the fiducial measurement).
 
-The standard uncertainty of a fitted ring centre: sector jackknife, the edge noise's spectrum,
-moderation towards the plate's typical variance (step 4 of :mod:`gls_calibration.fiducials.measure`).
+Sector jackknife, the edge noise's spectrum and moderation towards the plate's typical variance:
+step 4 of :mod:`gls_calibration.fiducials.measure`.
 """
 from __future__ import annotations
 

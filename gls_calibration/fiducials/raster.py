@@ -82,9 +82,8 @@ class _PlateImage:
 def _fill_missing(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Fill invalid pixels with the mean of the valid ones in the smallest box holding any.
 
-    Fill invalid pixels with the mean of the valid ones in the smallest box of ``FILL_BOX_SIZES``
-    around them holding any (borders reflected as ``cv2.BORDER_REFLECT``); beyond the largest, the
-    median of the valid pixels.
+    The boxes are ``FILL_BOX_SIZES`` around each pixel (borders reflected as
+    ``cv2.BORDER_REFLECT``); beyond the largest, the median of the valid pixels fills in.
     """
     if valid.all():
         return image

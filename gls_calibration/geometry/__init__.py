@@ -1,5 +1,5 @@
 """Stage 0, the head: nominal kinematics, the physical model, its effects, the config file.
 
-Stage 0, the head: nominal kinematics, the physical ray-trace model and its named effects, the head
+The nominal kinematics, the physical ray-trace model with its named effects, and the head
 configuration file.
 """

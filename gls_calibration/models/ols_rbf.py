@@ -1,7 +1,6 @@
 """The Gaussian RBF network trained by orthogonal least squares: the seed paper's model.
 
-The Gaussian RBF network trained by orthogonal least squares (forward selection of centres, as
-MATLAB's ``newrb``): the seed paper's model.
+Centres are chosen by forward selection, as MATLAB's ``newrb`` does.
 """
 from __future__ import annotations
 

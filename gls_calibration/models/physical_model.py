@@ -195,8 +195,9 @@ class SumModel:
                   part_from_dict: Callable[[Mapping[str, Any]], rbf.DeviationModel]) -> "SumModel":
         """Rebuild a sum written by :meth:`to_dict`, each part through ``part_from_dict``.
 
-        Rebuild a sum written by :meth:`to_dict`, each part through ``part_from_dict`` (the registry's
-        :func:`gls_calibration.models.deviation_models.model_from_dict`: a part may be of any stored type).
+        ``part_from_dict`` is the registry's
+        :func:`gls_calibration.models.deviation_models.model_from_dict`: a part may be of any stored
+        type.
         """
         require_type(data, "sum")
         parts = require_key(data, "models")

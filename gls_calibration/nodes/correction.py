@@ -38,9 +38,9 @@ NOMINAL_ID = "nominal"
 class Served:
     """What answers corrections, swapped as one value.
 
-    What answers corrections, swapped as one value (the batch service reads it from another
-    thread): the correction (None: refused with ``problem``), its id and creation time, the file it
-    came from ("" for the nominal model) and its description in the diagnostics.
+    The batch service reads it from another thread. It holds the correction (None: refused with
+    ``problem``), its id and creation time, the file it came from ("" for the nominal model) and its
+    description in the diagnostics.
     """
 
     correction: Optional[Correction]

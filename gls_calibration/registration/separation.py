@@ -1,7 +1,6 @@
 """Error separation over repeated sweeps of one marked plate (reversal and redundancy).
 
-Error separation over repeated sweeps of one marked plate: reversal and redundancy, as in CMM
-self-calibration.
+Reversal and redundancy as in CMM self-calibration.
 
 Each sweep measures the same fiducials in its own scanner frame: x along the laser line (lateral),
 y along the travel. Between sweeps the plate stays put while the sensor is swept in the opposite

@@ -133,9 +133,9 @@ class GlsNode(Node):
                         allow_empty: bool = False, length: int | None = None) -> list[float]:
         """Declare a list-of-numbers parameter and check it at start.
 
-        Declare a list-of-numbers parameter and check it at start (ROS ranges do not apply to lists):
-        finite, positive (or not negative), not empty unless allowed, of ``length`` when given.
-        ValueError naming the parameter otherwise, so a bad value stops the node at start with the reason.
+        ROS ranges do not apply to lists, so the values are checked here: finite, positive (or not
+        negative), not empty unless allowed, of ``length`` when given. ValueError naming the
+        parameter otherwise, so a bad value stops the node at start with the reason.
         """
         values = self.declare(name, default, description)
         if values is None and allow_empty:

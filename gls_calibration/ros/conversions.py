@@ -134,9 +134,9 @@ OPTIONAL_SETPOINT_FIELDS = ("uncertainty_k2_mm",)     # filled where the message
 def start_setpoints_response(response) -> dict[str, array.array]:
     """Empty the array fields of a CorrectSetpoints response and return them by field name.
 
-    Empty the array fields of a CorrectSetpoints response and return them by ``CorrectedSetpoints``
-    field name, to be extended chunk by chunk (``append_setpoints``): nothing of the whole answer's
-    size is allocated, concatenated or converted at once while the interpreter lock is held.
+    The field names are those of ``CorrectedSetpoints``; the fields are extended chunk by chunk
+    (``append_setpoints``): nothing of the whole answer's size is allocated, concatenated or
+    converted at once while the interpreter lock is held.
     """
     sequences = {}
     for field in fields(CorrectedSetpoints):

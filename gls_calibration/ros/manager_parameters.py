@@ -1,7 +1,7 @@
 """The calibration manager's parameters as one table.
 
-Name, default, description, range, and whether an operator may set it while the node runs (``ros2
-param set``) or why not.
+Name, default, description, range, and whether an operator may set it while the node runs
+(``ros2 param set``) or why not.
 
 A settable parameter applies from the NEXT calibration run: a change while a run is in progress is
 refused with a message (the run keeps the settings it started with), an invalid value is refused with

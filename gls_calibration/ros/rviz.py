@@ -1,7 +1,7 @@
 """What RViz shows of a calibration: the plate pose and the fiducials with deviation arrows.
 
-What RViz shows of a calibration: the plate pose (PoseStamped) and the fiducials with their
-deviation arrows before and after (MarkerArray), in the ``gls`` frame, in metres.
+The plate pose is a PoseStamped, the fiducials with their deviation arrows before and after a
+MarkerArray, in the ``gls`` frame, in metres.
 
 Published transient-local, so an RViz started later still gets the last calibration
 (``config/gls_calibration.rviz`` displays both). Arrows run from the commanded target towards where

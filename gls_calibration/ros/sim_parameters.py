@@ -1,7 +1,7 @@
 """Parameters of the simulation nodes: the sim configuration file and the true defects.
 
-Parameters of the simulation nodes: the sim configuration file, and the true defects as
-parameters of their own so that a run can override one (``-p effects.galvo_gain_x:=[0.02]``).
+The true defects are parameters of their own so that a run can override one
+(``-p effects.galvo_gain_x:=[0.02]``).
 """
 from __future__ import annotations
 

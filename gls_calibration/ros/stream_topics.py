@@ -1,7 +1,7 @@
 """Messages of the streaming cell at the ROS boundary: motion contract, TF, line command.
 
-Messages of the streaming cell at the ROS boundary: the motion contract's topics and QoS, TF
-messages from 4x4 poses and back, and the line command (``nav_msgs/Path``).
+The motion contract's topics and QoS, TF messages from 4x4 poses and back, and the line command
+(``nav_msgs/Path``).
 
 The motion contract, with standard types only (the shared message package cannot grow here):
 

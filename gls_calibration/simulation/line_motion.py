@@ -1,7 +1,7 @@
 """The simulated cell split as a real one is: a robot and a line scanner streaming profiles.
 
-The simulated cell split as a real one is: a robot that runs commanded straight lines of the flange
-and a line scanner that streams profiles, both fed by one simulation of each motion.
+The robot runs commanded straight lines of the flange, the scanner streams profiles; both are fed by
+one simulation of each motion.
 
 A line is commanded as the flange's start and end poses in the robot base frame (4x4, mm) and its
 duration. The simulation turns it into the sensor's line through the cell's hand-eye

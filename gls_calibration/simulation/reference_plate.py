@@ -174,9 +174,8 @@ def measure_plate(config: SimConfig, plate: Plate, plan: MeasurementPlan, seed: 
                   known_gls: np.ndarray, chain_map: ChainMap | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Measure ``plate`` with ``plan`` as the calibration measures its marked plate.
 
-    Measure ``plate`` with ``plan`` as the calibration measures its marked plate (with
-    ``chain_map`` removed from every sweep when given); the measured centres (M, 3, gls frame through
-    the CAD mounting) and the known ones (M, 3) they pair with.
+    ``chain_map``, when given, is removed from every sweep. Returns the measured centres (M, 3, gls
+    frame through the CAD mounting) and the known ones (M, 3) they pair with.
     """
     scanner = config.make_scanner()
     mounting = config.scanner_to_gls
@@ -212,9 +211,9 @@ def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 
                           chain_map: ChainMap | None = None) -> ReferencePlateResult:
     """Scan the reference plate ``design`` at ``positions`` with ``plan``.
 
-    Scan the reference plate ``design`` at ``positions`` (plate-centre offsets, mm; None: the
-    design's) with ``plan``; ``chain_map`` removed from every sweep when given (a calibration that
-    runs with a chain map must state its accuracy from a check made with it).
+    ``positions`` are plate-centre offsets (mm; None: the design's). ``chain_map``, when given, is
+    removed from every sweep: a calibration that runs with a chain map must state its accuracy from
+    a check made with it.
     """
     positions = design.positions_mm if positions is None else positions
     residuals, measured_all, known_all, found, expected = [], [], [], 0, 0
