@@ -170,8 +170,7 @@ class ServiceCell:
     async def use_candidate(self, candidate) -> None:
         """Evaluate ``candidate`` here from now on; the correction node does not see it.
 
-        Evaluate ``candidate`` here from now on (its correction as built, not its file read again);
-        the correction node does not see it.
+        Its correction is used as built, not its file read again.
         """
         self.candidate = candidate.correction
 

@@ -74,8 +74,7 @@ class GlsNode(Node):
     def join_workers(self, timeout_s: float) -> list[str]:
         """Join the threads of :meth:`start_worker`; return the names of those still running.
 
-        Join the threads of :meth:`start_worker` (``timeout_s`` for all); the names of those still
-        running, each logged.
+        ``timeout_s`` is for all of them together; each thread still running is logged.
         """
         deadline = time.monotonic() + timeout_s
         with self._workers_lock:

@@ -65,8 +65,7 @@ class RecordingCell(DirectCell):
     def _record(self, data) -> Cloud:
         """Write one motion's stream and assemble it as a subscriber would.
 
-        Write one motion's stream (profiles, flange poses, start and end) and assemble it as a subscriber
-        would.
+        The stream holds the profiles, the flange poses and the motion's start and end.
         """
         sensor_mm = data.sensor_points()
         sensor_mm[..., 1] = np.where(np.isfinite(sensor_mm[..., 1]), 0.0, np.nan)   # a line sensor measures y = 0
