@@ -310,3 +310,14 @@ def test_fiducial_uncertainties_and_rejections_survive_the_service_response():
     assert np.allclose(restored.rejected_centres, measurement.rejected_centres)
     assert restored.rejected_reasons == ("partial",) and restored.rejected == 1
     assert restored.sigma_plane_mm.shape == (2, 2) and np.isnan(restored.sigma_plane_mm).all()
+
+
+def test_marked_paths_split_into_their_polylines():
+    from gls_calibration.ros.conversions import marked_polylines
+    from gls_calibration_msgs.msg import MarkedPaths
+    points = np.arange(15, dtype=float).reshape(5, 3)
+    paths = MarkedPaths(x=points[:, 0].tolist(), y=points[:, 1].tolist(), z=points[:, 2].tolist(),
+                        polyline_starts=[0, 2])
+    polylines = marked_polylines(paths)
+    assert [polyline.tolist() for polyline in polylines] == [points[:2].tolist(), points[2:].tolist()]
+    assert marked_polylines(MarkedPaths()) == []

@@ -148,9 +148,13 @@ def test_plate_ids_count_the_plates_of_one_fixture_not_of_the_process():
     assert [cell.plate.plate_id for cell in cells] == [0, 0]
     assert [cell.exchange_plate() for cell in cells] == [1, 1]
     assert cells[0].exchange_plate() == 2
+    mark = np.column_stack([ring((10.0, -5.0), 2.5), np.zeros(721)])
+    cells[1].plate.add_mark(mark)
     copy = config.make_plate()
-    assert copy.load_clean(config.plate_seed(1), plate_id=1) == 1
+    assert config.load_plate(copy, 1, [mark]) == 1
     assert copy.marking_pose_error == cells[1].plate.marking_pose_error != cells[0].plate.marking_pose_error
+    probe = np.array([[12.5, -5.0], [10.0, -2.5], [30.0, 30.0]])
+    assert np.array_equal(copy.reflectivity(probe), cells[1].plate.reflectivity(probe))
 
 
 # ---------------------------------------------------------------- scanner

@@ -101,7 +101,8 @@ def test_back_to_back_lines_do_not_overlap_in_time(stream_cell):
         assert "0 out of order dropped" in answer.message, answer.message
     assert len(runs) == 4 and robot.refused == 0
     for previous, run in zip(runs, runs[1:]):
-        assert run.start_ns > previous.after_profiles()[0][-1]
+        assert previous.streamed_until_ns == previous.after_profiles()[0][-1]
+        assert run.start_ns > previous.streamed_until_ns
 
 
 def test_scanner_off_and_a_line_the_robot_refuses_fail_the_sweep(stream_cell):

@@ -210,10 +210,7 @@ class ServiceCell:
         """Return the marks where they truly landed, from a simulated galvo; None in a real cell."""
         if self.truth is None:
             return None
-        paths = (await self._checked(self.truth, GetMarkedPaths.Request())).paths
-        points = np.column_stack([conversions.float64_array(paths.x), conversions.float64_array(paths.y),
-                                  conversions.float64_array(paths.z)])
-        return np.split(points, np.asarray(paths.polyline_starts[1:], dtype=int))
+        return conversions.marked_polylines((await self._checked(self.truth, GetMarkedPaths.Request())).paths)
 
 
 class CalibrationManager(GlsNode):

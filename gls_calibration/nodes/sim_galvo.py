@@ -103,8 +103,7 @@ class SimGalvoNode(GlsNode):
 
     def on_exchange_plate(self, request, response):
         """Load a clean plate; the marking clock runs on (the head stays warm)."""
-        plate_id = self.plate.plate_id + 1
-        self.plate.load_clean(self.config.plate_seed(plate_id), plate_id)
+        plate_id = self.config.load_plate(self.plate, self.plate.plate_id + 1)
         self.landed.clear()
         self.times.clear()
         response.success, response.message = True, f"clean plate {plate_id} loaded"

@@ -92,7 +92,7 @@ class SimRobotNode(GlsNode):
         stamps = run.start_ns + np.round(np.arange(first, last + 1) * period_ns).astype(np.int64)
         self.job = (run, stamps, run.flange_at(stamps))
         self.published = 0
-        self.free_at_ns = max(int(stamps[-1]), int(run.after_profiles()[0][-1])) + 1
+        self.free_at_ns = max(int(stamps[-1]), run.streamed_until_ns) + 1
         self.starts.publish(Header(stamp=time_msg(run.start_ns), frame_id=self.frames.base))
         for listener in self.run_listeners:
             listener(run)
@@ -101,13 +101,8 @@ class SimRobotNode(GlsNode):
     async def _load_marks(self) -> None:
         """Load the plate's marks as the simulated galvo landed them (the simulation's truth, as sim_scanner does)."""
         answer = await self.call(self.marks_client, GetMarkedPaths.Request(), 10.0, resend_after_s=MARKS_RESEND_AFTER_S)
-        paths, plate = answer.paths, self.motion.sim.plate
-        plate.load_clean(self.motion.sim.config.plate_seed(paths.plate_id), paths.plate_id)
-        points = np.column_stack([conversions.float64_array(paths.x), conversions.float64_array(paths.y),
-                                  conversions.float64_array(paths.z)])
-        if len(points):
-            for polyline in np.split(points, np.asarray(paths.polyline_starts[1:], dtype=int)):
-                plate.add_mark(polyline)
+        self.motion.sim.config.load_plate(self.motion.sim.plate, answer.paths.plate_id,
+                                          conversions.marked_polylines(answer.paths))
 
     def publish_batch(self) -> None:
         """Publish the next TF samples of the running line; after the last, the end of the motion."""

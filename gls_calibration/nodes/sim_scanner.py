@@ -168,14 +168,8 @@ class SimScannerNode(GlsNode):
     async def _load_marks(self) -> None:
         answer = await self.call(self.marks_client, GetMarkedPaths.Request(), 10.0,
                                  resend_after_s=MARKS_RESEND_AFTER_S)
-        paths = answer.paths
         # the galvo's plate itself: its id names it in the galvo's fixture, and so its seed
-        self.plate.load_clean(self.config.plate_seed(paths.plate_id), paths.plate_id)
-        points = np.column_stack([conversions.float64_array(paths.x), conversions.float64_array(paths.y),
-                                  conversions.float64_array(paths.z)])
-        if len(points):
-            for polyline in np.split(points, np.asarray(paths.polyline_starts[1:], dtype=int)):
-                self.plate.add_mark(polyline)
+        self.config.load_plate(self.plate, answer.paths.plate_id, conversions.marked_polylines(answer.paths))
 
     def publish_batch(self) -> None:
         """Publish the next profiles of the running sweep; at its end, the end-of-sweep message."""

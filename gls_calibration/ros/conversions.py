@@ -67,6 +67,14 @@ def float64_array(sequence) -> np.ndarray:
     return np.asarray(sequence, dtype=np.float64)
 
 
+def marked_polylines(paths) -> list[np.ndarray]:
+    """Split a ``MarkedPaths`` message into its polylines, each (K, 3) x, y, z in mm; [] when it holds none."""
+    points = np.column_stack([float64_array(paths.x), float64_array(paths.y), float64_array(paths.z)])
+    if not len(points):
+        return []
+    return np.split(points, np.asarray(paths.polyline_starts[1:], dtype=int))
+
+
 def time_to_msg(seconds: float) -> Time:
     """Return a builtin_interfaces Time from seconds since the epoch (UTC)."""
     nanoseconds = int(round(seconds * 1e9))

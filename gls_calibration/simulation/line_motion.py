@@ -70,15 +70,24 @@ class MotionRun:
             poses[:, :3, :3] = Slerp(knots, Rotation.from_matrix(self.reported_flange_mm[:, :3, :3]))(times).as_matrix()
         return poses
 
+    @property
+    def profile_period_ns(self) -> int:
+        """Time between two profiles (ns); 0.1 s for a motion of one profile."""
+        stamps = self.profile_stamps_ns
+        return int(stamps[1] - stamps[0]) if stamps.size > 1 else NS_PER_S // 10
+
+    @property
+    def streamed_until_ns(self) -> int:
+        """Stamp of the last profile the scanner streams for this motion (the last of :meth:`after_profiles`)."""
+        return self.end_ns + self.profile_period_ns * AFTER_PROFILES
+
     def after_profiles(self) -> tuple[np.ndarray, np.ndarray]:
         """Return the stamps (ns) and profiles the scanner streams after the motion's end.
 
         Stamps (ns) and profiles the scanner streams after the motion's end (the robot stands at its
         end: the last profile again), as a running sensor keeps streaming.
         """
-        period = int(self.profile_stamps_ns[1] - self.profile_stamps_ns[0]) if self.profile_stamps_ns.size > 1 \
-            else NS_PER_S // 10
-        stamps = self.end_ns + period * np.arange(1, AFTER_PROFILES + 1, dtype=np.int64)
+        stamps = self.end_ns + self.profile_period_ns * np.arange(1, AFTER_PROFILES + 1, dtype=np.int64)
         return stamps, np.repeat(self.profiles_m[-1:], AFTER_PROFILES, axis=0)
 
 

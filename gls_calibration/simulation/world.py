@@ -81,6 +81,17 @@ class SimConfig:
         """
         return self.seed if plate_id == 0 else [self.seed, int(plate_id)]
 
+    def load_plate(self, plate: Plate, plate_id: int, marks: Iterable[np.ndarray] = ()) -> int:
+        """Load plate ``plate_id`` of this cell's fixture into ``plate``, bearing ``marks``; return the id.
+
+        The galvo's exchange (the next id, no marks) and every copy of its plate (the id and the marks
+        the galvo reports) go through here, so that a copy draws what the galvo's plate drew.
+        """
+        plate.load_clean(self.plate_seed(plate_id), plate_id)
+        for polyline in marks:
+            plate.add_mark(polyline)
+        return int(plate_id)
+
     def make_plate(self) -> Plate:
         """Return a plate of this configuration (with the measurement chain's mark and plate effects)."""
         return Plate(self.plate_settings, seed=self.plate_seed(0), chain=self.measurement,
@@ -200,8 +211,7 @@ class SimulatedCell:
 
     def exchange_plate(self) -> int:
         """Load a clean plate (new id, new texture, no marks); the marking clock keeps running."""
-        plate_id = self.plate.plate_id + 1
-        return self.plate.load_clean(self.config.plate_seed(plate_id), plate_id)
+        return self.config.load_plate(self.plate, self.plate.plate_id + 1)
 
     def mark_cartesian(self, polylines_xy: Iterable, z: float = 0.0) -> list[np.ndarray]:
         """Mark polylines given in gls xy (M, 2) through the nominal inverse kinematics; landed (M, 3) each."""
