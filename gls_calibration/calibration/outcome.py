@@ -249,9 +249,9 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
               placement: str = "pose", *, measurement_preset: str = "") -> RunSummary:
     """Return the run summary of ``outcome`` with the stated accuracy and measurement preset.
 
-    The run summary of ``outcome``; ``chain_check`` (the reference check of the chain, measured
-    with the plan the run used and profiles placed by ``placement``) gives the stated accuracy;
-    ``measurement_preset`` names the simulated measurement chain (empty: a real cell).
+    ``chain_check`` (the reference check of the chain, measured with the plan the run used and
+    profiles placed by ``placement``) gives the stated accuracy; ``measurement_preset`` names the
+    simulated measurement chain (empty: a real cell).
     """
     first, validation = outcome.runs[0], outcome.validation
     last_model = outcome.models[-1] if outcome.models else None

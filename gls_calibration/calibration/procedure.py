@@ -85,8 +85,8 @@ class Cell(Protocol):
     async def correct(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> CorrectedSetpoints:
         """Return setpoints that land on the targets through the cell's loaded calibration.
 
-        Setpoints that land on the targets (x, y, z) (gls frame, mm) through the calibration loaded
-        in the cell (the nominal model when none is); ``within_limits`` flags the reachable ones.
+        Targets are (x, y, z) (gls frame, mm); the nominal model serves when no calibration is
+        loaded. ``within_limits`` flags the reachable ones.
         """
 
     async def mark(self, alpha_x: np.ndarray, alpha_y: np.ndarray, focus_shift: np.ndarray,
@@ -100,8 +100,8 @@ class Cell(Protocol):
     async def train(self, landed_xy: np.ndarray, corrections: np.ndarray) -> TrainedModel:
         """Train a model of the correction to add at a target from landed points and corrections.
 
-        A model of the correction to add at a target, trained on the landed points P (N, 2) and the
-        corrections K(Q) - K(P) (N, 2) (gls frame, mm); see ``training.train_correction``.
+        Landed points P (N, 2) and corrections K(Q) - K(P) (N, 2) are in the gls frame, mm; see
+        ``training.train_correction``.
         """
 
     async def use_candidate(self, candidate: Candidate) -> None:
@@ -142,9 +142,8 @@ class Cell(Protocol):
     def points_and_intensities(self, cloud: Any) -> tuple[np.ndarray, np.ndarray]:
         """Return the points (..., 3) mm and intensity (...) of a cloud from ``acquire_sweep``.
 
-        The points (..., 3) (mm, any frame a rigid motion from the plate's) and the intensity (...)
-        of every point of a cloud from ``acquire_sweep`` (NaN: no return), for the check that the
-        plain plate carries no old marks. Not a coroutine: the cloud is here.
+        Points are in any frame a rigid motion from the plate's; NaN marks no return. They serve the
+        check that the plain plate carries no old marks. Not a coroutine: the cloud is here.
         """
 
 

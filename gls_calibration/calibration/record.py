@@ -121,8 +121,8 @@ def record_models(record: Mapping) -> list[dict]:
 def correction_from_record(record: Mapping, geometry: HeadGeometry) -> Correction:
     """Build the correction a record describes; ValueError when it is unusable.
 
-    The correction a record describes (ValueError when its models or region are unusable, or
-    when its field is not finite or beyond the physical limit: :meth:`Correction.check_field`).
+    ValueError when its models or region are unusable, or when its field is not finite or beyond the
+    physical limit (:meth:`Correction.check_field`).
     """
     models = [model_from_dict(model) for model in record["models"]]
     region = CalibratedRegion.from_dict(record["calibrated_region"]) if models else None

@@ -38,8 +38,8 @@ def split_ros_arguments(argv: Sequence[str] | None) -> tuple[list[str], list[str
 def ros_rules(argv: Sequence[str], *flags: str) -> list[str]:
     """Return the values given to ``flags`` among the ROS arguments of ``argv``, in their order.
 
-    The values given to ``flags`` (e.g. ``-p``, ``--param``) among the ROS arguments of ``argv`` (from
-    ``--ros-args`` to ``--`` or the end), in their order: rcl applies them so, the last one of a name wins.
+    ``flags`` are e.g. ``-p``, ``--param``; the ROS arguments run from ``--ros-args`` to ``--`` or
+    the end. rcl applies the values in this order, so the last one of a name wins.
     """
     rules, inside, tokens = [], False, iter(argv)
     for token in tokens:

@@ -49,8 +49,8 @@ def read_targets(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def corrected_csv_text(x, y, z, k_x, k_y, alpha_x, alpha_y, focus_shift, inside, within, uncertainty) -> str:
     """Format the output table: OUTPUT_COLUMNS, floats at full precision, flags as 0/1.
 
-    The output table: OUTPUT_COLUMNS, floats at full precision, flags as 0/1; the uncertainty
-    (mm, 95 % radius) ``nan`` outside the calibrated field or without the calibration's map.
+    The uncertainty (mm, 95 % radius) is ``nan`` outside the calibrated field or without the
+    calibration's map.
     """
     lines = [",".join(OUTPUT_COLUMNS)]
     floats = np.column_stack([x, y, z, k_x, k_y, alpha_x, alpha_y, focus_shift]).tolist()

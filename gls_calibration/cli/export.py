@@ -70,9 +70,8 @@ def table_axes(correction: Correction, pitch_mm: float) -> tuple[np.ndarray, np.
 def table_size_problem(correction: Correction, pitch_mm: float, heights: int) -> str:
     """Say why a table at ``pitch_mm`` cannot be exported (empty when it can).
 
-    Why a table at ``pitch_mm`` cannot be exported (empty when it can), decided before anything is
-    allocated: more than MAX_TABLE_POINTS points, or no cell inside the calibrated field, where the
-    interpolation error would be checked.
+    Decided before anything is allocated: more than MAX_TABLE_POINTS points, or no cell inside the
+    calibrated field, where the interpolation error would be checked.
     """
     region = correction.calibrated_region
     if region is None:

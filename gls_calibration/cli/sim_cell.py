@@ -113,8 +113,8 @@ def manager_parameter_override(ros_arguments: list[str], namespace: str, name: s
 def iterations_limit(override: Optional[str]) -> int:
     """Return the manager's ``max_iterations`` given by the ``-p`` rule ``override``.
 
-    The manager's ``max_iterations`` given by the ``-p`` rule ``override`` (config/gls.yaml's
-    without one); ValueError naming the rule when the manager would not take its value.
+    Without a rule, config/gls.yaml's; ValueError naming the rule when the manager would not take
+    its value.
     """
     if override is None:
         return max_iterations()
@@ -132,8 +132,7 @@ def iterations_limit(override: Optional[str]) -> int:
 def output_folder_problem(folder: Path) -> str:
     """Say why ``folder`` cannot be the cell's output folder (empty when it can).
 
-    Why ``folder`` cannot be the cell's output folder (empty when it can): it must be a folder or
-    not exist yet, below an existing folder (nothing is created here).
+    It must be a folder or not exist yet, below an existing folder (nothing is created here).
     """
     if folder.exists() or folder.is_symlink():
         return "" if folder.is_dir() else f"--out {folder} exists and is not a folder"

@@ -36,8 +36,7 @@ COLUMNS = ("x_cmd", "y_cmd", "x_meas", "y_meas")
 def read_measured(path: Path) -> tuple[np.ndarray, np.ndarray, Optional[float]]:
     """Read commanded (N, 2) and measured (N, 2) points and the mean ``z_cmd`` from the CSV.
 
-    Commanded (N, 2) and measured (N, 2) points and the mean ``z_cmd`` (None without that column)
-    from the CSV; ValueError naming the problem.
+    ``z_cmd`` is None without that column; ValueError naming the problem.
     """
     try:
         with path.open(newline="") as stream:
@@ -81,8 +80,8 @@ def _flatten(parameters: Mapping, prefix: str = "") -> dict[str, Any]:
 def _package_parameter_names() -> set[str]:
     """Return every parameter name of the package's own parameter files.
 
-    Every parameter name of the package's own parameter files (gls.yaml, head.yaml, sim.yaml): what
-    the cell's nodes read from the ``/**`` block they share.
+    The files are gls.yaml, head.yaml and sim.yaml: what the cell's nodes read from the ``/**``
+    block they share.
     """
     names: set[str] = set(TRAINER_PARAMETER_NAMES)
     for name in ("gls.yaml", "head.yaml", "sim.yaml"):
@@ -99,9 +98,9 @@ def _known(name: str, known: set[str]) -> bool:
 def trainer_parameters(document: Any) -> dict[str, Any]:
     """Return the rbf_trainer's parameters of a ROS parameter file.
 
-    The rbf_trainer's parameters of a ROS parameter file: the ``/**`` block every node reads, then
-    the ``rbf_trainer`` block (which wins, as for the node; a namespaced ``/ns/rbf_trainer`` too).
-    ValueError when neither holds a grid-search parameter or a block names a parameter nobody reads.
+    First the ``/**`` block every node reads, then the ``rbf_trainer`` block (which wins, as for the
+    node; a namespaced ``/ns/rbf_trainer`` too). ValueError when neither holds a grid-search
+    parameter or a block names a parameter nobody reads.
     """
     if not isinstance(document, Mapping):
         raise ValueError(f"expected {LAYOUT}; got a {type(document).__name__} (not a parameter file)")

@@ -53,7 +53,6 @@ def recording_settings(grid: int | None, size_mm: float | None, sweep_plan: str 
                        plain_sweeps: int | None, standstill: bool | None = None) -> ProcedureSettings:
     """Return grid, plan, plain sweeps and stand-still height as given, else as gls.yaml has them.
 
-    Grid, plan, plain sweeps and stand-still height as given, else as ``config/gls.yaml`` has them;
     ValueError naming a bad one.
     """
     from gls_calibration.cli.sim_record import grid_per_side, grid_size_mm, standstill_height

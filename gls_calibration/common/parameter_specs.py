@@ -58,8 +58,7 @@ class ParameterSpec:
     def check(self, value: Any, what: str) -> Any:
         """Return ``value`` of a parameter file when the node would take it; ValueError otherwise.
 
-        ``value`` of a parameter file (as YAML reads it) when the node would take it; ValueError naming
-        ``what`` and the parameter otherwise.
+        ``value`` is as YAML reads it; the ValueError names ``what`` and the parameter.
         """
         key = f"{what} {self.name!r}"
         if self.kind == "flag":

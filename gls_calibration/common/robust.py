@@ -15,7 +15,6 @@ NORMAL_MAD_SCALE = float(1.0 / stats.norm.ppf(0.75))
 def robust_sigma(departures) -> float:
     """Return ``NORMAL_MAD_SCALE`` x the median of ``|departures|``.
 
-    ``NORMAL_MAD_SCALE`` x the median of ``|departures|`` (any shape, departures from a centre
-    already taken off; finite values only).
+    ``departures`` may have any shape, are taken from a centre already, and must be finite.
     """
     return NORMAL_MAD_SCALE * float(np.median(np.abs(departures)))

@@ -432,8 +432,7 @@ def _worker_slices(count: int, workers: int) -> list[slice]:
 def _pool(workers: int) -> ThreadPoolExecutor:
     """Return a shared pool of at least ``workers`` threads (started once, not per request).
 
-    A shared pool of at least ``workers`` threads (started once, not per request). From its start
-    on, BLAS runs on one thread in this process.
+    From its start on, BLAS runs on one thread in this process.
     """
     with _pool_lock:
         if not _shared_pool or _shared_pool[0][0] < workers:

@@ -96,8 +96,8 @@ class UncertaintyGrid:
     def inside_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Return U at points of the calibrated field, clamped to the grid's box (no NaN).
 
-        U at points of the calibrated field: clamped to the grid's box (no NaN), with the fast
-        cell lookup when the nodes are equally spaced (the documented evaluator clamps the same way).
+        The fast cell lookup serves when the nodes are equally spaced (the documented evaluator
+        clamps the same way).
         """
         if self._uniform:
             return self._uniform_at(np.asarray(x, float), np.asarray(y, float))

@@ -55,8 +55,8 @@ CANDIDATE_BLOCK = 32
 def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm: float):
     """Return bin centres (B,) and the mean profile of ``values`` against ``rho`` with derivatives.
 
-    Bin centres (B,) and the mean profile with its first and second derivatives (each (B,)) of
-    ``values`` against ``rho`` (1-D, mm); empty bins take their neighbours' values.
+    The derivatives are the first and second, each (B,); ``rho`` is 1-D, mm. Empty bins take their
+    neighbours' values.
     """
     edges = np.arange(-band_mm - 3 * bin_mm, band_mm + 3 * bin_mm + 0.5 * bin_mm, bin_mm)
     index = np.digitize(rho, edges)

@@ -109,9 +109,8 @@ def _peak(score: np.ndarray, low: np.ndarray, width: int):
 def _row_nanquantile(values: np.ndarray, quantile: float) -> np.ndarray:
     """Return per row of ``values`` (M, N) the ``quantile`` (0-1) of its finite entries.
 
-    Per row of ``values`` (M, N) the ``quantile`` (0-1, linear interpolation) of its finite entries,
-    NaN for a row without any: ``np.nanpercentile`` along rows, with one sort for all rows instead of
-    numpy's loop over the rows that hold a NaN.
+    Linear interpolation; NaN for a row without any finite entry. Works as ``np.nanpercentile``
+    along rows, with one sort for all rows instead of numpy's loop over the rows that hold a NaN.
     """
     ordered = np.sort(np.where(np.isfinite(values), values, np.nan), axis=1)      # NaN sorts last
     last = np.isfinite(values).sum(axis=1) - 1

@@ -104,8 +104,7 @@ def head_config_from_dict(document: Any) -> tuple[HeadGeometry, HeadEffects]:
 def effects_from_mapping(effects: Any, what: str) -> HeadEffects:
     """Read named effects from a YAML mapping ``name: [parameters...]``; ValueError if bad.
 
-    Named effects from a YAML mapping ``name: [parameters...]`` (a lone number for one parameter);
-    ValueError names a bad value or an unknown effect.
+    A lone number stands for one parameter. ValueError names a bad value or an unknown effect.
     """
     effects = effects or {}
     if not isinstance(effects, Mapping):

@@ -27,8 +27,8 @@ TILES_LOCK = threading.Lock()
 def scratch(name: str, rows: int, columns: int) -> np.ndarray:
     """Return a (rows, columns) float work array of the calling thread, reused between calls.
 
-    A (rows, columns) float work array of the calling thread, reused from call to call: a fresh
-    array of a few MB is mapped and page-faulted anew each time (10 % of a large evaluation).
+    A fresh array of a few MB would be mapped and page-faulted anew each time (10 % of a large
+    evaluation).
     """
     size = rows * columns
     buffer = getattr(_thread_scratch, name, None)

@@ -92,8 +92,7 @@ class ThinPlateSplineModel:
     def _tiled(self) -> Optional[tps_tiles.TiledKernelSum]:
         """Return the tiled evaluator, built once on first use, or None where it failed its check.
 
-        The tiled evaluator, built once on first use (60-150 ms; loading a file stays fast), or None
-        where it failed its accuracy check.
+        Building takes 60-150 ms, so loading a file stays fast; the check is of its accuracy.
         """
         if self._tiles is None:
             with TILES_LOCK:
@@ -142,8 +141,7 @@ class ThinPlateSplineModel:
     def _blocks(self, points: np.ndarray, result: Optional[np.ndarray] = None) -> np.ndarray:
         """Evaluate the spline (M, 2) at ``points`` (M, 2), summed exactly block by block.
 
-        The spline (M, 2) at ``points`` (M, 2) summed exactly block by block (added to ``result``
-        when given: its affine part).
+        Added to ``result`` when given (its affine part).
         """
         if result is None:
             result = points @ self.affine[1:]

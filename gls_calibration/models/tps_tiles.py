@@ -32,8 +32,7 @@ _TINY = np.finfo(float).tiny
 def exact_kernel_sum(points: np.ndarray, centres: np.ndarray, half_weights: np.ndarray) -> np.ndarray:
     """Return ``sum_i 2 half_weights_i phi(|p - c_i|)`` (M, K) from plain differences.
 
-    ``sum_i 2 half_weights_i phi(|p - c_i|)`` (M, K) from plain differences; points (M, 2), centres (N, 2),
-    half_weights (N, K) (``0.5 w``: ``phi = 0.5 r^2 ln r^2``).
+    Points (M, 2), centres (N, 2), half_weights (N, K) (``0.5 w``: ``phi = 0.5 r^2 ln r^2``).
     """
     return _kernel_sum_by_rows(points[:, 0], points[:, 1], centres, half_weights).T
 

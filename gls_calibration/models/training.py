@@ -75,8 +75,7 @@ GRID_SEARCH_PARAMETERS = ("spreads_mm", "mse_goals_mm2", "tps_smoothings", "fold
 def training_options_from(values: Mapping[str, Any]) -> TrainingOptions:
     """Return the grid search of checked trainer parameter values.
 
-    The grid search of checked trainer parameter values (names as in TRAINER_PARAMETERS; a missing
-    one keeps its default).
+    Names as in TRAINER_PARAMETERS; a missing one keeps its default.
     """
     options = {("block_mm" if name == "cv_block_mm" else name): values[name]
                for name in GRID_SEARCH_PARAMETERS if name in values}

@@ -263,9 +263,8 @@ class CalibrationManager(GlsNode):
     def _apply_settable(self, requested: dict) -> Optional[str]:
         """Handle ``ros2 param set`` of settable parameters: refused during a run or when invalid.
 
-        ``ros2 param set`` of settable parameters (``requested``: every settable one, the requested
-        values in): refused during a run or when invalid (the reason returned), otherwise in use from
-        the next run.
+        ``requested`` holds every settable one with the requested values in. A refusal returns the
+        reason; an accepted value is in use from the next run.
         """
         values = {parameter.name: _plain(self.get_parameter(parameter.name).value) for parameter in MANAGER_PARAMETERS}
         requested = {name: _plain(value) for name, value in requested.items()}

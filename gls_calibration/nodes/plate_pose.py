@@ -39,8 +39,8 @@ class PlatePoseNode(GlsNode):
 def head_direction(value) -> tuple[float, float, float]:
     """Return the ``head_direction`` parameter's value as 3 floats; ValueError if unusable.
 
-    The ``head_direction`` parameter's value as 3 floats; ValueError unless 3 finite numbers, not all
-    zero (a zero direction orients no normal; checked at start, not at the first request).
+    ValueError unless 3 finite numbers, not all zero: a zero direction orients no normal. Checked at
+    start, not at the first request.
     """
     items = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else []
     numbers = [float(item) for item in items

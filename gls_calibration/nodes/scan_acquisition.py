@@ -211,8 +211,8 @@ class ScanAcquisitionNode(GlsNode):
     def _end_problem(self, done: SweepDone, collector: SweepCollector) -> str:
         """Say why an end of sweep with this sweep's id cannot be its end (empty when it can).
 
-        Why an end of sweep with this sweep's id cannot be its end (empty when it can): its count
-        must be the scanner's announcement when complete, and no less than what already came.
+        Its count must be the scanner's announcement when complete, and no less than what already
+        came.
         """
         if done.complete and done.profiles != self.expected_profiles:
             return (f"it counts {done.profiles} profiles, complete, but the scanner announced "

@@ -145,8 +145,7 @@ class LineMap:
     def error_mm(self, xy_mm: np.ndarray) -> np.ndarray:
         """Return the line's error (N, 2) (B x, y, mm) at points ``xy_mm`` (N, 2+) of B.
 
-        The line's error (N, 2) (B x, y, mm) at points ``xy_mm`` (N, 2+) of B; ValueError for a
-        point beyond the first or last knot (the map says nothing there).
+        ValueError for a point beyond the first or last knot: the map says nothing there.
         """
         xy = np.asarray(xy_mm, dtype=float)
         u = xy[:, travel_axis(self.line)]
@@ -240,8 +239,8 @@ class ChainMap:
     def identity(self) -> str:
         """Return ``sha256:`` and 16 hex digits of the map's content.
 
-        ``sha256:`` and 16 hex digits of the map's content: what a reference check and a calibration
-        record to say which map their sweeps were corrected with.
+        A reference check and a calibration record use it to say which map their sweeps were
+        corrected with.
         """
         text = json.dumps(self.to_dict(), sort_keys=True)
         return "sha256:" + hashlib.sha256(text.encode()).hexdigest()[:16]

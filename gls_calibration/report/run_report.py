@@ -120,8 +120,7 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: Ru
 def _stored_uncertainty(outcome: CalibrationOutcome):
     """Return the candidate record's ``uncertainty`` mapping (the budget), or None.
 
-    The candidate record's ``uncertainty`` mapping (the budget), or None (the record in hand, not
-    its file read back).
+    From the record in hand, not its file read back.
     """
     record = outcome.candidate.record
     return None if record is None else record.get(UNCERTAINTY_KEY)
@@ -130,9 +129,9 @@ def _stored_uncertainty(outcome: CalibrationOutcome):
 def training_csv_text(run) -> str:
     """Return the first plate's fiducials as gls-train reads them.
 
-    The first plate's fiducials as gls-train reads them: commanded targets, the height they were
-    commanded at and the measured centres (gls frame, mm). Training from it reproduces the run's
-    model when the plate was marked through the nominal model (the first calibration of a head).
+    Commanded targets, the height they were commanded at and the measured centres (gls frame, mm).
+    Training from it reproduces the run's model when the plate was marked through the nominal model
+    (the first calibration of a head).
     """
     height = {(float(x), float(y)): float(z) for x, y, z in run.targets}
     z_cmd = [height[(float(x), float(y))] for x, y in run.paired_targets_xy]

@@ -163,8 +163,7 @@ class GlsNode(Node):
     def client(self, srv_type: type, name: str):
         """Create a client in the reentrant group with a deep answer queue (``CLIENT_QOS``).
 
-        A client in the reentrant group, so that coroutine callbacks can await it, with a deep
-        answer queue (``CLIENT_QOS``).
+        The group lets coroutine callbacks await it.
         """
         return self.create_client(srv_type, name, qos_profile=CLIENT_QOS, callback_group=self.reentrant_group)
 

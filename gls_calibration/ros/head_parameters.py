@@ -50,8 +50,8 @@ def head_geometry_from(values: dict) -> HeadGeometry:
 def scanner_to_gls_from(translation_mm, rpy_rad) -> RigidTransform:
     """Return the CAD mounting of the scanner from its parameter values.
 
-    The CAD mounting of the scanner (sweep start frame -> gls frame) from its parameter values;
-    ValueError naming the parameter unless each is 3 finite numbers.
+    The mounting is sweep start frame -> gls frame; ValueError naming the parameter unless each is 3
+    finite numbers.
     """
     checked = []
     for name, value in (("scanner_to_gls.translation_mm", translation_mm), ("scanner_to_gls.rpy_rad", rpy_rad)):

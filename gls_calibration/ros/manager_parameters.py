@@ -187,8 +187,7 @@ class ManagerConfig:
 def numbers_value(name: str, value: Any) -> tuple[float, ...]:
     """Return a list-of-numbers parameter's value as floats; ValueError naming ``name``.
 
-    A list-of-numbers parameter's value as floats; ValueError naming ``name`` when it is not one
-    (rcl reads ``[]`` as no value at all: None).
+    The ValueError comes when it is not one; rcl reads ``[]`` as no value at all (None).
     """
     items = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else None
     if not items or not all(isinstance(item, (int, float)) and not isinstance(item, bool) for item in items) \
@@ -229,9 +228,8 @@ def value_problem(parameter: ManagerParameter, value: Any) -> str:
 def manager_config(values: Mapping[str, Any]) -> ManagerConfig:
     """Build the manager's configuration from the value of every parameter of the table.
 
-    The manager's configuration from the value of every parameter of the table; ValueError naming
-    the parameter when a value cannot be used (also for a combination, e.g. default_iterations above
-    max_iterations).
+    ValueError naming the parameter when a value cannot be used, also for a combination (e.g.
+    default_iterations above max_iterations).
     """
     def number(name: str) -> float:
         return float(values[name])

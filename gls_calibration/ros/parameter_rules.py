@@ -25,8 +25,8 @@ _SPECIAL_FLOATS = {".nan": math.nan, ".inf": math.inf, "+.inf": math.inf, "-.inf
 def parameter_rules(argv: Sequence[str]) -> list[str]:
     """Return the ``-p``/``--param`` rules among the ROS arguments of ``argv``, in their order.
 
-    The ``-p``/``--param`` rules among the ROS arguments of ``argv`` (from ``--ros-args`` to
-    ``--`` or the end), in their order (rcl applies them so: the last one of a name wins).
+    The ROS arguments run from ``--ros-args`` to ``--`` or the end. rcl applies the rules in this
+    order: the last one of a name wins.
     """
     rules, inside, tokens = [], False, iter(argv)
     for token in tokens:
@@ -42,7 +42,6 @@ def parameter_rules(argv: Sequence[str]) -> list[str]:
 def _reaches(target: str, node: Node) -> Optional[str]:
     """Return the parameter name of the rule ``target`` when it reaches ``node``, else None.
 
-    The parameter name of the rule target ``target`` when it reaches ``node`` (None otherwise):
     ``name`` reaches every node; ``node:name`` the node whose full name matches ``node``.
     """
     prefix, colon, name = target.rpartition(":")
@@ -119,8 +118,8 @@ def rule_applied(text: str, held: Any) -> bool:
 def unapplied_rule_problem(node: Node, argv: Sequence[str]) -> str:
     """Say why a ``-p`` rule of ``argv`` that reaches ``node`` is not what the node holds.
 
-    Why a ``-p`` rule of ``argv`` that reaches ``node`` is not what the node holds (empty when every
-    one is). Only parameters the node declares are checked; the last rule of a name counts.
+    Empty when every one is. Only parameters the node declares are checked; the last rule of a name
+    counts.
     """
     last: dict[str, tuple[str, str]] = {}
     for rule in parameter_rules(argv):

@@ -282,8 +282,8 @@ def cloud_to_msg(points_mm: np.ndarray, frame_id: str, stamp: Time | None = None
 def cloud_from_msg(msg: PointCloud2, mm_per_unit: float = MM_PER_M) -> np.ndarray:
     """Return the float32 x, y, z, intensity cloud (mm, a copy) of a PointCloud2.
 
-    The float32 x, y, z, intensity cloud (mm, a copy) of a PointCloud2 in metres, or in the unit
-    of which one is ``mm_per_unit`` mm (1.0 for a driver that publishes millimetres).
+    The PointCloud2 is in metres, or in the unit of which one is ``mm_per_unit`` mm (1.0 for a
+    driver that publishes millimetres).
     """
     view = pointcloud2_to_array(msg)
     _require_fields(view, _XYZ + ("intensity",))

@@ -104,8 +104,7 @@ class ReplayedSweep:
     def standstill(self) -> bool:
         """Tell whether the robot stood still (travel below ``STANDSTILL_TRAVEL_MM``).
 
-        Whether the robot stood still (travel below ``STANDSTILL_TRAVEL_MM``); ValueError when the
-        travel is unknown.
+        ValueError when the travel is unknown.
         """
         travel = self.travel_mm
         if not np.isfinite(travel):

@@ -105,9 +105,8 @@ class TruthHead:
     def land(self, alpha_x, alpha_y, t=None, plane_offset_mm: float = 0.0) -> np.ndarray:
         """Return where commanded mechanical angles (rad) land (N, 3, gls) on the plane marked now.
 
-        Where commanded mechanical angles (rad) land (N, 3), gls, on the plane marked now: the
-        calibration plane moved by the plate's marking-pose error and by ``plane_offset_mm`` along
-        gls z (towards the head when > 0).
+        That plane is the calibration plane moved by the plate's marking-pose error and by
+        ``plane_offset_mm`` along gls z (towards the head when > 0).
         """
         height, tilt_x, tilt_y = self.plate.marking_pose_error if self.plate is not None else (0.0, 0.0, 0.0)
         height += plane_offset_mm

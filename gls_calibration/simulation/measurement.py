@@ -178,8 +178,8 @@ KEYS = tuple(item.name for item in fields(MeasurementChain))
 def measurement_from_mapping(block: Any, preset: str | None = None) -> tuple[str, MeasurementChain]:
     """Return (preset, chain) from a ``measurement`` block.
 
-    (preset, chain) from a ``measurement`` block; ``preset`` (e.g. from the command line) overrides
-    the block's own. ValueError names an unknown preset or key, a bad value or a conflict.
+    ``preset`` (e.g. from the command line) overrides the block's own. ValueError names an unknown
+    preset or key, a bad value or a conflict.
     """
     block = {} if block is None else block
     if not isinstance(block, Mapping):
@@ -208,8 +208,8 @@ def measurement_from_mapping(block: Any, preset: str | None = None) -> tuple[str
 def smooth_process(rng: np.random.Generator, positions_mm, std: float, correlation_mm: float) -> np.ndarray:
     """Sample a smooth zero-mean random process at ``positions_mm``.
 
-    A smooth zero-mean random process sampled at ``positions_mm`` (any order): standard deviation
-    ``std``, Gaussian autocorrelation of length ``correlation_mm``. Zeros when ``std`` is 0.
+    Positions may come in any order; standard deviation ``std``, Gaussian autocorrelation of length
+    ``correlation_mm``. Zeros when ``std`` is 0.
     """
     positions = np.asarray(positions_mm, dtype=float)
     if std == 0.0 or positions.size == 0:

@@ -100,7 +100,7 @@ class RecordingCell(DirectCell):
 def base_to_gls(config) -> np.ndarray:
     """Return the galvo head's frame in the recording's robot base frame (mm).
 
-    The galvo head's frame in the recording's robot base frame (mm): ``config.scanner_to_gls`` (the
-    CAD mounting of a :class:`~gls_calibration.simulation.world.SimConfig`) inverted.
+    It is ``config.scanner_to_gls`` (the CAD mounting of a
+    :class:`~gls_calibration.simulation.world.SimConfig`) inverted.
     """
     return np.linalg.inv(config.scanner_to_gls)

@@ -294,9 +294,8 @@ def chain_check(result: ReferencePlateResult, plan: MeasurementPlan, config: Sim
                 design: ReferencePlateDesign = PAPER_PLATE, chain_map: ChainMap | None = None) -> ChainCheck:
     """Return the reference check of ``plan`` as the calibration manager reads it.
 
-    The reference check of ``plan`` (``result`` of :func:`reference_plate_check` on ``design``, with
-    ``chain_map`` applied) as the calibration manager reads it (``stated_accuracy``): what the cell may
-    state its accuracy from.
+    It is the ``result`` of :func:`reference_plate_check` on ``design``, with ``chain_map`` applied,
+    in the form the manager reads (``stated_accuracy``): what the cell may state its accuracy from.
     """
     return ChainCheck(sigma_mm=result.sigma_mm, plan=plan.label, placement=plan.placement,
                       reference=(f"simulated reference plate, {design.label}; preset "

@@ -209,8 +209,7 @@ class LaserLineScanner:
     def _robot_field(self, component: int, direction: int, orientation_deg: float):
         """Return the robot's repeating error ``component`` for this direction and orientation.
 
-        The robot's repeating error ``component`` (0 along, 1 across, 2 height; 3 the line's scale,
-        a number) for lines of this travel direction and sensor orientation, drawn once and kept.
+        Components: 0 along, 1 across, 2 height; 3 the line's scale (a number). Drawn once and kept.
         """
         key = (component, direction, orientation_deg)
         if key not in self._robot_fields:
@@ -404,8 +403,7 @@ class LaserLineScanner:
                    period_s: float | None = None) -> Iterator[Profile]:
         """Yield the profiles of :meth:`standstill_data` one by one.
 
-        The profiles of :meth:`standstill_data` one by one (sensor frame, y = 0; the reported pose
-        is where the sensor stands).
+        In the sensor frame, y = 0; the reported pose is where the sensor stands.
         """
         data = self.standstill_data(plate, profiles, seed, position_mm, marking_pose_error, period_s)
         for row in range(data.xyz.shape[0]):
@@ -431,8 +429,8 @@ class LaserLineScanner:
                     orientation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Return the whole sweep as an organized cloud placed by time.
 
-        The whole sweep as an organized cloud placed by time: xyz (H, W, 3) and intensity (H, W),
-        float32, in the sweep's start frame (B for the default sweep). Same numbers as :meth:`sweep`.
+        xyz (H, W, 3) and intensity (H, W), float32, in the sweep's start frame (B for the default
+        sweep). Same numbers as :meth:`sweep`.
         """
         data = self.sweep_data(plate, length_mm, speed_mm_s, step_mm, seed, direction, orientation_deg)
         return data.xyz, data.intensity

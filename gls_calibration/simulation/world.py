@@ -227,8 +227,8 @@ class SimulatedCell:
                     orientation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Return one sweep over the configured length placed by time.
 
-        One sweep over the configured length placed by time: organized xyz (H, W, 3) and intensity
-        (H, W), in the sweep's start frame (the scanner base frame for the default sweep).
+        Organized xyz (H, W, 3) and intensity (H, W), in the sweep's start frame (the scanner base
+        frame for the default sweep).
         """
         data = self.sweep_data(step_mm, seed, direction, orientation_deg)
         return data.xyz, data.intensity
@@ -243,8 +243,8 @@ class SimulatedCell:
     def standstill_data(self, profiles: int, seed: int) -> SweepData:
         """Return ``profiles`` profiles with the robot standing still at the marking pose.
 
-        ``profiles`` profiles with the robot standing still at the marking pose, the sensor over the
-        middle of the sweep (see ``LaserLineScanner.standstill_data``): the plate as the head sees it.
+        The sensor stands over the middle of the sweep (see ``LaserLineScanner.standstill_data``):
+        the plate as the head sees it.
         """
         return self.scanner.standstill_data(self.plate, profiles, seed=seed,
                                             position_mm=(0.0, 0.5 * self.config.sweep_length_mm, 0.0),
