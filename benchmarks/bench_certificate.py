@@ -117,8 +117,8 @@ def paired_ratios(without, with_u, pairs: int, cpu_clocks) -> dict:
     Returns
     -------
     dict
-        ``wall`` and ``cpu``: (median ratio, its first and third quartile); ``wall_s`` and ``cpu_s``:
-        the median times without and with (s).
+        ``wall`` and ``cpu``: (median ratio, first and third quartile, 95 % confidence interval of the
+        median); ``wall_s`` and ``cpu_s``: the median times without and with (s).
     """
     times = {clock: ([], []) for clock in ("wall", "cpu")}
     for index in range(pairs):
@@ -130,9 +130,11 @@ def paired_ratios(without, with_u, pairs: int, cpu_clocks) -> dict:
             times["cpu"][slot].append(cpu_clock() - cpu_began)
     figures = {}
     for clock, (plain, certified) in times.items():
-        ratios = [b / a for a, b in zip(plain, certified)]
-        low, middle, high = statistics.quantiles(ratios, n=4)
-        figures[clock] = (statistics.median(ratios), low, high)
+        ratios = sorted(b / a for a, b in zip(plain, certified))
+        low, _, high = statistics.quantiles(ratios, n=4)
+        # distribution-free 95 % confidence interval of the median: order statistics n/2 -+ 0.98 sqrt(n)
+        rank = max(0, int((len(ratios) - 1.96 * len(ratios) ** 0.5) / 2))
+        figures[clock] = (statistics.median(ratios), low, high, ratios[rank], ratios[-1 - rank])
         figures[f"{clock}_s"] = (statistics.median(plain), statistics.median(certified))
     return figures
 
@@ -142,9 +144,9 @@ def print_pairs(what: str, figures: dict, unit: float, unit_name: str, pairs: in
     parts = []
     for clock in ("wall", "cpu"):
         plain, certified = figures[f"{clock}_s"]
-        ratio, low, high = figures[clock]
+        ratio, low, high, ci_low, ci_high = figures[clock]
         parts.append(f"{clock} {plain / unit:.3g} -> {certified / unit:.3g} {unit_name}, ratio {ratio:.3f} "
-                     f"(quartiles {low:.3f}-{high:.3f})")
+                     f"(95 % CI {ci_low:.3f}-{ci_high:.3f}, quartiles {low:.3f}-{high:.3f})")
     print(f"{what}: {'; '.join(parts)}; {pairs} pairs; target <= 1.10", flush=True)
 
 
@@ -178,11 +180,34 @@ def process_cpu_clock(pid: int):
     return lambda: time.clock_gettime(clock_id)
 
 
-def serving_cost_ros(pairs: int = 31, block: int = 40) -> None:
-    """The same through the correction node in a process of its own: one node serving the calibration
-    with its U map, one the same file without the ``uncertainty`` key, each in a namespace of its own,
-    both services (``correct_setpoints``, ``correct_setpoints_batch``), 1 and 100 000 targets; and what
-    the answer's one more float64 array costs the transport alone (an echo with and without it)."""
+# The correction node as it answered before issue 30: the same code, the uncertainty array left empty.
+NODE_BEFORE_U = """
+from gls_calibration.nodes import correction
+from gls_calibration.ros import conversions
+
+start = conversions.start_setpoints_response
+
+
+def without_u_column(response):
+    sequences = start(response)
+    sequences.pop("uncertainty_k2_mm", None)
+    return sequences
+
+
+conversions.start_setpoints_response = without_u_column
+correction.main()
+"""
+
+
+def serving_cost_ros(pairs: int = 41, block: int = 40) -> None:
+    """The same through the correction node in processes of their own, each in a namespace of its own.
+
+    Three nodes: ``with`` serves the calibration with its U map; ``without`` the same file without
+    the ``uncertainty`` key (U answered as NaN: the lookup is what differs); ``before`` that file with
+    the answer's uncertainty array left empty, as before issue 30 (the lookup and the array differ).
+    Both services (``correct_setpoints``, ``correct_setpoints_batch``), 1 and 100 000 targets. Besides,
+    what the one more float64 array costs the transport alone (an echo with and without it).
+    """
     import sys
 
     sys.path.insert(0, str(Path(__file__).parent))
@@ -205,11 +230,13 @@ def serving_cost_ros(pairs: int = 31, block: int = 40) -> None:
         CalibrationStore(without_u).save(record)
         CalibrationStore(with_u).save({**record, "uncertainty": grid})
         environment = dict(os.environ)
-        children = {"without": correction_process(without_u, environment, "/cost_without_u"),
-                    "with": correction_process(with_u, environment, "/cost_with_u"),
+        children = {"before": node_process(NODE_BEFORE_U, environment, "-p", f"calibration_dir:={without_u}",
+                                           "-r", "__ns:=/cost_before"),
+                    "without": correction_process(without_u, environment, "/cost_without"),
+                    "with": correction_process(with_u, environment, "/cost_with"),
                     "echo": node_process(ECHO_NODE, environment)}
         try:
-            services = {f"{side} {service}": f"/cost_{side}_u/{service}" for side in ("without", "with")
+            services = {f"{side} {service}": f"/cost_{side}/{service}" for side in ("before", "without", "with")
                         for service in ("correct_setpoints", "correct_setpoints_batch")}
             services |= {"echo without": "echo_setpoints_without_u", "echo with": "echo_setpoints"}
             with service_clients(services, "cost_client") as clients:
@@ -217,25 +244,24 @@ def serving_cost_ros(pairs: int = 31, block: int = 40) -> None:
                     timed_calls(client, requests["1 target"][0], 20)     # warm-up: discovery, first allocations
                     timed_calls(client, requests["100 000 targets"][0], 2)
                 for service in ("correct_setpoints", "correct_setpoints_batch"):
-                    answers = [np.asarray(call(clients[f"{side} {service}"], requests["100 000 targets"][0])
-                                          .uncertainty_k2_mm) for side in ("without", "with")]
-                    print(f"{service}, 100 000 targets: U without the map {np.isnan(answers[0]).mean():.0%} NaN; "
-                          f"with it {np.isfinite(answers[1]).mean():.1%} finite (NaN outside the calibrated field)")
+                    answers = {side: np.asarray(call(clients[f"{side} {service}"], requests["100 000 targets"][0])
+                                                .uncertainty_k2_mm) for side in ("before", "without", "with")}
+                    print(f"{service}, 100 000 targets, U answered: before {answers['before'].size} values; without "
+                          f"the map {np.isnan(answers['without']).mean():.0%} NaN; with it "
+                          f"{np.isfinite(answers['with']).mean():.1%} finite (NaN outside the calibrated field)")
                 clocks = {name: process_cpu_clock(child.pid) for name, child in children.items()}
-                for service in ("correct_setpoints", "correct_setpoints_batch", "echo"):
+                cases = [(f"{service}, with / {base}", f"{base} {service}", f"with {service}")
+                         for service in ("correct_setpoints", "correct_setpoints_batch")
+                         for base in ("without", "before")]
+                cases.append(("transport only (echo with / without the U array)", "echo without", "echo with"))
+                for what, plain, certified in cases:
+                    cpu = tuple(clocks[name.split()[0]] for name in (plain, certified))
                     for label, (request, count) in requests.items():
-                        if service == "echo":
-                            plain, certified, cpu = "echo without", "echo with", (clocks["echo"], clocks["echo"])
-                        else:
-                            plain, certified = f"without {service}", f"with {service}"
-                            cpu = (clocks["without"], clocks["with"])
-                        figures = paired_ratios(
-                            lambda: timed_calls(clients[plain], request, count),
-                            lambda: timed_calls(clients[certified], request, count), pairs, cpu)
-                        what = (f"out of process, {service} {label}" if service != "echo" else
-                                f"transport only (echo with / without the U array), {label}")
-                        print_pairs(f"{what}{f' (blocks of {count} calls)' if count > 1 else ''}", figures,
-                                    1e-3 * count, "ms per call", pairs)
+                        figures = paired_ratios(lambda: timed_calls(clients[plain], request, count),
+                                                lambda: timed_calls(clients[certified], request, count), pairs, cpu)
+                        blocks = f" (blocks of {count} calls)" if count > 1 else ""
+                        print_pairs(f"out of process, {what}, {label}{blocks}", figures, 1e-3 * count,
+                                    "ms per call", pairs)
         finally:
             stop_processes(list(children.values()))
 
