@@ -52,7 +52,7 @@ $(STAMP)/msgs: $(STAMP)/requirements $(shell find msg_defs -type f)
 # tf2_msgs/msg/TFMessage (the type of /tf and /tf_static) where no tf2_msgs is importable: the pip set-up
 # has none. Built the way msg_defs/ is; a tf2_msgs from elsewhere (a ROS installation) is left alone.
 # The stamp says which: "built" (ours, rebuilt when msg_defs_tf2/ changes) or "present" (not ours).
-$(STAMP)/tf2_msgs: $(STAMP)/requirements $(shell find msg_defs_tf2 -type f)
+$(STAMP)/tf2_msgs: $(STAMP)/requirements $(shell find msg_defs_tf2 -type f) msg_defs/cmake/gls_drop_missing_include_dirs.cmake
 	if { test -f $@ && grep -qx built $@; } || ! (cd /tmp && $(PY) -c "import tf2_msgs" 2>/dev/null); then \
 	  rm -rf build/msg_defs_tf2 && mkdir -p build && \
 	  { AMENT_PREFIX_PATH=$(VENV) CMAKE_PREFIX_PATH=$(VENV) cmake -S msg_defs_tf2 -B build/msg_defs_tf2 \
