@@ -14,7 +14,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gls_calibration.common.robust import robust_sigma
-from gls_calibration.discrepancy.residual_statistics import _smooth_basis, _smooth_degree
+from gls_calibration.discrepancy.residual_statistics import smooth_basis, smooth_degree
 
 #: Robust sigmas a gross outlier departs by (a 2-D Gaussian exceeds 5 sigma with p = 4e-6).
 THRESHOLD = 5.0
@@ -36,8 +36,8 @@ def find_outliers(points_xy: np.ndarray, residual_xy: np.ndarray, *, threshold: 
     the noise for the grids this workflow sees.
     """
     count = len(points_xy)
-    degree, _ = _smooth_degree(count, False)
-    basis = _smooth_basis(points_xy, None, degree, False)
+    degree, _ = smooth_degree(count, False)
+    basis = smooth_basis(points_xy, None, degree, False)
     inliers = np.ones(count, dtype=bool)
     departures = residual_xy
     for _ in range(_PASSES):

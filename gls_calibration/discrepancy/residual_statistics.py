@@ -36,8 +36,8 @@ def _normalised(points_xy: np.ndarray, t: np.ndarray | None) -> tuple[np.ndarray
     return u[:, 0], u[:, 1], tau
 
 
-def _smooth_basis(points_xy: np.ndarray, t: np.ndarray | None, degree: int, use_time: bool) -> np.ndarray:
-    """Per-component design matrix: monomials x^i y^j (i + j <= degree), plus t, t*x, t*y."""
+def smooth_basis(points_xy: np.ndarray, t: np.ndarray | None, degree: int, use_time: bool) -> np.ndarray:
+    """Return the per-component design matrix: monomials x^i y^j (i + j <= degree), plus t, t*x, t*y."""
     u, v, tau = _normalised(points_xy, t)
     columns = [u ** i * v ** (total - i) for total in range(degree + 1) for i in range(total + 1)]
     if use_time and tau is not None:
@@ -45,8 +45,8 @@ def _smooth_basis(points_xy: np.ndarray, t: np.ndarray | None, degree: int, use_
     return np.stack(columns, axis=1)
 
 
-def _smooth_degree(n_points: int, use_time: bool) -> tuple[int, bool]:
-    """Highest degree (<= 5) whose basis keeps at most a third of the points per component."""
+def smooth_degree(n_points: int, use_time: bool) -> tuple[int, bool]:
+    """Return the highest degree (<= 5) whose basis keeps at most a third of the points per component."""
     for degree in range(5, 0, -1):
         terms = (degree + 1) * (degree + 2) // 2 + (3 if use_time else 0)
         if terms <= n_points / 3:
@@ -59,8 +59,8 @@ def _smooth_fit(points_xy: np.ndarray, residual_xy: np.ndarray, t: np.ndarray | 
     """RSS of a smooth field fitted to the residual, its parameter count, degree and time use."""
     use_time = use_time and t is not None
     if degree is None:
-        degree, use_time = _smooth_degree(len(points_xy), use_time)
-    basis = _smooth_basis(points_xy, t, degree, use_time)
+        degree, use_time = smooth_degree(len(points_xy), use_time)
+    basis = smooth_basis(points_xy, t, degree, use_time)
     coefficients, _, rank, _ = np.linalg.lstsq(basis, residual_xy, rcond=None)
     rss = float(np.sum((residual_xy - basis @ coefficients) ** 2))
     return rss, 2 * int(rank), degree, use_time
@@ -149,7 +149,7 @@ def locate_residual(points_xy, residual_xy, t=None, *, noise: NoiseFloor | Floor
     if t is not None:
         t = np.asarray(t, dtype=float)
         time_profile = _profile(t, residual_xy, bins)
-        degree, _ = _smooth_degree(len(points_xy), True)
+        degree, _ = smooth_degree(len(points_xy), True)
         rss_space, p_space, _, _ = _smooth_fit(points_xy, residual_xy, t, degree, use_time=False)
         rss_time, p_time, _, used = _smooth_fit(points_xy, residual_xy, t, degree, use_time=True)
         if used and p_time > p_space:

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.special import gammaincc
 from scipy.spatial import cKDTree
 
-from gls_calibration.discrepancy.residual_statistics import _smooth_basis, _smooth_degree, rms
+from gls_calibration.discrepancy.residual_statistics import smooth_basis, smooth_degree, rms
 from gls_calibration.discrepancy.results import (
     DiscrepancyResult, FloorEvidence, ResidualLocation, StructureTest, Verdict)
 
@@ -86,8 +86,8 @@ def local_pattern(points_xy: np.ndarray, residual_xy: np.ndarray) -> tuple[float
 
 def smooth_share(points_xy: np.ndarray, residual_xy: np.ndarray) -> float:
     """Fraction of the residual's energy a smooth polynomial field (degree <= 5) explains."""
-    degree, _ = _smooth_degree(len(points_xy), False)
-    basis = _smooth_basis(points_xy, None, degree, False)
+    degree, _ = smooth_degree(len(points_xy), False)
+    basis = smooth_basis(points_xy, None, degree, False)
     fitted = basis @ np.linalg.lstsq(basis, residual_xy, rcond=None)[0]
     total = float(np.sum(residual_xy ** 2))
     return float(np.sum(fitted ** 2)) / total if total > 0.0 else 0.0

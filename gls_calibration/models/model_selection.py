@@ -13,7 +13,7 @@ import numpy as np
 
 from gls_calibration.common.validation import (as_integer_at_least, as_matching_points, as_non_negative_number,
                                                as_positive_number)
-from gls_calibration.models.ols_rbf import OLSRBFNetwork, _forward_selection, _stop_count
+from gls_calibration.models.ols_rbf import OLSRBFNetwork, forward_selection, stop_count
 from gls_calibration.models.thin_plate_spline import ThinPlateSplineModel
 
 
@@ -153,9 +153,9 @@ def select_model(X, Y, spreads_mm: Sequence[float] = (20.0, 25.0, 30.0, 35.0, 45
         residuals = {goal: np.empty_like(Y) for goal in goals}
         for training, held_out in zip(trainings, split):
             limit = training.size if max_neurons is None else min(max_neurons, training.size)
-            order, history = _forward_selection(X[training], Y[training], spread, goals[0], limit)
+            order, history = forward_selection(X[training], Y[training], spread, goals[0], limit)
             for goal in goals:
-                model = OLSRBFNetwork._from_selection(X[training], Y[training], order[:_stop_count(history, goal)],
+                model = OLSRBFNetwork._from_selection(X[training], Y[training], order[:stop_count(history, goal)],
                                                       spread, goal, max_neurons)
                 residuals[goal][held_out] = Y[held_out] - model(X[held_out])
         for goal in goals:

@@ -32,8 +32,8 @@ def gaussian_design(points: np.ndarray, centres: np.ndarray, spread_mm: float) -
     return np.exp(-(LN2 / spread_mm ** 2) * squared)
 
 
-def _forward_selection(X: np.ndarray, Y: np.ndarray, spread_mm: float, mse_goal: float,
-                       max_neurons: int) -> tuple[np.ndarray, np.ndarray]:
+def forward_selection(X: np.ndarray, Y: np.ndarray, spread_mm: float, mse_goal: float,
+                      max_neurons: int) -> tuple[np.ndarray, np.ndarray]:
     """Orthogonal least squares forward selection (Chen, Cowan & Grant, 1991).
 
     The constant regressor enters first; then each step takes the candidate (a unit centred on a
@@ -111,7 +111,7 @@ class OLSRBFNetwork:
         if max_neurons is not None:
             max_neurons = as_integer_at_least(max_neurons, "max_neurons", 1)
         limit = X.shape[0] if max_neurons is None else min(max_neurons, X.shape[0])
-        order, _ = _forward_selection(X, Y, spread_mm, mse_goal_mm2, limit)
+        order, _ = forward_selection(X, Y, spread_mm, mse_goal_mm2, limit)
         self._fit_weights(X, Y, order, spread_mm, mse_goal_mm2, max_neurons)
 
     @classmethod
@@ -260,7 +260,7 @@ class OLSRBFNetwork:
                 f"neurons={self.neuron_count}, training_mse_mm2={self.training_mse_mm2:.3g})")
 
 
-def _stop_count(history: np.ndarray, goal: float) -> int:
-    """Units the constructor would keep for ``goal``: the first count whose MSE is <= goal."""
+def stop_count(history: np.ndarray, goal: float) -> int:
+    """Return the units the constructor would keep for ``goal``: the first count whose MSE is <= goal."""
     reached = np.flatnonzero(history <= goal)
     return int(reached[0]) if reached.size else history.size - 1
