@@ -40,7 +40,17 @@ class ParameterSpec:
 
 @dataclass(frozen=True)
 class EffectSpec:
-    """One named effect: its parameters in vector order and one sentence of physics."""
+    """One named effect: its parameters in vector order and one sentence of physics.
+
+    Parameters
+    ----------
+    name : str
+        The effect's name (a key of the effect table).
+    parameters : tuple of ParameterSpec
+        Its parameters in the order of its parameter vector (name, unit, typical magnitude, plausible range).
+    doc : str
+        One sentence on the physics of the effect.
+    """
 
     name: str
     parameters: tuple[ParameterSpec, ...]
@@ -114,7 +124,19 @@ EFFECTS: Mapping[str, tuple[str, ...]] = MappingProxyType({name: spec.parameter_
 
 @dataclass(frozen=True, eq=False)
 class EffectContext:
-    """What a user effect may depend on, for the N commanded points of one data set."""
+    """What a user effect may depend on, for the N commanded points of one data set.
+
+    Parameters
+    ----------
+    geometry : HeadGeometry
+        The nominal head.
+    commanded_xy : numpy.ndarray, shape (N, 2)
+        Nominal targets in the gls frame, mm.
+    alpha_x, alpha_y : numpy.ndarray, shape (N,)
+        Commanded X and Y mirror angles (mechanical, rad; nominal inverse kinematics).
+    t : numpy.ndarray, shape (N,), or None
+        Marking time of each point, s, or None when unknown.
+    """
 
     geometry: HeadGeometry       # nominal head
     commanded_xy: np.ndarray     # (N, 2) nominal targets, gls frame, mm
@@ -131,6 +153,13 @@ class UserEffect:
     frame) for the parameter values ``values`` (k,), in the order of ``spec.parameters``; it must be
     zero for zero values. The discrepancy workflow fits ``values`` like a library effect, measures
     them in ``typical`` units and names the effect only within ``[low, high]``.
+
+    Parameters
+    ----------
+    spec : EffectSpec
+        The effect's name, parameters (with units, typical magnitudes and ranges) and physics.
+    deviation : callable
+        ``deviation(context: EffectContext, values: numpy.ndarray (k,)) -> numpy.ndarray (N, 2)``, mm.
     """
 
     spec: EffectSpec
@@ -145,8 +174,24 @@ class UserEffect:
 def load_user_effect(reference: str) -> UserEffect:
     """Import ``module:function`` and call ``function()``, which returns a :class:`UserEffect`.
 
-    The module is found on ``sys.path`` (e.g. the working directory or ``PYTHONPATH``). ValueError
-    names the problem: bad reference, import failure, wrong return type, a name clash with the library.
+    The module is found on ``sys.path`` (e.g. the working directory or ``PYTHONPATH``).
+
+    Parameters
+    ----------
+    reference : str
+        ``"module:function"``.
+
+    Returns
+    -------
+    UserEffect
+        The effect the function returned, checked by :func:`check_user_effect`.
+
+    Raises
+    ------
+    ValueError
+        Naming the problem: a reference not of the form ``module:function``, an import failure, a
+        missing function, a failure inside the function, a return value that is not a UserEffect,
+        or a check of :func:`check_user_effect` that fails (e.g. a name clash with the library).
     """
     module_name, _, function_name = reference.partition(":")
     if not module_name or not function_name:
@@ -169,7 +214,19 @@ def load_user_effect(reference: str) -> UserEffect:
 
 
 def check_user_effect(effect: UserEffect) -> None:
-    """Raise ValueError unless ``effect`` has a new name, parameters, ranges about 0, a callable."""
+    """Check that ``effect`` has a new name, parameters, ranges about 0 and a callable deviation.
+
+    Parameters
+    ----------
+    effect : UserEffect
+        The effect to check.
+
+    Raises
+    ------
+    ValueError
+        If its name clashes with a library effect, it has no parameters, a parameter's typical
+        magnitude is not positive or its plausible range does not contain 0, or ``deviation`` is not callable.
+    """
     spec = effect.spec
     if spec.name in EFFECT_TABLE:
         raise ValueError(f"user effect {spec.name!r} clashes with the library effect of that name")

@@ -39,7 +39,13 @@ HEAD_DEFAULTS: dict[str, float] = {
 
 
 def default_head_config_path() -> Path:
-    """Return the package's ``config/head.yaml``."""
+    """Return the package's ``config/head.yaml``.
+
+    Returns
+    -------
+    pathlib.Path
+        The path of the head configuration installed with the package.
+    """
     return config_path("head.yaml")
 
 
@@ -63,7 +69,24 @@ def _undot(mapping: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def parameters_block(document: Any) -> dict[str, Any]:
-    """Return the parameter mapping of a ROS parameter file or of a plain mapping."""
+    """Return the parameter mapping of a ROS parameter file or of a plain mapping.
+
+    Parameters
+    ----------
+    document : mapping or None
+        A parsed YAML document: a ROS parameter file (the ``/**`` entry's ``ros__parameters`` is
+        preferred, else the first node's) or a plain mapping; dotted keys are nested.
+
+    Returns
+    -------
+    dict
+        The parameters, nested by their dotted names; empty for None.
+
+    Raises
+    ------
+    ValueError
+        If ``document`` or its ``ros__parameters`` is not a mapping.
+    """
     if document is None:
         return {}
     if not isinstance(document, Mapping):
@@ -80,7 +103,28 @@ def parameters_block(document: Any) -> dict[str, Any]:
 
 
 def head_config_from_dict(document: Any) -> tuple[HeadGeometry, HeadEffects]:
-    """Geometry and known effects from a parsed head configuration (see the module docstring)."""
+    """Build the geometry and the known effects from a parsed head configuration (see the module docstring).
+
+    Parameters
+    ----------
+    document : mapping or None
+        A parsed ROS parameter file or plain mapping; the keys are read from its ``head`` block when
+        there is one (``working_distance_mm``, ``mirror_distance_mm``, ``mirror_limit_deg``,
+        ``focus_range_mm``, ``effects``); absent keys take the defaults.
+
+    Returns
+    -------
+    geometry : HeadGeometry
+        The nominal head (mm, rad).
+    effects : HeadEffects
+        The effects already known for this head.
+
+    Raises
+    ------
+    ValueError
+        If the document or its ``head`` block is not a mapping, a key is unknown, a value is not a
+        finite number, the geometry is not valid or an effect is bad.
+    """
     parameters = parameters_block(document)
     head = parameters.get("head", parameters)
     if not isinstance(head, Mapping):
@@ -102,9 +146,26 @@ def head_config_from_dict(document: Any) -> tuple[HeadGeometry, HeadEffects]:
 
 
 def effects_from_mapping(effects: Any, what: str) -> HeadEffects:
-    """Read named effects from a YAML mapping ``name: [parameters...]``; ValueError if bad.
+    """Read named effects from a YAML mapping ``name: [parameters...]``.
 
-    A lone number stands for one parameter. ValueError names a bad value or an unknown effect.
+    Parameters
+    ----------
+    effects : mapping or None
+        Effect name -> list of parameters (a lone number stands for one parameter); None or empty
+        means no effect.
+    what : str
+        What the mapping is, for the error message.
+
+    Returns
+    -------
+    HeadEffects
+        The effects, validated.
+
+    Raises
+    ------
+    ValueError
+        If ``effects`` is not a mapping, a value is not a finite number, an effect name is unknown or
+        an effect has the wrong number of parameters.
     """
     effects = effects or {}
     if not isinstance(effects, Mapping):
@@ -117,8 +178,23 @@ def effects_from_mapping(effects: Any, what: str) -> HeadEffects:
 
 
 def load_head_config(path: str | Path) -> tuple[HeadGeometry, HeadEffects]:
-    """Read a head configuration YAML file -> (nominal HeadGeometry, HeadEffects already known).
+    """Read a head configuration YAML file.
 
-    Raises ValueError with the file name for unreadable YAML, unknown keys or unknown effect names.
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The YAML file (e.g. ``config/head.yaml``).
+
+    Returns
+    -------
+    geometry : HeadGeometry
+        The nominal head (mm, rad).
+    effects : HeadEffects
+        The effects already known for this head.
+
+    Raises
+    ------
+    ValueError
+        With the file name, for an unreadable file or YAML, unknown keys, bad values or unknown effect names.
     """
     return read_config_file(path, "head configuration", head_config_from_dict)

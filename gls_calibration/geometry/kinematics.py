@@ -24,7 +24,24 @@ from gls_calibration.common.validation import as_coordinate_arrays
 
 @dataclass(frozen=True)
 class HeadGeometry:
-    """Nominal parameters of the head (mm and rad)."""
+    """Nominal parameters of the head (mm and rad).
+
+    Parameters
+    ----------
+    working_distance_mm : float, default 490.0
+        Distance ``d`` from the X mirror axis (the last mirror) to the work plane, mm; positive.
+    mirror_distance_mm : float, default 15.0
+        Distance ``e`` between the two mirror axes, mm; non-negative.
+    mirror_limit_rad : float, default radians(10.5)
+        Largest mechanical mirror angle, rad; positive.
+    focus_range_mm : float, default 25.0
+        Largest focus shift either way (+-), mm; positive.
+
+    Raises
+    ------
+    ValueError
+        If a field is not finite or out of its range (the first bad one is named).
+    """
 
     working_distance_mm: float = 490.0
     mirror_distance_mm: float = 15.0

@@ -74,10 +74,30 @@ def _rotation_y(angle: float) -> np.ndarray:
 
 def plate_frame(tilt_x_rad: float = 0.0, tilt_y_rad: float = 0.0,
                 delta_d_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation (3, 3, plate -> gls) and origin (3,) of the plate for the plate_tilt and working_distance effects.
+    """Return the plate's rotation and origin for the plate_tilt and working_distance effects.
 
     The plate is turned first about gls x, then about gls y; its origin (the field centre) sits
     ``delta_d_mm`` below the nominal work plane. The rotation's third column is the plate normal.
+
+    Parameters
+    ----------
+    tilt_x_rad, tilt_y_rad : float, default 0.0
+        Tilt of the plate about gls x and then gls y, rad.
+    delta_d_mm : float, default 0.0
+        How far the plate's origin lies below the nominal work plane, mm.
+
+    Returns
+    -------
+    rotation : numpy.ndarray, shape (3, 3)
+        Plate -> gls rotation.
+    origin : numpy.ndarray, shape (3,)
+        The plate's origin in the gls frame, mm.
+
+    Examples
+    --------
+    >>> rotation, origin = plate_frame(0.0, 0.0, 2.0)
+    >>> rotation[:, 2], origin
+    (array([0., 0., 1.]), array([ 0.,  0., -2.]))
     """
     rotation = _rotation_y(tilt_y_rad) @ _rotation_x(tilt_x_rad)
     return rotation, np.array([0.0, 0.0, -float(delta_d_mm)])
@@ -87,8 +107,19 @@ def plate_frame(tilt_x_rad: float = 0.0, tilt_y_rad: float = 0.0,
 class HeadEffects:
     """Values of named physical effects; absent effects are zero.
 
-    ``values`` maps an effect name of :data:`EFFECTS` to its parameters (a tuple, or a bare number
-    for one-parameter effects). Stored read-only with float tuples.
+    ``values`` is stored read-only with float tuples.
+
+    Parameters
+    ----------
+    values : mapping of str to tuple of float, optional
+        Effect name of :data:`EFFECTS` -> its parameters (a tuple, or a bare number for
+        one-parameter effects), in the units of the effect table.
+
+    Raises
+    ------
+    ValueError
+        If ``values`` is not a mapping, a name is unknown, a parameter is not finite or an effect has
+        the wrong number of parameters.
     """
 
     values: Mapping[str, tuple[float, ...]] = field(default_factory=dict)
@@ -195,6 +226,18 @@ class PhysicalHead:
     The plate is the plane through ``plate_origin`` (``(0, 0, -delta_d)``) with normal
     ``plate_rotation @ (0, 0, 1)``; :meth:`to_plate` / :meth:`from_plate` convert between the gls
     frame and plate coordinates ``(u, v)`` about that origin.
+
+    Parameters
+    ----------
+    geometry : HeadGeometry, optional
+        The nominal head; the default :class:`HeadGeometry` when None.
+    effects : HeadEffects or mapping, optional
+        The head's effects (a mapping is turned into :class:`HeadEffects`); none when None.
+
+    Raises
+    ------
+    ValueError
+        If ``effects`` is a mapping that :class:`HeadEffects` rejects.
     """
 
     def __init__(self, geometry: HeadGeometry | None = None,
