@@ -48,7 +48,20 @@ _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
 @dataclass(frozen=True)
 class BagLayout:
-    """Topics and frame names of a recorded cell."""
+    """Topics and frame names of a recorded cell.
+
+    Parameters
+    ----------
+    scan_topic : str, default "/scanner/profile"
+        The profiles (``PointCloud2``, one per profile, metres).
+    tf_topic, tf_static_topic : str, default "/tf", "/tf_static"
+        The robot's reported poses and the static frames.
+    motion_start_topic, motion_end_topic : str, default "/motion/start", "/motion/end"
+        The stamps (``std_msgs/Header``) that open and close each motion.
+    base_frame, flange_frame, sensor_frame, gls_frame : str
+        Names of the robot base, the flange, the scanner's optical frame and the galvo head
+        (defaults "robot_base", "flange", "scanner_optical", "gls").
+    """
 
     scan_topic: str = "/scanner/profile"
     tf_topic: str = "/tf"
@@ -65,11 +78,16 @@ class BagLayout:
 class ReplayLimits:
     """What replay accepts before it calls a stream broken.
 
-    ``max_pose_age_s``: the newest flange pose at or before a profile may be this old (the robot state
-    publisher's period plus its latency), and a pose at or after the profile must exist (no
-    extrapolation). ``max_gap_periods``: a gap in the profile stream (or between the last profile and
-    the motion's end) longer than this many of the sweep's median profile periods means the stream
-    stopped. ``max_range_m``: a profile whose median point distance exceeds it is not in metres.
+    Parameters
+    ----------
+    max_pose_age_s : float, default 0.05
+        The newest flange pose at or before a profile may be this old, s (the robot state publisher's
+        period plus its latency), and a pose at or after the profile must exist (no extrapolation).
+    max_gap_periods : float, default 5.0
+        A gap in the profile stream (or between the last profile and the motion's end) longer than
+        this many of the sweep's median profile periods means the stream stopped.
+    max_range_m : float, default 10.0
+        A profile whose median point distance exceeds it, m, is not in metres.
     """
 
     max_pose_age_s: float = 0.05
@@ -84,7 +102,19 @@ taken with the robot standing at the marking pose); a sweep travels the grid's l
 
 @dataclass(frozen=True)
 class ReplayedSweep:
-    """One motion assembled from a bag: organized cloud in the robot base frame (mm)."""
+    """One motion assembled from a bag: organized cloud in the robot base frame (mm).
+
+    Parameters
+    ----------
+    xyz_mm : numpy.ndarray, shape (H, W, 3)
+        Points in the robot base frame, mm, float64; NaN for no return.
+    intensity : numpy.ndarray, shape (H, W)
+        Intensity of each point, float64.
+    stamps_ns : numpy.ndarray, shape (H,)
+        The profiles' stamps, ns, int64.
+    start_ns, end_ns : int
+        Stamps of the motion's start and end, ns.
+    """
 
     xyz_mm: np.ndarray          # (H, W, 3) float64, NaN for no return
     intensity: np.ndarray       # (H, W) float64
@@ -148,12 +178,29 @@ def profile_msg(points_m: np.ndarray, frame_id: str, stamp_ns: int):
 
 
 class BagRecorder:
-    """Writes a cell's streams to a new rosbag2 folder (use as a context manager).
+    """Write a cell's streams to a new rosbag2 folder (use as a context manager).
 
-    ``flange_to_sensor`` (hand-eye) and ``base_to_gls`` are 4x4 poses in mm (child -> parent), written
-    once on ``/tf_static``. ``tap(topic, message)``, when given, sees every message as it is written
-    (what a live subscriber would receive). The folder must not exist; the bag is written under a temporary name
-    beside it and renamed when closed without error, so a failed recording leaves nothing at ``path``.
+    ``tap(topic, message)``, when given, sees every message as it is written (what a live subscriber
+    would receive). The bag is written under a temporary name beside ``path`` and renamed when closed
+    without error, so a failed recording leaves nothing at ``path``.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The bag folder to create; it must not exist, its parent must.
+    flange_to_sensor, base_to_gls : numpy.ndarray, shape (4, 4)
+        The hand-eye and the head in the robot base (child -> parent, mm), written once on ``/tf_static``.
+    layout : BagLayout, optional
+        Topics and frame names.
+    storage : str, default "sqlite3"
+        The rosbag2 storage, one of ``STORAGES``.
+    tap : callable, optional
+        ``tap(topic: str, message) -> None``, called with every message written.
+
+    Raises
+    ------
+    ValueError
+        If ``storage`` is unknown, ``path`` exists already or its parent folder does not exist.
     """
 
     def __init__(self, path: str | Path, flange_to_sensor: np.ndarray, base_to_gls: np.ndarray,
@@ -306,7 +353,27 @@ def _messages(reader: Reader, path: Path, topics: Sequence[str]) -> Iterator[tup
 
 def read_sweeps(path: str | Path, layout: BagLayout = BagLayout(), limits: ReplayLimits = ReplayLimits()
                 ) -> list[ReplayedSweep]:
-    """Every sweep of a bag (see :func:`read_recording`; no galvo frame needed)."""
+    """Assemble every sweep of a bag (see :func:`read_recording`; no galvo frame needed).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The rosbag2 folder.
+    layout : BagLayout, optional
+        Topics and frame names of the bag.
+    limits : ReplayLimits, optional
+        What replay accepts before it calls a stream broken.
+
+    Returns
+    -------
+    list of ReplayedSweep
+        Every motion of the bag, in order, in the robot base frame (mm).
+
+    Raises
+    ------
+    ValueError
+        As :func:`read_recording`, naming the problem.
+    """
     return _read_path(Path(path), layout, limits)[0]
 
 
@@ -314,11 +381,29 @@ def read_recording(path: str | Path, layout: BagLayout = BagLayout(), limits: Re
                    ) -> tuple[list[ReplayedSweep], np.ndarray]:
     """Assemble every sweep of a bag in ``layout.base_frame``; return them and the gls pose.
 
-    Every sweep of a bag, assembled and placed in ``layout.base_frame`` (see the module docstring), and
-    the pose of ``layout.gls_frame`` in that frame (4x4, mm) at the first motion's start.
+    See the module docstring for how a sweep is assembled and placed.
 
-    ValueError (naming the problem) for an unreadable bag, a missing topic or frame, a motion without
-    its end, a profile without a recent enough pose, a stream that stops mid-sweep, a cloud not in metres.
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The rosbag2 folder.
+    layout : BagLayout, optional
+        Topics and frame names of the bag.
+    limits : ReplayLimits, optional
+        What replay accepts before it calls a stream broken.
+
+    Returns
+    -------
+    sweeps : list of ReplayedSweep
+        Every motion of the bag, in order, in the robot base frame (mm).
+    base_to_gls : numpy.ndarray, shape (4, 4)
+        The pose of ``layout.gls_frame`` in ``layout.base_frame`` (mm) at the first motion's start.
+
+    Raises
+    ------
+    ValueError
+        Naming the problem: an unreadable bag, a missing topic or frame, a motion without its end, a
+        profile without a recent enough pose, a stream that stops mid-sweep, a cloud not in metres.
     """
     sweeps, buffer = _read_path(Path(path), layout, limits)
     return sweeps, _pose_at(buffer, layout.base_frame, layout.gls_frame, sweeps[0].start_ns, limits, str(path))
@@ -346,10 +431,19 @@ def _read(reader: Reader, path: Path, layout: BagLayout, limits: ReplayLimits):
 
 
 class StreamAssembler:
-    """Collects a cell's streams (profiles, TF, motion stamps) and assembles sweeps from them.
+    """Collect a cell's streams (profiles, TF, motion stamps) and assemble sweeps from them.
 
-    Fed message by message, from a bag or live as a subscriber sees them; ``source`` names the stream
-    in error messages. The same arithmetic serves both, so a live run and its replay agree exactly.
+    Fed message by message, from a bag or live as a subscriber sees them. The same arithmetic
+    serves both, so a live run and its replay agree exactly.
+
+    Parameters
+    ----------
+    layout : BagLayout, optional
+        Topics and frame names of the streams.
+    limits : ReplayLimits, optional
+        What the assembly accepts before it calls a stream broken.
+    source : str, default "stream"
+        Names the stream in error messages.
     """
 
     def __init__(self, layout: BagLayout = BagLayout(), limits: ReplayLimits = ReplayLimits(),
@@ -468,7 +562,18 @@ def _add_transform(buffer, transform, static: bool) -> None:
 
 
 def max_pose_age_ns(limits: ReplayLimits) -> int:
-    """``limits.max_pose_age_s`` in integer ns, as the TF buffer takes it."""
+    """Return ``limits.max_pose_age_s`` in integer ns, as the TF buffer takes it.
+
+    Parameters
+    ----------
+    limits : ReplayLimits
+        The replay limits.
+
+    Returns
+    -------
+    int
+        The largest pose age, ns (rounded).
+    """
     return int(round(limits.max_pose_age_s * NS_PER_S))
 
 

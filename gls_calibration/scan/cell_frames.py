@@ -79,6 +79,23 @@ def cell_frames_from_dict(document: Any) -> CellFrames:
 
 
 def load_cell_frames(path: str | Path | None = None) -> CellFrames:
-    """Return the cell frames file at ``path`` (None: the package's ``config/cell_frames.yaml``)."""
+    """Return the cell frames file at ``path`` (None: the package's ``config/cell_frames.yaml``).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path, optional
+        The YAML file (poses in metres and radians).
+
+    Returns
+    -------
+    CellFrames
+        The frame names and the poses as 4x4 matrices (mm).
+
+    Raises
+    ------
+    ValueError
+        Naming the file and the first problem: unreadable file or YAML, a missing or bad key, a bad
+        frame name, a translation beyond ``MAX_TRANSLATION_M``.
+    """
     return read_config_file(config_path("cell_frames.yaml") if path is None else path, "cell frames file",
                             cell_frames_from_dict)

@@ -52,9 +52,36 @@ def existing_marks(intensity, sigmas: float = 6.0, *, points=None, cluster_sigma
                    cluster_radius_mm: float = 6.0) -> MarkEvidence:
     """Count the points of ``intensity`` beyond ``sigmas`` robust deviations, and their clusters.
 
-    Count the points of ``intensity`` (any shape; NaN = no return) beyond ``sigmas`` robust deviations;
-    with ``points`` (intensity's shape + (3,), mm), also the largest cluster of points beyond
-    ``cluster_sigmas`` within ``cluster_radius_mm`` (a fiducial's extent) of one of them.
+    Parameters
+    ----------
+    intensity : array_like
+        Intensity of a sweep, any shape; NaN = no return.
+    sigmas : float, default 6.0
+        A point is outlying beyond this many robust deviations from the median; positive.
+    points : array_like, optional
+        The points, intensity's shape + (3,), mm. With them, also the largest cluster of points beyond
+        ``cluster_sigmas`` within ``cluster_radius_mm`` (a fiducial's extent) of one of them.
+    cluster_sigmas : float, default 4.0
+        The threshold of a cluster's points, robust deviations; positive.
+    cluster_radius_mm : float, default 6.0
+        The radius of a cluster, mm; positive.
+
+    Returns
+    -------
+    MarkEvidence
+        The outlying and finite point counts, and the largest cluster (0 without ``points``).
+
+    Raises
+    ------
+    ValueError
+        If no intensity is finite, a number is not positive, or ``points`` has not the intensity's shape + (3,).
+
+    Examples
+    --------
+    >>> intensity = np.ones((20, 30))
+    >>> intensity[5, 7] = 10.0
+    >>> existing_marks(intensity).outlying_points
+    1
     """
     sigmas = as_positive_number(sigmas, "sigmas")
     values = np.asarray(intensity, dtype=np.float64)

@@ -32,8 +32,21 @@ LSQ_REFITS = 2
 class PlatePose:
     """Plane of the plate in the cloud's frame (mm).
 
-    ``rotation`` maps plate coordinates to the cloud frame: its columns are the in-plane x axis, the
-    in-plane y axis and the unit ``normal`` (which points towards the head).
+    Parameters
+    ----------
+    normal : numpy.ndarray, shape (3,)
+        Unit normal of the plate, pointing towards the head.
+    centre : numpy.ndarray, shape (3,)
+        A point of the plane, mm.
+    rotation : numpy.ndarray, shape (3, 3)
+        Maps plate coordinates to the cloud frame: its columns are the in-plane x axis, the in-plane
+        y axis and ``normal``.
+    flatness_rms_mm : float
+        RMS distance of the inliers from the plane, mm.
+    inlier_count : int
+        Points within the fit's distance threshold.
+    inlier_fraction : float
+        Their fraction of the finite points.
     """
 
     normal: np.ndarray
@@ -189,6 +202,21 @@ def mean_plate_pose(poses: list[PlatePose]) -> PlatePose:
 
     Each sweep's path is off by the robot's repeatability; averaging N sweeps divides that error
     of the plate height (and so of the field's scale, dr/r = dz/d) by sqrt(N).
+
+    Parameters
+    ----------
+    poses : list of PlatePose
+        The poses of one plate, in one frame.
+
+    Returns
+    -------
+    PlatePose
+        Mean normal (renormalised) and centre; mean flatness and inlier fraction, summed inlier count.
+
+    Raises
+    ------
+    ValueError
+        If ``poses`` is empty.
     """
     if not poses:
         raise ValueError("mean_plate_pose needs at least one pose")
@@ -210,12 +238,28 @@ MIN_HEIGHT_POINTS = 100
 def pose_at_height(pose: PlatePose, points, *, distance_threshold_mm: float = 0.2) -> PlatePose:
     """Move ``pose`` along its normal so that its plane runs through ``points``.
 
-    ``pose`` moved along its normal so that its plane runs through ``points`` ((N, 3) or (H, W, 3),
-    NaNs dropped): the plate height from profiles taken standing still, the tilt from ``pose``.
-
     Profiles taken without travel cover one line of the plate: they fix the height well (thousands of
     points) but not the tilt across the line, which the sweeps' pose keeps. The height is the mean
     signed distance of the points within ``distance_threshold_mm`` of their median distance.
+
+    Parameters
+    ----------
+    pose : PlatePose
+        The pose whose tilt is kept.
+    points : array_like, shape (N, 3) or (H, W, 3)
+        Profiles taken standing still, in the pose's frame, mm; NaNs are dropped.
+    distance_threshold_mm : float, default 0.2
+        Points farther than this from the median distance are left out, mm; positive.
+
+    Returns
+    -------
+    PlatePose
+        ``pose`` with its centre moved along its normal.
+
+    Raises
+    ------
+    ValueError
+        If ``distance_threshold_mm`` is not positive or fewer than ``MIN_HEIGHT_POINTS`` points are finite.
     """
     if not np.isfinite(distance_threshold_mm) or distance_threshold_mm <= 0.0:
         raise ValueError(f"distance_threshold_mm must be positive, got {distance_threshold_mm!r}")

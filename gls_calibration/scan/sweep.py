@@ -33,7 +33,7 @@ XYZI_FIELDS = ("x", "y", "z", "intensity")
 class ProfileRules:
     """What a profile must be to join a running sweep: the one owner of these limits.
 
-    Attributes
+    Parameters
     ----------
     field_type : str
         numpy name of the type the sensor declares for x, y, z and intensity (default "float32", what
@@ -116,7 +116,20 @@ class ProfileRules:
 
 @dataclass(frozen=True)
 class SweepMotion:
-    """Straight sweep at constant speed: unit direction in the scanner frame, speed (mm/s)."""
+    """Straight sweep at constant speed: unit direction in the scanner frame, speed (mm/s).
+
+    Parameters
+    ----------
+    direction : tuple of 3 float
+        Unit direction of travel in the scanner frame.
+    speed_mm_s : float
+        Speed, mm/s; positive.
+
+    Raises
+    ------
+    ValueError
+        If ``direction`` is not a unit vector or the speed is not positive and finite.
+    """
 
     direction: tuple[float, float, float]
     speed_mm_s: float
@@ -161,10 +174,24 @@ def profile_problem(stamp_s: float, profile: np.ndarray) -> str:
 
 
 def median_point_distance(xyz: np.ndarray) -> float:
-    """Return the median distance of the finite points (N, 3) from the sensor's origin.
+    """Return the median distance of the finite points from the sensor's origin.
 
-    Median distance of the finite points (N, 3) from the sensor's origin, in their unit; NaN when none
-    is finite. A profile's unit shows in it: a line scanner sees its plate tens to hundreds of mm away.
+    A profile's unit shows in it: a line scanner sees its plate tens to hundreds of mm away.
+
+    Parameters
+    ----------
+    xyz : numpy.ndarray, shape (N, 3)
+        Points in the sensor frame, any unit.
+
+    Returns
+    -------
+    float
+        The median distance, in the points' unit; NaN when none is finite.
+
+    Examples
+    --------
+    >>> median_point_distance(np.array([[0.0, 0.0, 0.2], [0.0, 0.3, 0.4], [np.nan, 0.0, 0.0]]))
+    0.35
     """
     xyz = np.asarray(xyz, dtype=float)
     distance = np.sqrt(np.einsum("...i,...i->...", xyz, xyz))     # linalg.norm, several times faster on (N, 3)
@@ -178,7 +205,32 @@ def stamp_window_s(profiles: int, step_mm: float, speed_mm_s: float, rules: Prof
 
 
 def nominal_start_pose(length_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> np.ndarray:
-    """4x4 pose (start frame -> base frame, mm) of the sensor at the first profile of a sweep."""
+    """Return the sensor's 4x4 pose (start frame -> base frame, mm) at the first profile of a sweep.
+
+    Parameters
+    ----------
+    length_mm : float
+        Length of the sweep, mm.
+    direction : int, default 1
+        +1 or -1: the sweep runs along +y or -y of the sensor.
+    orientation_deg : float, default 0.0
+        Turn of the sensor about z, degrees.
+
+    Returns
+    -------
+    numpy.ndarray, shape (4, 4)
+        The pose; the sweep's middle lies at y = length_mm / 2 of the base frame.
+
+    Raises
+    ------
+    ValueError
+        If ``direction`` is not +1 or -1.
+
+    Examples
+    --------
+    >>> nominal_start_pose(100.0, direction=-1)[:3, 3]
+    array([  0., 100.,   0.])
+    """
     if direction not in (1, -1):
         raise ValueError(f"sweep direction must be +1 or -1, got {direction!r}")
     angle = math.radians(orientation_deg)
@@ -191,7 +243,13 @@ def nominal_start_pose(length_mm: float, direction: int = 1, orientation_deg: fl
 
 
 class PoseTrack:
-    """Stamped sensor poses (sensor -> base frame, mm) reported by the robot during one sweep."""
+    """Stamped sensor poses (sensor -> base frame, mm) reported by the robot during one sweep.
+
+    Parameters
+    ----------
+    max_poses : int
+        Most poses kept (bounded memory).
+    """
 
     def __init__(self, max_poses: int) -> None:
         self.max_poses = max_poses
@@ -238,11 +296,23 @@ class PoseTrack:
 
 
 class SweepCollector:
-    """Collects the profiles of one sweep with a bound on their number (bounded memory).
+    """Collect the profiles of one sweep with a bound on their number (bounded memory).
 
     Profiles that well-formed junk could slip in among the sweep's are told apart at the end
     (:meth:`members`): the sweep is the largest set of profiles with one wire layout (field types,
     byte order) whose stamps fit in the sweep's time window; the others are not assembled.
+
+    Parameters
+    ----------
+    max_profiles : int
+        Most profiles kept; more truncate the sweep (counted in ``dropped``).
+    max_points_per_profile : int
+        Most points of one profile; a wider one is dropped (counted in ``too_wide``).
+
+    Raises
+    ------
+    ValueError
+        If either bound is below 1.
     """
 
     def __init__(self, max_profiles: int, max_points_per_profile: int) -> None:
