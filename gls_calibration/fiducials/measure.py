@@ -99,23 +99,47 @@ STATUS_OK = "ok"
 class FiducialMeasurement:
     """Measured fiducial centres (mm) with their uncertainties, and the candidates turned down.
 
-    ``centres`` (K, 3) lie on the fitted plate plane in the cloud's frame, ``centres_plane`` (K, 2)
-    are the same points in plate coordinates (``PlatePose.to_plane``). ``quality`` (K,) is the RMS
-    residual of the edge points about the fitted circle in mm, ``radii`` (K,) the fitted outer-ring
-    radius and ``inner_radii`` (K,) the fitted inner-ring radius. ``sigma_xy_mm`` (K, 2) is the
-    standard uncertainty (k = 1) of each centre along the cloud frame's x and y axes,
-    ``sigma_plane_mm`` (K, 2) the same along the plate axes, ``coverage`` (K,) the share of the
-    circumference where the rings were seen (0-1). ``merged`` counts duplicate candidates of an
-    accepted fiducial (reason ``duplicate``; two fiducials merged into one detection are rejected
-    with the reason ``merged`` instead), ``rejected`` all candidates turned down; those are listed in
-    ``rejected_centres`` (J, 3) with ``rejected_reasons`` (J,), ``rejected_sigma_xy_mm`` (J, 2)
-    and ``rejected_coverage`` (J,).
-    ``missing`` (int) is ``max(0, expected_count - K)``, the expected fiducials not found; never negative.
-    ``extra`` (int) is ``max(0, K - expected_count)``, the fiducials found beyond the expected count.
-    Both are None when no count was expected; ``extra`` also when unknown (rebuilt from a message).
-    ``image_shape`` is (rows, columns) of the analysed image and
-    ``pixel_pitch_mm`` its (row, column) pitch. Arrays not given (a result rebuilt from a message)
-    default to NaN of the right shape, the rejected list to empty.
+    Arrays not given (a result rebuilt from a message) default to NaN of the right shape, the
+    rejected list to empty.
+
+    Parameters
+    ----------
+    centres : numpy.ndarray, shape (K, 3)
+        Centres on the fitted plate plane in the cloud's frame, mm.
+    centres_plane : numpy.ndarray, shape (K, 2)
+        The same points in plate coordinates (``PlatePose.to_plane``), mm.
+    quality : numpy.ndarray, shape (K,)
+        RMS residual of the edge points about the fitted circle, mm.
+    radii, inner_radii : numpy.ndarray, shape (K,)
+        Fitted outer-ring and inner-ring radius, mm.
+    merged : int
+        Duplicate candidates of an accepted fiducial (reason ``duplicate``; two fiducials merged into
+        one detection are rejected with the reason ``merged`` instead).
+    rejected : int
+        All candidates turned down.
+    missing : int or None
+        ``max(0, expected_count - K)``, the expected fiducials not found; None when no count was expected.
+    image_shape : tuple of 2 int
+        (rows, columns) of the analysed image.
+    pixel_pitch_mm : tuple of 2 float
+        Its (row, column) pitch, mm.
+    sigma_xy_mm : numpy.ndarray, shape (K, 2), optional
+        Standard uncertainty (k = 1) of each centre along the cloud frame's x and y axes, mm.
+    sigma_plane_mm : numpy.ndarray, shape (K, 2), optional
+        The same along the plate axes, mm.
+    coverage : numpy.ndarray, shape (K,), optional
+        Share of the circumference where the rings were seen (0-1).
+    rejected_centres : numpy.ndarray, shape (J, 3), optional
+        The candidates turned down, mm.
+    rejected_reasons : tuple of str, length J, optional
+        Why each was turned down.
+    rejected_sigma_xy_mm : numpy.ndarray, shape (J, 2), optional
+        Their standard uncertainties, mm.
+    rejected_coverage : numpy.ndarray, shape (J,), optional
+        Their ring coverage (0-1).
+    extra : int or None, optional
+        ``max(0, K - expected_count)``, the fiducials found beyond the expected count; None when no
+        count was expected or unknown (rebuilt from a message).
     """
 
     centres: np.ndarray

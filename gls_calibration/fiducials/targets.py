@@ -16,10 +16,37 @@ measurement."""
 
 
 def grid_targets(per_side: int = 19, size_mm: float = 190.0, centre_xy=(0.0, 0.0)) -> np.ndarray:
-    """Square grid of ``per_side`` x ``per_side`` target centres spanning ``size_mm`` (gls frame, mm).
+    """Return a square grid of ``per_side`` x ``per_side`` target centres spanning ``size_mm`` (gls frame, mm).
 
     Row-major: y is the outer (slow) index and x the inner one, both increasing, so point
     ``row * per_side + column`` sits at ``(x[column], y[row])``.
+
+    Parameters
+    ----------
+    per_side : int, default 19
+        Targets per side; at least 2.
+    size_mm : float, default 190.0
+        Distance between the first and the last target of a side, mm; positive.
+    centre_xy : array_like, shape (2,), default (0, 0)
+        Centre of the grid, mm.
+
+    Returns
+    -------
+    numpy.ndarray, shape (per_side ** 2, 2)
+        The target centres, mm.
+
+    Raises
+    ------
+    ValueError
+        If ``per_side`` is below 2, ``size_mm`` not positive, or ``centre_xy`` not 2 finite numbers.
+
+    Examples
+    --------
+    >>> grid_targets(per_side=2, size_mm=10.0, centre_xy=(1.0, 0.0))
+    array([[-4., -5.],
+           [ 6., -5.],
+           [-4.,  5.],
+           [ 6.,  5.]])
     """
     per_side = as_integer_at_least(per_side, "per_side", 2)
     size_mm = as_positive_number(size_mm, "size_mm")
@@ -59,7 +86,33 @@ def ring_polyline(centre_xy, radius_mm: float, max_chord_error_mm: float = 0.005
 
 def rings_polylines(centres, radii: Sequence[float] = RING_RADII_MM,
                     max_chord_error_mm: float = 0.005) -> list[np.ndarray]:
-    """Ring polylines for every target, in marking order: target by target, radii in the given order."""
+    """Return the ring polylines of every target, in marking order: target by target, radii in the given order.
+
+    Parameters
+    ----------
+    centres : array_like, shape (N, 2)
+        Target centres, mm.
+    radii : sequence of float, default RING_RADII_MM
+        Ring radii, mm; positive.
+    max_chord_error_mm : float, default 0.005
+        Largest distance between a chord of the polyline and its circle, mm.
+
+    Returns
+    -------
+    list of numpy.ndarray, each shape (M, 2)
+        N x len(radii) closed polylines, mm.
+
+    Raises
+    ------
+    ValueError
+        If ``centres`` is not (N, 2) finite or a radius is not positive.
+
+    Examples
+    --------
+    >>> rings = rings_polylines([[0.0, 0.0], [10.0, 0.0]], radii=(2.5, 2.7))
+    >>> len(rings), bool(np.allclose(np.hypot(*(rings[3] - [10.0, 0.0]).T), 2.7))
+    (4, True)
+    """
     centres = as_points(centres, "centres", 2)
     radii = as_finite_array(radii, "radii", ndim=1)
     for radius in radii:

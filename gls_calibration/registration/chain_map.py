@@ -167,9 +167,21 @@ class LineMap:
 class ChainMap:
     """Repeating errors of the programmed lines (one :class:`LineMap` each).
 
-    As measured against a plate with known centres (``reference``), averaged over
-    ``sweeps_per_line`` sweeps per line; ``residual_rms_mm`` the per-axis RMS (B x, y) of the
-    reference centres about the fit.
+    Parameters
+    ----------
+    lines : tuple of LineMap
+        One map per line, each line once.
+    reference : str
+        Names the plate with known centres the map was measured on.
+    sweeps_per_line : int
+        Sweeps averaged per line; at least 1.
+    residual_rms_mm : tuple of 2 float
+        Per-axis RMS (B x, y) of the reference centres about the fit, mm; non-negative.
+
+    Raises
+    ------
+    ValueError
+        On the first bad field (no lines, a line mapped twice, an empty reference, bad counts or RMS).
     """
 
     lines: tuple[LineMap, ...]
@@ -256,7 +268,18 @@ NO_CHAIN_MAP = "none"
 
 
 def chain_map_identity(chain_map: Optional[ChainMap]) -> str:
-    """``chain_map.identity``, or :data:`NO_CHAIN_MAP` for None."""
+    """Return ``chain_map.identity``, or :data:`NO_CHAIN_MAP` for None.
+
+    Parameters
+    ----------
+    chain_map : ChainMap or None
+        The map.
+
+    Returns
+    -------
+    str
+        ``sha256:`` and 16 hex digits of the map's content, or :data:`NO_CHAIN_MAP`.
+    """
     return NO_CHAIN_MAP if chain_map is None else chain_map.identity
 
 
@@ -264,8 +287,27 @@ def correct_measurements(chain_map: Optional[ChainMap], measurements: Sequence, 
                          pose) -> list:
     """Remove from every sweep's measurement the map of its line.
 
-    Every sweep's measurement with the map of its line removed (``measurements`` in the order of
-    ``passes``); unchanged when ``chain_map`` is None. ValueError when a line is not mapped.
+    Parameters
+    ----------
+    chain_map : ChainMap or None
+        The map; None leaves the measurements unchanged.
+    measurements : sequence of FiducialMeasurement
+        One per sweep, in the order of ``passes`` (B frame, mm).
+    passes : sequence of SweepPass
+        The sweep plan.
+    pose : PlatePose
+        The plate, on which the plate coordinates are recomputed.
+
+    Returns
+    -------
+    list of FiducialMeasurement
+        The measurements with corrected centres.
+
+    Raises
+    ------
+    ValueError
+        If ``chain_map`` is neither a ChainMap nor None, the counts of measurements and passes differ,
+        or a line is not mapped.
     """
     if chain_map is None:
         return list(measurements)
@@ -280,9 +322,16 @@ def correct_measurements(chain_map: Optional[ChainMap], measurements: Sequence, 
 class ReferenceSweep:
     """One sweep of a plate with known centres.
 
-    Its line (sweep-plan label), which plate placement it saw (``plate``: sweeps of one placement
-    share the plate's unknown pose), the known centres (M, 2, the plate's own frame, mm) and where
-    the sweep measured them (M, 2+, B frame, mm).
+    Parameters
+    ----------
+    line : str
+        The sweep's line (sweep-plan label, e.g. ``"0+"``).
+    plate : int
+        Which plate placement it saw: sweeps of one placement share the plate's unknown pose.
+    known_xy_mm : numpy.ndarray, shape (M, 2)
+        The known centres in the plate's own frame, mm.
+    measured_xy_mm : numpy.ndarray, shape (M, 2) or (M, 3)
+        Where the sweep measured them, B frame, mm.
     """
 
     line: str
@@ -295,9 +344,23 @@ class ReferenceSweep:
 class ChainMapFit:
     """How the map is fitted: knots, reach, smoothness prior, ridge and measurement sigma.
 
-    How the map is fitted: knot spacing (mm), the knots' reach beyond the measured centres (mm),
-    the smoothness prior (std of a second difference of knot values, mm), the ridge fixing a common
-    shift of every line (mm), and the per-centre measurement sigma that weighs the data (mm).
+    Parameters
+    ----------
+    knot_spacing_mm : float, default 10.0
+        Knot spacing along a line, mm; positive.
+    margin_mm : float, default 10.0
+        The knots' reach beyond the measured centres, mm; non-negative.
+    curvature_sigma_mm : float, default 0.02
+        Smoothness prior: std of a second difference of knot values, mm; positive.
+    ridge_sigma_mm : float, default 0.2
+        The ridge fixing a common shift of every line, mm; positive.
+    centre_sigma_mm : float, default 0.005
+        The per-centre measurement sigma that weighs the data, mm; positive.
+
+    Raises
+    ------
+    ValueError
+        On the first field that is not a finite number in its range.
     """
 
     knot_spacing_mm: float = 10.0
@@ -487,12 +550,41 @@ def chain_map_from_mapping(document: Any) -> ChainMap:
 
 
 def load_chain_map(path: str | Path) -> ChainMap:
-    """Read and validate a chain map file; ValueError naming the file and the key."""
+    """Read and validate a chain map file.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The YAML file (one mapping ``chain_map``).
+
+    Returns
+    -------
+    ChainMap
+        The validated map.
+
+    Raises
+    ------
+    ValueError
+        Naming the file and the key, for an unreadable file or YAML or a bad value.
+    """
     return read_config_file(path, "chain map file", chain_map_from_mapping)
 
 
 def save_chain_map(path: str | Path, chain_map: ChainMap) -> None:
-    """Write ``chain_map`` atomically as a chain map file."""
+    """Write ``chain_map`` atomically as a chain map file.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The YAML file to write.
+    chain_map : ChainMap
+        The map.
+
+    Raises
+    ------
+    ValueError
+        If ``chain_map`` is not a ChainMap.
+    """
     if not isinstance(chain_map, ChainMap):
         raise ValueError(f"save_chain_map needs a ChainMap, got {type(chain_map).__name__}")
     atomic_write_text(path, yaml.safe_dump({"chain_map": chain_map.to_dict()}, sort_keys=False))

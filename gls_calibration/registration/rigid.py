@@ -27,7 +27,20 @@ _VOTERS = 400  # at most this many measured points take part in the coarse searc
 
 @dataclass(frozen=True)
 class RigidTransform:
-    """Proper rigid motion ``p -> rotation @ p + translation`` (mm)."""
+    """Proper rigid motion ``p -> rotation @ p + translation`` (mm).
+
+    Parameters
+    ----------
+    rotation : array_like, shape (3, 3)
+        Rotation matrix.
+    translation : array_like, shape (3,)
+        Translation, mm.
+
+    Raises
+    ------
+    ValueError
+        If either is not finite or has the wrong shape.
+    """
 
     rotation: np.ndarray
     translation: np.ndarray
@@ -97,7 +110,15 @@ def fit_rigid(source, target, weights=None) -> RigidTransform:
 
 @dataclass(frozen=True)
 class RigidAlignment2D:
-    """In-plane rigid motion ``target = R(rotation_rad) @ source + translation_mm`` (no scale)."""
+    """In-plane rigid motion ``target = R(rotation_rad) @ source + translation_mm`` (no scale).
+
+    Parameters
+    ----------
+    rotation_rad : float
+        Rotation angle, rad (counter-clockwise).
+    translation_mm : tuple of 2 float
+        Translation, mm.
+    """
 
     rotation_rad: float
     translation_mm: tuple[float, float]
@@ -322,13 +343,41 @@ def pair_with_targets(measured, targets, *, max_rotation_deg: float = 15.0, gate
     point 134 mm from the centre by 1.2 mm, well inside the default gate), the translation for each
     angle by voting over all target-minus-measured differences; the best start is refined by
     gated ICP (nearest target within ``gate_mm`` by cKDTree, Kabsch fit, until the pairing stops
-    changing). ``gate_mm`` defaults to 0.4 x the grid pitch (median nearest-neighbour spacing).
+    changing).
 
     The side of the measured plane facing the head is unknown from the points alone. When
-    ``measured_normal`` (a direction in the measured frame pointing towards the head) is given it
-    decides; otherwise both sides are tried and the one with more pairs wins, a tie (a grid with
-    a mirror symmetry cannot tell) going to the side whose normal has a non-negative z component,
-    the convention of ``estimate_plate_pose(head_direction=(0, 0, 1))``.
+    ``measured_normal`` is given it decides; otherwise both sides are tried and the one with more
+    pairs wins, a tie (a grid with a mirror symmetry cannot tell) going to the side whose normal has
+    a non-negative z component, the convention of ``estimate_plate_pose(head_direction=(0, 0, 1))``.
+
+    Parameters
+    ----------
+    measured : array_like, shape (K, 3)
+        Measured centres, scanner frame, mm; at least 3.
+    targets : array_like, shape (N, 3)
+        Targets, gls frame, mm; at least 3.
+    max_rotation_deg : float, default 15.0
+        Largest in-plane rotation searched, degrees; non-negative.
+    gate_mm : float, optional
+        Pairing gate, mm; defaults to 0.4 x the grid pitch (median nearest-neighbour spacing).
+    measured_normal : array_like, shape (3,), optional
+        A direction in the measured frame pointing towards the head.
+    angle_step_deg : float, default 1.0
+        Step of the rotation search, degrees; positive.
+    max_iterations : int, default 30
+        Most ICP iterations.
+
+    Returns
+    -------
+    Pairing
+        Paired indices (sorted by target), the transform measured -> gls, the missing targets, the
+        extra and duplicate measured points, the RMS distance of the pairs and the gate used.
+
+    Raises
+    ------
+    ValueError
+        If either set is not (M, 3) finite with at least 3 points or not planar enough to give a
+        normal, a number is out of range, or ``measured_normal`` is not a non-zero 3-vector.
     """
     measured = as_points(measured, "measured", 3, min_length=3)
     targets = as_points(targets, "targets", 3, min_length=3)

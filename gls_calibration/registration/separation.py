@@ -57,6 +57,30 @@ class SeparationSettings:
 
     The defaults suit profiles placed by the robot's reported pose (travel trusted, little along-track
     error left); :data:`TIME_PLACED` suits profiles placed by time at an assumed speed.
+
+    Parameters
+    ----------
+    lateral_knot_spacing_mm : float, default 15.0
+        Knot spacing of the scanner's lateral error shape, mm.
+    motion_knot_spacing_mm : float, default 10.0
+        Knot spacing of each sweep's motion error shape, mm.
+    lateral_prior_sigma_mm : float, default 0.5
+        Prior std of the lateral shape, mm.
+    across_prior_sigma_mm : float, default 0.05
+        Prior std of the path wander across the travel, per sweep, mm.
+    along_prior_sigma_mm : float, default 0.002
+        Prior std of the placement along the travel, per sweep, mm (small with a pose stream).
+    default_sigma_mm : float, default 0.005
+        Sigma of a centre without a ring-fit sigma, mm.
+    passes : int, default 3
+        Gauss-Newton passes; at least 1.
+    scale_from : str, default "travel"
+        ``"travel"``: trust the pose stream's travel; ``"line"``: the sensor's lateral scale.
+
+    Raises
+    ------
+    ValueError
+        On the first field that is not positive, or an unknown ``scale_from``.
     """
 
     lateral_knot_spacing_mm: float = 15.0

@@ -23,7 +23,20 @@ ORIENTATIONS_DEG = (0.0, 90.0)
 
 @dataclass(frozen=True)
 class SweepPass:
-    """One sweep of the marked plate: travel direction (+1/-1) and sensor orientation (deg)."""
+    """One sweep of the marked plate: travel direction (+1/-1) and sensor orientation (deg).
+
+    Parameters
+    ----------
+    direction : int, default 1
+        +1 or -1.
+    orientation_deg : float, default 0.0
+        0 or 90, degrees.
+
+    Raises
+    ------
+    ValueError
+        If either is not one of its allowed values.
+    """
 
     direction: int = 1
     orientation_deg: float = 0.0
@@ -42,7 +55,31 @@ class SweepPass:
 
 
 def parse_plan(text: str) -> tuple[SweepPass, ...]:
-    """Parse passes from a comma-separated list such as ``"0+,0-,90+,90-"`` (orientation deg, direction)."""
+    """Parse passes from a comma-separated list such as ``"0+,0-,90+,90-"`` (orientation deg, direction).
+
+    Parameters
+    ----------
+    text : str
+        The plan.
+
+    Returns
+    -------
+    tuple of SweepPass
+        The passes in order.
+
+    Raises
+    ------
+    ValueError
+        If an item is not an orientation (0 or 90) followed by + or -, or the plan is empty.
+
+    Examples
+    --------
+    >>> passes = parse_plan("0+, 90-")
+    >>> [(item.direction, item.orientation_deg) for item in passes]
+    [(1, 0.0), (-1, 90.0)]
+    >>> plan_label(passes)
+    '0+,90-'
+    """
     passes = []
     for item in (part.strip() for part in str(text).split(",")):
         if len(item) < 2 or item[-1] not in "+-":
@@ -59,13 +96,34 @@ def parse_plan(text: str) -> tuple[SweepPass, ...]:
 
 
 def plan_label(passes: Sequence[SweepPass]) -> str:
-    """Return the plan as ``parse_plan`` reads it."""
+    """Return the plan as ``parse_plan`` reads it.
+
+    Parameters
+    ----------
+    passes : sequence of SweepPass
+        The passes.
+
+    Returns
+    -------
+    str
+        Comma-separated labels, e.g. ``"0+,0-,90+,90-"``.
+    """
     return ",".join(item.label for item in passes)
 
 
 @dataclass(frozen=True)
 class CellTimeModel:
-    """What one plate costs in cell time besides marking: sweeps at the scanner's speed, robot moves."""
+    """What one plate costs in cell time besides marking: sweeps at the scanner's speed, robot moves.
+
+    Parameters
+    ----------
+    sweep_length_mm : float, default 200.0
+        Length of one sweep, mm.
+    sweep_speed_mm_s : float, default 15.0
+        The scanner's travel speed, mm/s.
+    robot_move_s : float, default 4.0
+        Moving back to a sweep's start (and turning the sensor) between sweeps, s.
+    """
 
     sweep_length_mm: float = 200.0
     sweep_speed_mm_s: float = 15.0
@@ -80,9 +138,18 @@ class CellTimeModel:
 class CombinedSweeps:
     """The marked plate's centres from every sweep of a plan (scanner base frame, mm).
 
-    ``centres_xy`` (K, 2) are in the base frame's plane (the caller puts them on the plate plane),
-    ``sigma_mm`` (K,) is the standard uncertainty per axis of each (ring fit and sweep spread; NaN when
-    unknown), ``target_index`` (K,) the target each belongs to. ``separation`` is None for a single sweep.
+    Parameters
+    ----------
+    centres_xy : numpy.ndarray, shape (K, 2)
+        Centres in the base frame's plane (the caller puts them on the plate plane), mm.
+    sigma_mm : numpy.ndarray, shape (K,)
+        Standard uncertainty per axis of each (ring fit and sweep spread; NaN when unknown), mm.
+    target_index : numpy.ndarray, shape (K,)
+        The target each belongs to.
+    found_per_sweep : tuple of int
+        Centres found in each sweep.
+    separation : Separation or None
+        The separation of the scanner-frame errors; None for a single sweep.
     """
 
     centres_xy: np.ndarray
@@ -105,8 +172,32 @@ def combine_sweeps(measurements: Sequence[FiducialMeasurement], passes: Sequence
                    settings: Optional[SeparationSettings] = None) -> CombinedSweeps:
     """Pair every sweep's centres with the targets and separate the scanner-frame errors.
 
-    ``settings`` defaults to the separation for profiles placed by pose, or by time
-    (``separation.TIME_PLACED``) when ``placed_by_pose`` is false.
+    Parameters
+    ----------
+    measurements : sequence of FiducialMeasurement
+        One per pass, scanner base frame, mm.
+    passes : sequence of SweepPass
+        The sweep plan.
+    targets_gls : numpy.ndarray, shape (N, 3)
+        The targets, gls frame, mm.
+    scanner_to_gls : RigidTransform
+        Scanner base frame -> gls frame.
+    placed_by_pose : bool
+        Whether the profiles were placed by the robot's reported pose (else by time).
+    settings : SeparationSettings, optional
+        Defaults to the separation for profiles placed by pose, or by time
+        (``separation.TIME_PLACED``) when ``placed_by_pose`` is false.
+
+    Returns
+    -------
+    CombinedSweeps
+        The centres in the reference sweep's frame (the sweep that saw the most), with sigmas and targets.
+
+    Raises
+    ------
+    ValueError
+        If there is no measurement or the counts of measurements and passes differ, or a pairing
+        rejects its input (see :func:`pair_with_targets`).
     """
     if len(measurements) != len(passes) or not measurements:
         raise ValueError(f"{len(measurements)} measurement(s) for a plan of {len(passes)} pass(es)")
