@@ -376,8 +376,8 @@ def pair_with_targets(measured, targets, *, max_rotation_deg: float = 15.0, gate
     Raises
     ------
     ValueError
-        If either set is not (M, 3) finite with at least 3 points or not planar enough to give a
-        normal, a number is out of range, or ``measured_normal`` is not a non-zero 3-vector.
+        If either set is not (M, 3) finite with at least 3 points or is collinear, the targets hold
+        coincident points, a number is out of range, or ``measured_normal`` is not a non-zero 3-vector.
     """
     measured = as_points(measured, "measured", 3, min_length=3)
     targets = as_points(targets, "targets", 3, min_length=3)
