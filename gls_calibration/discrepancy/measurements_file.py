@@ -23,12 +23,36 @@ FIDUCIALS_COLUMNS = ("stage", "target_x_mm", "target_y_mm", "dx_mm", "dy_mm")
 
 
 class InputError(ValueError):
-    """Bad command-line input: reported on stderr with exit code 2."""
+    """Bad command-line input: reported on stderr with exit code 2.
+
+    Parameters
+    ----------
+    message : str
+        What is wrong, naming the file and line or column.
+    """
 
 
 @dataclass(frozen=True)
 class Measurements:
-    """Validated rows of the measurement CSV."""
+    """Validated rows of the measurement CSV.
+
+    Parameters
+    ----------
+    commanded_xy : numpy.ndarray, shape (N, 2)
+        Commanded targets, gls frame, mm.
+    measured_xy : numpy.ndarray, shape (N, 2) or (R, N, 2)
+        Measured marks, mm; (R, N, 2) for R repeats.
+    t : numpy.ndarray, shape (N,), or None
+        Marking time, s, when the file has the time column.
+    dropped_lines : tuple of int
+        File line numbers of rows dropped for NaN or empty values.
+    sigma_mm : numpy.ndarray, shape (N,), optional
+        Per-axis uncertainty from the sigma column, mm.
+    data_rows : tuple, optional
+        Per point: its 0-based data row (header excluded); with repeats a tuple of rows.
+    source_format : str, default "measurements"
+        ``"measurements"`` or ``"fiducials"`` (a run's fiducials.csv).
+    """
 
     commanded_xy: np.ndarray
     measured_xy: np.ndarray            # (N, 2), or (R, N, 2) for R repeats
@@ -72,7 +96,28 @@ def _read_rows(path: Path) -> tuple[list[str], list[tuple[int, int, list[str]]]]
 
 
 def read_measurements(path: str | Path) -> Measurements:
-    """Read and validate the measurement CSV (or a run's fiducials.csv); raise InputError naming the problem."""
+    """Read and validate the measurement CSV (or a run's fiducials.csv).
+
+    Rows with NaN or empty values are dropped and listed; a fiducials.csv gives its ``before``
+    rows, the mark at ``P = Q - d``.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The CSV file.
+
+    Returns
+    -------
+    Measurements
+        The validated points.
+
+    Raises
+    ------
+    InputError
+        Naming the problem: an unreadable or empty file, a row of the wrong length, a missing column,
+        a value that is not a number, a sigma not above 0 mm, too few valid points, duplicate targets
+        or inconsistent repeats.
+    """
     path = Path(path)
     header, rows = _read_rows(path)
     fiducials = all(column in header for column in FIDUCIALS_COLUMNS)

@@ -132,7 +132,70 @@ class EffectStep:
 
 @dataclass(frozen=True, eq=False)
 class DiscrepancyResult:
-    """Outcome of :func:`explain`: named effects in the order added, gap per step, residual fields."""
+    """Outcome of :func:`explain`: named effects in the order added, gap per step, residual fields.
+
+    Built by :func:`explain` only.
+
+    Parameters
+    ----------
+    geometry : HeadGeometry
+        The nominal head.
+    known_effects : HeadEffects
+        The effects the model held before.
+    model_effects : HeadEffects
+        Known effects plus the named ones, final joint fit.
+    model_uncertainty : mapping of str to tuple of float
+        1-sigma of the named effects in the final fit, in their units.
+    named_effects : tuple of str
+        The effects named, in the order added.
+    steps : tuple of EffectStep
+        One per named effect: its values, its rivals, the gap before and after.
+    rms_before_mm, rms_after_mm : float
+        RMS of the residual before any step and after the last, mm.
+    noise : NoiseFloor
+        The floor estimated from the residual.
+    structure_before, structure_after : StructureTest
+        Structure or noise, before and after.
+    location_before, location_after : ResidualLocation
+        Where in the field the residual lives, before and after.
+    alignment_before, alignment_after : RigidAlignment2D
+        The rigid motion profiled out, before and after.
+    commanded_xy : numpy.ndarray, shape (N, 2)
+        The commanded points the fits used, mm.
+    residual_before_xy, residual_after_xy : numpy.ndarray, shape (N, 2)
+        The residual fields, mm.
+    t : numpy.ndarray, shape (N,), or None
+        Marking time, s.
+    criterion : str
+        The selection criterion (e.g. ``"bic"``).
+    stop_reason : str
+        Why the search stopped.
+    notes : tuple of str
+        Notes for the report.
+    floor : FloorEvidence
+        The floor the verdict uses, and its source.
+    outliers : tuple of Outlier
+        Excluded from every fit.
+    implausible : tuple of Implausible
+        Fits outside the plausible ranges, not named.
+    verdict : Verdict
+        Explained or not, against the floor.
+    rigid_correlation : mapping
+        ``"effect.parameter"`` -> its correlation with rotation, translation_x and translation_y.
+    user_effects : tuple of UserEffect
+        Candidates from outside the library.
+    user_values : mapping of str to tuple of float
+        Named user effects, final joint fit.
+    inliers : numpy.ndarray, shape (N_input,)
+        bool: the input points the fits used.
+    fitted_effects : tuple of str, optional
+        Effects the final model holds (``model_effects``); ``named_effects`` are those the data tell
+        apart from the rigid motion and from every other candidate (:mod:`.separability`).
+    named_groups : tuple of tuple of str, optional
+        Each a fitted effect and the candidates it cannot be told from.
+    separability : tuple, optional
+        One ``separability.Separability`` per fitted effect.
+    """
 
     geometry: HeadGeometry
     known_effects: HeadEffects

@@ -261,16 +261,72 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
             min_noise_mm: float = 1e-4, reject_outliers: bool = True) -> DiscrepancyResult:
     """Find and name the effects missing from the model that explain the measured deviations.
 
-    ``commanded_xy`` (N, 2): nominal targets in the gls frame (mm); ``measured_xy`` (N, 2): measured
-    mark positions in any frame a rigid motion away (mm), or (R, N, 2) for R repeated measurements
-    of the same plate; ``t`` (N,): marking time (s), optional (``thermal_drift`` is a candidate only
-    with it). ``sigma_mm``: the per-axis standard uncertainty of each measured point (mm), a number
-    (stated) or one per point; with repeats it is ignored. Without repeats or ``sigma_mm`` the floor
-    is estimated from the residual and the result says so. ``known_effects`` are already in the
-    model and stay fixed unless named again (then refitted). ``user_effects`` join the candidates.
-    ``candidates`` defaults to every effect of :data:`gls_calibration.geometry.effect_table.EFFECT_TABLE` and
-    the user effects. Gross outliers are excluded from every fit and listed (``reject_outliers``).
-    See :mod:`gls_calibration.discrepancy` for the method and thresholds.
+    Without repeats or ``sigma_mm`` the floor is estimated from the residual and the result says
+    so. Gross outliers are excluded from every fit and listed (``reject_outliers``). See
+    :mod:`gls_calibration.discrepancy` for the method and thresholds.
+
+    Parameters
+    ----------
+    commanded_xy : array_like, shape (N, 2)
+        Nominal targets in the gls frame, mm.
+    measured_xy : array_like, shape (N, 2) or (R, N, 2)
+        Measured mark positions in any frame a rigid motion away, mm; (R, N, 2) for R repeated
+        measurements of the same plate.
+    geometry : HeadGeometry, optional
+        The nominal head; the default one when None.
+    known_effects : HeadEffects or mapping, optional
+        Effects already in the model; they stay fixed unless named again (then refitted).
+    t : array_like, shape (N,), optional
+        Marking time, s (``thermal_drift`` is a candidate only with it).
+    sigma_mm : float or array_like, shape (N,), optional
+        Per-axis standard uncertainty of each measured point, mm, stated (a number) or per point;
+        ignored with repeats.
+    user_effects : sequence of UserEffect, optional
+        They join the candidates.
+    candidates : sequence of str, optional
+        Effect names to try; defaults to every effect of
+        :data:`gls_calibration.geometry.effect_table.EFFECT_TABLE` and the user effects.
+    criterion : str, default "bic"
+        The selection criterion, one of ``CRITERIA``.
+    name_threshold : float, default 10.0
+        Criterion gain an effect needs to be named.
+    indistinguishable_within : float, default 6.0
+        Criterion difference within which two candidates cannot be told apart.
+    structure_alpha : float, default 1e-3
+        Significance level of the structure test.
+    max_steps : int, default 6
+        Most effects named; non-negative.
+    min_noise_mm : float, default 1e-4
+        Lower bound of the estimated noise, mm.
+    reject_outliers : bool, default True
+        Exclude gross outliers from every fit.
+
+    Returns
+    -------
+    DiscrepancyResult
+        The named effects, the steps, the residual fields, the noise floor and the verdict.
+
+    Raises
+    ------
+    ValueError
+        For bad points or times (shapes, too few, not finite), a bad sigma, an unknown criterion or
+        effect name, a negative ``max_steps``, user effect names that repeat or a user effect that
+        fails :func:`~gls_calibration.geometry.effect_table.check_user_effect`.
+
+    Examples
+    --------
+    A head whose X galvo gains 0.4 %, measured with 3 um noise:
+
+    >>> from gls_calibration.fiducials.targets import grid_targets
+    >>> from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+    >>> from gls_calibration.geometry.optics import PhysicalHead
+    >>> targets = grid_targets(7, 180.0)
+    >>> angles = inverse(HeadGeometry(), targets[:, 0], targets[:, 1])
+    >>> landed = PhysicalHead(effects={"galvo_gain_x": 0.004}).land(angles.alpha_x, angles.alpha_y)[:, :2]
+    >>> landed += np.random.default_rng(0).normal(0.0, 0.003, landed.shape)
+    >>> result = explain(targets, landed, sigma_mm=0.003)
+    >>> result.named_effects, result.verdict.verdict
+    (('galvo_gain_x',), 'explained')
     """
     evidence = independent_noise(measured_xy, sigma_mm)
     commanded_xy, measured, t = check_inputs(commanded_xy, evidence.measured_xy, t)

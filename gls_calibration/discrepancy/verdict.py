@@ -155,7 +155,18 @@ def unexplained_phrase(verdict: Verdict, floor: FloorEvidence) -> str:
 
 
 def naming_phrase(result: DiscrepancyResult) -> str:
-    """Return the named effects and groups in words: ``a, b and one of c / d`` (``no effect`` when none)."""
+    """Return the named effects and groups in words: ``a, b and one of c / d`` (``no effect`` when none).
+
+    Parameters
+    ----------
+    result : DiscrepancyResult
+        The workflow's result.
+
+    Returns
+    -------
+    str
+        The phrase.
+    """
     parts = list(result.named_effects) + [f"one of {' / '.join(group)}" for group in result.named_groups]
     if not parts:
         return "no effect"
@@ -163,7 +174,19 @@ def naming_phrase(result: DiscrepancyResult) -> str:
 
 
 def verdict_lines(result: DiscrepancyResult) -> list[str]:
-    """Return the verdict in a few Markdown lines, for the discrepancy report and the calibration run's report."""
+    """Return the verdict in a few Markdown lines, for the discrepancy report and the calibration run's report.
+
+    Parameters
+    ----------
+    result : DiscrepancyResult
+        The workflow's result.
+
+    Returns
+    -------
+    list of str
+        The verdict (explained or not, against which floor), then notes on the floor, outliers,
+        groups and implausible fits.
+    """
     verdict, floor = result.verdict, result.floor
     named = naming_phrase(result)
     if verdict.verdict == "explained":
