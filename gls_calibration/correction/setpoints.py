@@ -49,7 +49,20 @@ _SMALL_REQUEST = 16        # up to this many targets, U is looked up point by po
 
 @dataclass(frozen=True)
 class CalibratedRegion:
-    """Axis-aligned box (mm, gls frame) on the calibration plane ``z = plane_z_mm`` where the models were trained."""
+    """Axis-aligned box (mm, gls frame) on the calibration plane ``z = plane_z_mm`` where the models were trained.
+
+    Parameters
+    ----------
+    x_min, x_max, y_min, y_max : float
+        Bounds of the box, mm.
+    plane_z_mm : float, default 0.0
+        Height of the calibration plane in the gls frame, mm.
+
+    Raises
+    ------
+    ValueError
+        If a bound is not finite or the box is empty.
+    """
 
     x_min: float
     x_max: float
@@ -110,7 +123,25 @@ class CalibratedRegion:
 
 @dataclass(frozen=True)
 class CorrectedSetpoints:
-    """Corrected command per point: target ``x``, ``y`` actually commanded (mm), joint setpoints and flags."""
+    """Corrected command per point: target ``x``, ``y`` actually commanded (mm), joint setpoints and flags.
+
+    Parameters
+    ----------
+    x, y : numpy.ndarray, shape (N,)
+        The corrected target K actually commanded, gls frame, mm.
+    alpha_x, alpha_y : numpy.ndarray, shape (N,)
+        Mechanical mirror angles, rad.
+    focus_shift : numpy.ndarray, shape (N,)
+        Focus shift, mm.
+    inside_calibrated_field : numpy.ndarray, shape (N,)
+        bool: the target lies in the calibrated region.
+    within_limits : numpy.ndarray, shape (N,)
+        bool: the angles and focus are within the head's limits.
+    uncertainty_k2_mm : numpy.ndarray, shape (N,), optional
+        Expanded uncertainty (95 % radius, mm) of the landing, NaN outside the calibrated field or
+        when the calibration holds no U grid; None only where a client rebuilt setpoints from an
+        answer that had none.
+    """
 
     x: np.ndarray
     y: np.ndarray
@@ -126,9 +157,19 @@ class CorrectedSetpoints:
 
 
 def check_calibration_plane(geometry: HeadGeometry, plane_z_mm: float) -> None:
-    """Raise ValueError unless the calibration plane lies within the focus range.
+    """Check that the calibration plane, where the plate was marked and scanned, lies within the focus range.
 
-    The plate was marked and scanned there.
+    Parameters
+    ----------
+    geometry : HeadGeometry
+        The nominal head.
+    plane_z_mm : float
+        Height of the calibration plane in the gls frame, mm.
+
+    Raises
+    ------
+    ValueError
+        If ``|plane_z_mm|`` exceeds ``geometry.focus_range_mm`` (or is NaN).
     """
     if not abs(plane_z_mm) <= geometry.focus_range_mm:
         raise ValueError(f"calibration plane z = {plane_z_mm:g} mm lies outside the head's focus range "
@@ -152,11 +193,30 @@ def taper_weight(distance_mm: np.ndarray, taper_mm: float) -> np.ndarray:
 class Correction:
     """Setpoint correction from a sequence of deviation models (applied additively).
 
-    ``models`` are callables ``(M, 2) -> (M, 2)`` (e.g. :class:`gls_calibration.models.rbf.OLSRBFNetwork`);
-    ``calibrated_region`` is required when there is at least one model. Without models the
-    correction is the nominal kinematics and no point counts as inside the calibrated field.
-    ``uncertainty``: the calibration's U map (``uncertainty_grid``); each answer carries U at Q'
-    (NaN outside the calibrated field, and everywhere without a map).
+    Without models the correction is the nominal kinematics and no point counts as inside the
+    calibrated field.
+
+    Parameters
+    ----------
+    geometry : HeadGeometry
+        The nominal head.
+    models : sequence of DeviationModel, optional
+        Callables ``(M, 2) -> (M, 2)`` mm (e.g. :class:`gls_calibration.models.rbf.OLSRBFNetwork`).
+    calibrated_region : CalibratedRegion, optional
+        Where the models were trained; required when there is at least one model.
+    taper_mm : float, default 10.0
+        Width of the raised-cosine fade of the correction beyond the calibrated region, mm;
+        non-negative (0: a step).
+    uncertainty : UncertaintyGrid, optional
+        The calibration's U map; each answer carries U at Q' (NaN outside the calibrated field, and
+        everywhere without a map). Dropped without models.
+
+    Raises
+    ------
+    ValueError
+        If ``geometry`` is not a HeadGeometry, a model is not callable, models come without a region,
+        the region or ``uncertainty`` has the wrong type, the calibration plane lies outside the focus
+        range, or ``taper_mm`` is negative.
     """
 
     def __init__(self, geometry: HeadGeometry, models: Sequence[DeviationModel] = (),

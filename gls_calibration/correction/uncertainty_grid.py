@@ -23,7 +23,23 @@ _TOLERANCE_MM = 1e-9     # a point this close outside the grid counts as on it
 
 @dataclass(frozen=True)
 class UncertaintyGrid:
-    """U (k = 2.448, 95 % radius, mm) on the nodes ``x_mm`` (nx) x ``y_mm`` (ny), rows along y."""
+    """U (k = 2.448, 95 % radius, mm) on the nodes ``x_mm`` (nx) x ``y_mm`` (ny), rows along y.
+
+    Parameters
+    ----------
+    x_mm : array_like, shape (nx,)
+        Node positions along x, gls frame, mm.
+    y_mm : array_like, shape (ny,)
+        Node positions along y, mm.
+    u_k2_mm : array_like, shape (ny, nx)
+        U at the nodes, mm.
+
+    Raises
+    ------
+    ValueError
+        If an axis is not 2 or more finite numbers increasing strictly, or ``u_k2_mm`` has not the
+        shape (ny, nx), is not finite or holds negative values.
+    """
 
     x_mm: np.ndarray
     y_mm: np.ndarray

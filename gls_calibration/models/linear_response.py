@@ -24,7 +24,7 @@ LINEAR_TYPES = ("ols_rbf", "thin_plate_spline")
 
 
 def response_matrix(model: Mapping[str, Any], training_xy, points) -> np.ndarray:
-    """``H`` (M, N) with ``model(points) == H @ Y`` for the training data ``Y`` at ``training_xy``.
+    """Return ``H`` (M, N) with ``model(points) == H @ Y`` for the training data ``Y`` at ``training_xy``.
 
     Parameters
     ----------
@@ -34,6 +34,11 @@ def response_matrix(model: Mapping[str, Any], training_xy, points) -> np.ndarray
         Where the model was trained (mm).
     points : array_like (M, 2)
         Where to evaluate (mm).
+
+    Returns
+    -------
+    numpy.ndarray, shape (M, N)
+        The model's exact linear response at ``points`` to its training data (dimensionless).
 
     Raises
     ------

@@ -18,7 +18,13 @@ from gls_calibration.models.thin_plate_spline import ThinPlateSplineModel
 
 
 class DeviationModel(Protocol):
-    """What the correction needs from a model."""
+    """What the correction needs from a model: a callable from points to deviations.
+
+    Parameters
+    ----------
+    points : array_like, shape (n, 2)
+        Where to evaluate (the argument of ``__call__``), mm.
+    """
 
     def __call__(self, points) -> np.ndarray:
         """Deviations (n, 2) mm at ``points`` (n, 2) mm."""

@@ -85,14 +85,39 @@ def forward_selection(X: np.ndarray, Y: np.ndarray, spread_mm: float, mse_goal: 
 class OLSRBFNetwork:
     """Gaussian RBF network with an output bias, trained by OLS forward selection.
 
-    ``OLSRBFNetwork(X, Y, spread_mm=35.0, mse_goal_mm2=0.0005, max_neurons=None)`` fits inputs
-    X (N, 2) to outputs Y (N, 2) (mm): units are added until the training MSE (mean over points
-    and both outputs) is <= ``mse_goal_mm2`` or ``max_neurons`` units (default N) are in; the
-    weights of the chosen units and the bias are then solved by least squares. Selection also
-    ends when no candidate is left that is not (numerically) in the span of the chosen ones; then
-    ``training_mse_mm2`` stays above the goal. ``model(points)`` evaluates (M, 2). Attributes:
-    ``centres`` (K, 2), ``weights`` (K, 2), ``bias`` (2,), ``spread_mm``, ``mse_goal_mm2``,
-    ``max_neurons``, ``training_mse_mm2``.
+    Units are added until the training MSE (mean over points and both outputs) is <=
+    ``mse_goal_mm2`` or ``max_neurons`` units are in; the weights of the chosen units and the bias
+    are then solved by least squares. Selection also ends when no candidate is left that is not
+    (numerically) in the span of the chosen ones; then ``training_mse_mm2`` stays above the goal.
+    ``model(points)`` evaluates (M, 2) mm at (M, 2) mm. Attributes: ``centres`` (K, 2),
+    ``weights`` (K, 2), ``bias`` (2,), ``spread_mm``, ``mse_goal_mm2``, ``max_neurons``,
+    ``training_mse_mm2``.
+
+    Parameters
+    ----------
+    X : array_like, shape (N, 2)
+        Inputs (training points), mm.
+    Y : array_like, shape (N, 2)
+        Outputs (deviations), mm.
+    spread_mm : float, default 35.0
+        Spread of the Gaussian units, mm; positive.
+    mse_goal_mm2 : float, default 0.0005
+        Training MSE at which selection stops, mm^2; non-negative.
+    max_neurons : int, optional
+        Most units (default N); at least 1.
+
+    Raises
+    ------
+    ValueError
+        If X and Y are not finite (N, 2) arrays of one length, or a number is out of its range.
+
+    Examples
+    --------
+    >>> from gls_calibration.fiducials.targets import grid_targets
+    >>> points = grid_targets(5, 100.0)
+    >>> network = OLSRBFNetwork(points, 0.001 * points[:, ::-1], spread_mm=40.0, mse_goal_mm2=1e-6)
+    >>> bool(network.training_mse_mm2 <= 1e-6), network(np.array([[10.0, 20.0]])).shape
+    (True, (1, 2))
     """
 
     centres: np.ndarray

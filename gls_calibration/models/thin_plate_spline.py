@@ -37,10 +37,35 @@ class ThinPlateSplineModel:
     ``f(p) = sum_i w_i phi(|p - c_i|) + a_0 + a_x x + a_y y`` with ``phi(r) = r^2 ln r`` (r in mm,
     ``phi(0) = 0``), one column per output. Fitting (the constructor) solves the usual system
     ``[[K + s I, P], [P^T, 0]] [w; a] = [Y; 0]`` with ``K_ij = phi(|x_i - x_j|)``, ``P = [1, x, y]``
-    and ``s = smoothing`` (0 interpolates; larger values trade fit for smoothness, in mm^2 ln mm),
-    the same system as ``scipy.interpolate.RBFInterpolator(kernel="thin_plate_spline")``.
-    ``to_dict`` stores the centres, weights and affine part; :meth:`from_dict` never refits.
-    Attributes: ``centres`` (N, 2), ``weights`` (N, 2), ``affine`` (3, 2) rows [1, x, y], ``smoothing``.
+    and ``s = smoothing``, the same system as
+    ``scipy.interpolate.RBFInterpolator(kernel="thin_plate_spline")``. ``to_dict`` stores the
+    centres, weights and affine part; :meth:`from_dict` never refits. Attributes: ``centres``
+    (N, 2), ``weights`` (N, 2), ``affine`` (3, 2) rows [1, x, y], ``smoothing``.
+
+    Parameters
+    ----------
+    X : array_like, shape (N, 2)
+        Inputs (training points, the centres), mm; at least 3.
+    Y : array_like, shape (N, 2)
+        Outputs (deviations), mm.
+    smoothing : float, default 0.0
+        0 interpolates; larger values trade fit for smoothness, in mm^2 ln mm; non-negative.
+
+    Raises
+    ------
+    ValueError
+        If X and Y are not finite (N, 2) arrays of one length with N >= 3, ``smoothing`` is negative,
+        or the system is singular (collinear or repeated points).
+
+    Examples
+    --------
+    An affine field is reproduced exactly:
+
+    >>> from gls_calibration.fiducials.targets import grid_targets
+    >>> points = grid_targets(5, 100.0)
+    >>> spline = ThinPlateSplineModel(points, 0.001 * points[:, ::-1])
+    >>> spline(np.array([[10.0, 20.0]])).round(6)
+    array([[0.02, 0.01]])
     """
 
     centres: np.ndarray

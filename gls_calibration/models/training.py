@@ -19,7 +19,25 @@ from gls_calibration.models.physical_model import train_physics_then_rbf
 
 @dataclass(frozen=True)
 class TrainedModel:
-    """A trained deviation model as plain numbers, with what training reported."""
+    """A trained deviation model as plain numbers, with what training reported.
+
+    Parameters
+    ----------
+    model : dict
+        The model's ``to_dict()`` form (``deviation_models.model_from_dict`` rebuilds it).
+    method : str
+        ``"ols_rbf"``, ``"thin_plate_spline"`` or ``"physics+<either>"``.
+    neurons : int
+        Units of the RBF part (training points for a thin-plate spline).
+    spread_mm : float
+        Spread of the RBF part's Gaussian units, mm; 0 for a thin-plate spline.
+    cv_rms_mm : float
+        Cross-validated RMS of what the data-driven part was trained on, mm.
+    description : str, optional
+        One line for a log or a service message.
+    named_effects : tuple of str, optional
+        Physical effects the model holds (physics first).
+    """
 
     model: dict                 # the model's to_dict() form (deviation_models.model_from_dict rebuilds it)
     method: str                 # "ols_rbf", "thin_plate_spline" or "physics+<either>"
@@ -32,7 +50,23 @@ class TrainedModel:
 
 @dataclass(frozen=True)
 class TrainingOptions:
-    """The grid search of the data-driven part (see ``rbf.select_model``)."""
+    """The grid search of the data-driven part (see ``rbf.select_model``).
+
+    Parameters
+    ----------
+    spreads_mm : sequence of float, default (25, 35, 45, 60)
+        Spreads of the RBF network tried, mm.
+    mse_goals_mm2 : sequence of float, default (0.0002, 0.0005)
+        Training MSE goals of the RBF network tried, mm^2.
+    tps_smoothings : sequence of float, default (0, 10, 100, 300, 1000, 3000)
+        Smoothings of the thin-plate spline tried, mm^2 ln mm.
+    folds : int, default 5
+        Cross-validation folds.
+    seed : int, default 0
+        Seed of the fold assignment.
+    block_mm : float, optional
+        Side of spatially blocked folds, mm; None: points at random.
+    """
 
     spreads_mm: Sequence[float] = (25.0, 35.0, 45.0, 60.0)
     mse_goals_mm2: Sequence[float] = (0.0002, 0.0005)
@@ -75,7 +109,16 @@ GRID_SEARCH_PARAMETERS = ("spreads_mm", "mse_goals_mm2", "tps_smoothings", "fold
 def training_options_from(values: Mapping[str, Any]) -> TrainingOptions:
     """Return the grid search of checked trainer parameter values.
 
-    Names as in TRAINER_PARAMETERS; a missing one keeps its default.
+    Parameters
+    ----------
+    values : mapping
+        Parameter name (as in ``TRAINER_PARAMETERS``) -> checked value; a missing one keeps its
+        default, a ``cv_block_mm`` of 0 means points at random.
+
+    Returns
+    -------
+    TrainingOptions
+        The grid search.
     """
     options = {("block_mm" if name == "cv_block_mm" else name): values[name]
                for name in GRID_SEARCH_PARAMETERS if name in values}
