@@ -206,7 +206,29 @@ def _effect_spec(result: DiscrepancyResult, name: str):
 
 def write_discrepancy_report(result: DiscrepancyResult, out: Path, measured: Path, model: Path | None,
                              data: Measurements) -> None:
-    """Render everything in a temporary directory beside ``out``, then move it in atomically."""
+    """Render the discrepancy report in a temporary directory beside ``out``, then move it in atomically.
+
+    The folder gets ``discrepancy.json``, ``residual_field.png``, ``gap_per_step.png`` and
+    ``report.md``; an existing folder has each of these files replaced atomically.
+
+    Parameters
+    ----------
+    result : DiscrepancyResult
+        The workflow's result.
+    out : pathlib.Path
+        The report folder (created with its parents).
+    measured : pathlib.Path
+        The measurement file, named in the report.
+    model : pathlib.Path or None
+        The head configuration used, named in the report.
+    data : Measurements
+        The validated input (its rows name the outliers; its dropped lines are listed).
+
+    Raises
+    ------
+    OSError
+        If the folder cannot be created or written (the temporary directory is removed).
+    """
     from gls_calibration.common.files import nan_to_none, to_plain
 
     out = out.resolve()

@@ -119,7 +119,23 @@ def write_report(out_dir: str | Path, data: ReportData) -> Path:
 
 
 def json_safe(value: Any) -> Any:
-    """Convert numpy types to Python ones and NaN/infinity to None, recursively."""
+    """Convert numpy types to Python ones and NaN/infinity to None, recursively.
+
+    Parameters
+    ----------
+    value : object
+        Numbers, arrays, mappings, sequences and dataclasses, nested.
+
+    Returns
+    -------
+    object
+        The same structure in plain Python types, ready for ``json.dumps``.
+
+    Examples
+    --------
+    >>> json_safe({"rms_mm": np.float64(0.5), "sigma": np.array([1.0, np.nan])})
+    {'rms_mm': 0.5, 'sigma': [1.0, None]}
+    """
     return nan_to_none(to_plain(value))
 
 

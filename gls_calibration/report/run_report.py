@@ -79,7 +79,29 @@ def _deviation_field(correction):
 
 
 def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: RunSummary) -> Path:
-    """Write report.md, plots, fiducials.csv and summary.json and training.csv for ``outcome``; the folder's path."""
+    """Write report.md, plots, fiducials.csv, summary.json and training.csv for ``outcome``.
+
+    The certificate's files are added when the candidate holds a U map.
+
+    Parameters
+    ----------
+    out_dir : pathlib.Path
+        The report folder (created with its parents).
+    outcome : CalibrationOutcome
+        The calibration's plate runs, candidate and message.
+    summary : RunSummary
+        The run's summary, computed once (``outcome.summarise``).
+
+    Returns
+    -------
+    pathlib.Path
+        The report folder.
+
+    Raises
+    ------
+    OSError
+        If the folder cannot be created or written.
+    """
     first, validation = outcome.runs[0], outcome.validation
     correction = outcome.candidate.correction if outcome.candidate else None
     field = _deviation_field(correction)
