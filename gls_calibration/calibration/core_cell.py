@@ -30,9 +30,25 @@ Cloud = tuple[np.ndarray, np.ndarray]   # xyz (H, W, 3) or (N, 3) and intensity,
 class CoreCell:
     """The core steps of ``procedure.Cell`` over arrays; calibrations live in ``store``.
 
-    ``physics_first`` and ``training`` choose what ``train`` trains (``training.train_correction``);
     ``correction`` is what ``correct`` uses: the store's active calibration at start, a candidate
     once ``use_candidate`` hands one over (as it is, not its file read again).
+
+    Parameters
+    ----------
+    geometry : HeadGeometry
+        The nominal head.
+    store : CalibrationStore
+        Where calibrations are saved and the active one is read from.
+    physics_first : bool, default False
+        ``train`` fits a physical model of the head before the data-driven one
+        (``training.train_correction``).
+    training : TrainingOptions, optional
+        The grid search of the data-driven part.
+
+    Raises
+    ------
+    CalibrationError
+        If the store's active calibration cannot be read or is unusable.
     """
 
     def __init__(self, geometry: HeadGeometry, store: CalibrationStore, *, physics_first: bool = False,
@@ -95,7 +111,25 @@ class CoreCell:
 
 
 def refusing(function, *args, **kwargs):
-    """``function(*args, **kwargs)`` with a ValueError turned into CalibrationError, as a node answers."""
+    """Call ``function(*args, **kwargs)`` with a ValueError turned into CalibrationError, as a node answers.
+
+    Parameters
+    ----------
+    function : callable
+        The core step.
+    *args, **kwargs
+        Its arguments.
+
+    Returns
+    -------
+    object
+        What ``function`` returns.
+
+    Raises
+    ------
+    CalibrationError
+        With the message of the ValueError that ``function`` raised.
+    """
     try:
         return function(*args, **kwargs)
     except ValueError as error:

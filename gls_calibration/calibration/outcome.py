@@ -105,7 +105,43 @@ def deviation_metrics(targets_xy, deviations_xy,
 
 @dataclass(frozen=True)
 class PlateRun:
-    """One plate marked with a grid and measured: paired targets and deviations (gls frame, mm)."""
+    """One plate marked with a grid and measured: paired targets and deviations (gls frame, mm).
+
+    Parameters
+    ----------
+    targets : numpy.ndarray, shape (N, 3)
+        All commanded fiducial centres, mm.
+    paired_targets_xy : numpy.ndarray, shape (M, 2)
+        The targets paired with a measured centre, mm.
+    deviations : numpy.ndarray, shape (M, 2)
+        delta = Q - P after rigid alignment, mm.
+    measured_gls : numpy.ndarray, shape (M, 3)
+        Measured centres P, aligned into the gls frame, mm.
+    corrections : numpy.ndarray, shape (M, 2)
+        K(Q) - K(P): what to add at P to land on P (training data), mm.
+    true_deviations : numpy.ndarray, shape (M, 2), or None
+        From the ground truth (simulation only), mm.
+    plate_pose_gls : PlatePose
+        The plate in the gls frame.
+    fiducials_found : int
+        Fiducials measured.
+    alignment : RigidTransform
+        The rigid alignment of the measured centres.
+    metrics : DeviationMetrics
+        Of ``deviations``.
+    true_metrics : DeviationMetrics or None
+        Over every target, from the ground truth.
+    sigma_mm : numpy.ndarray, shape (M,), optional
+        Standard uncertainty per axis of each measured centre, mm.
+    sweep_plan : str, default "0+"
+        The passes over the marked plate (``sweep_plan.parse_plan``).
+    chain_map : str, default NO_CHAIN_MAP
+        Identity of the chain map removed from every sweep.
+    cell_time_s : float, optional
+        Sweeps at the configured speed, robot moves, marking, s.
+    scanner_error_rms_mm, motion_error_rms_mm : float, optional
+        RMS of the removed scanner-frame (lateral) error and per-sweep motion error, mm.
+    """
 
     targets: np.ndarray             # (N, 3) all commanded fiducial centres
     paired_targets_xy: np.ndarray   # (M, 2)
@@ -143,12 +179,31 @@ class Candidate:
 class CalibrationOutcome:
     """What one successful calibrate request produced (a failure raises ``CalibrationError`` instead).
 
-    ``candidate`` is None when nothing was trained (the first plate was within the tolerance).
-    ``rejection`` says why a validated candidate must not replace the calibration in use (empty:
-    accepted); the run then went through, but nothing is activated. ``active_calibration``: the
-    first plate was marked through a trained calibration (not the nominal model); ``active_validation``
-    the plate marked through it at the validation positions, which the candidate was judged against
-    (None when it was judged against the first plate).
+    Parameters
+    ----------
+    message : str
+        One line on the result.
+    runs : tuple of PlateRun
+        The training plates, one per iteration.
+    validation : PlateRun or None
+        The validation plate, marked through the candidate.
+    models : tuple of TrainedModel
+        The models trained, one per iteration.
+    candidate : Candidate or None
+        The calibration saved (not activated); None when nothing was trained (the first plate was
+        within the tolerance).
+    duration_s : float
+        Wall time of the run, s.
+    rejection : str, optional
+        Why a validated candidate must not replace the calibration in use (empty: accepted); the run
+        then went through, but nothing is activated.
+    active_validation : PlateRun, optional
+        The plate marked through the calibration in use at the validation positions, which the
+        candidate was judged against (None when it was judged against the first plate).
+    active_calibration : bool, default False
+        The first plate was marked through a trained calibration (not the nominal model).
+    stage_times : StageTimes, optional
+        Wall time per stage of the flow (``time_budget``).
     """
 
     message: str
@@ -174,9 +229,68 @@ class RunSummary:
     and the run validated). ``*_kind`` say which figures are self-consistency (a calibration at its
     own training positions: the first plate through an active calibration, or a validation grid on
     the training positions) and which are independent of the training positions; every measured
-    figure comes from the same chain, which cannot see its own repeating errors; ``stated_rms_mm`` is
-    the accuracy the cell states, on the basis ``stated_basis`` (``stated_accuracy``: a reference
-    check of the chain, or NaN with ``self-consistency`` when there is none).
+    figure comes from the same chain, which cannot see its own repeating errors. Built by
+    :func:`summarise`; its fields are the parameters.
+
+    Parameters
+    ----------
+    message : str
+        One line on the result.
+    pre_rms_mm, pre_max_mm, post_rms_mm, post_max_mm : float
+        Measured deviation RMS and maximum before and after, mm.
+    true_pre_rms_mm, true_pre_max_mm, true_post_rms_mm, true_post_max_mm : float
+        The same from the ground truth, mm.
+    true_post_rms_150_mm : float
+        True RMS after over the central 150 x 150 mm, mm.
+    fiducials_expected, fiducials_found : int
+        On the first plate.
+    iterations, neurons : int
+        Plates trained on; units of the last model.
+    method : str
+        The last model's method.
+    cv_rms_mm : float
+        Its cross-validated RMS, mm.
+    duration_s : float
+        Wall time of the run, s.
+    calibration_file : str
+        The candidate's file ("" without one).
+    iteration_rms_mm : tuple of float
+        Measured RMS of each training plate, mm.
+    sweep_plan, chain_map : str, optional
+        The plan and the chain map's identity.
+    cell_time_s : float, optional
+        Every plate: sweeps at the configured speed, moves, marking, s.
+    fiducial_sigma_median_mm, fiducial_sigma_max_mm : float, optional
+        First plate: standard uncertainty per axis of a centre, mm.
+    scanner_error_rms_mm, motion_error_rms_mm : float, optional
+        First plate: removed error fixed to the scanner frame and per-sweep motion error, mm.
+    scanner_share : float, optional
+        Removed (scanner + motion) RMS / measured deviation RMS.
+    stated_rms_mm : float, optional
+        The accuracy the cell states (2-D RMS), mm, on the basis ``stated_basis``.
+    stated_basis, stated_explanation : str, optional
+        A reference check of the chain, or ``self-consistency`` when there is none; why.
+    reference_sigma_mm : tuple of float, optional
+        The reference check's per-axis sigma (k = 1), mm, when used.
+    pre_kind, post_kind, active_post_kind : str, optional
+        INDEPENDENT or SELF_CONSISTENCY ("" when not measured).
+    active_post_rms_mm, active_post_max_mm, true_active_post_rms_mm : float, optional
+        The calibration in use, marked on the validation grid, mm.
+    accepted_against : str, optional
+        What the candidate was judged against.
+    stage_wall_s : mapping of str to float, optional
+        Wall time per stage, s.
+    last_sweep_to_result_s : float, optional
+        End of the last marked-plate sweep to the flow's result, s.
+    measurement_preset : str, optional
+        The simulated measurement chain's preset; empty: a real cell.
+    certificate_u95_full_mm, certificate_u95_central_mm, certificate_u95_median_mm : float, optional
+        The certificate's U (95 % radius of the 2-D landing) of the candidate: largest over the
+        centred 190 x 190 mm and over the central 150 x 150 mm, median over its grid, mm.
+    certificate_coverage : float, optional
+        In simulation, the fraction of validation fiducials whose TRUE landing error is within U.
+    certificate_reference : str, optional
+        What the chain term rests on.
     """
 
     message: str
@@ -249,9 +363,22 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
               placement: str = "pose", *, measurement_preset: str = "") -> RunSummary:
     """Return the run summary of ``outcome`` with the stated accuracy and measurement preset.
 
-    ``chain_check`` (the reference check of the chain, measured with the plan the run used and
-    profiles placed by ``placement``) gives the stated accuracy; ``measurement_preset`` names the
-    simulated measurement chain (empty: a real cell).
+    Parameters
+    ----------
+    outcome : CalibrationOutcome
+        The run.
+    chain_check : ChainCheck, optional
+        The reference check of the chain, measured with the plan the run used and profiles placed
+        by ``placement``; it gives the stated accuracy.
+    placement : str, default "pose"
+        How the run placed its profiles (by the robot's reported pose, or by time).
+    measurement_preset : str, optional
+        Names the simulated measurement chain (empty: a real cell).
+
+    Returns
+    -------
+    RunSummary
+        The run's figures (mm; NaN where a figure does not apply).
     """
     first, validation = outcome.runs[0], outcome.validation
     last_model = outcome.models[-1] if outcome.models else None

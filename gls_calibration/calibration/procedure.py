@@ -37,7 +37,13 @@ T = TypeVar("T")
 
 
 class CalibrationError(RuntimeError):
-    """The calibration cannot go on; the message says why. Nothing has been replaced."""
+    """The calibration cannot go on; the message says why. Nothing has been replaced.
+
+    Parameters
+    ----------
+    message : str
+        Why the calibration stopped.
+    """
 
 
 class Cell(Protocol):
@@ -156,7 +162,68 @@ SWEEP_END_MARGIN_MM = 2.0
 
 @dataclass(frozen=True)
 class ProcedureSettings:
-    """Settings of one calibration (mm unless named otherwise)."""
+    """Settings of one calibration (mm unless named otherwise).
+
+    Parameters
+    ----------
+    grid_per_side : int, default 19
+        Fiducials per side of the training grid.
+    grid_size_mm : float, default 190.0
+        Span of the grid, mm.
+    ring_radii_mm : tuple of float, default RING_RADII_MM
+        Ring radii of a fiducial, increasing, mm (marked and sent with every measurement).
+    plain_sweep_step_mm : float, default 1.0
+        Profile step of the plain-plate sweeps, mm.
+    plain_sweeps : int, default 4
+        Plain-plate sweeps averaged: the plate height error of one sweep sets the field's scale.
+    standstill_height : bool, default True
+        Take the plate height from profiles taken standing at the marking pose ...
+    standstill_profiles : int, default 20
+        ... this many; positive.
+    marked_sweep_step_mm : float, default 0.1
+        Profile step of the marked-plate sweeps, mm.
+    scanner_to_gls : RigidTransform, optional
+        Scanner base frame -> gls frame (identity by default).
+    tolerance_rms_mm : float, default 0.05
+        A first plate within it is not trained on (unless forced), mm.
+    min_found_fraction : float, default 0.9
+        Least share of the fiducials to find.
+    default_iterations, max_iterations : int, default 1, 3
+        Iterations when none is asked for, and the most allowed (each marks and measures a fresh plate).
+    validation_offset_half_pitch : bool, default True
+        The validation grid sits half a pitch off the training grid.
+    mark_check_sigmas : float, default 6.0
+        Plain-plate points this far outside the texture (robust deviations) look like marks ...
+    max_outlying_points : int, default 10
+        ... and more of them than this mean the plate is not clean;
+    mark_cluster_sigmas : float, default 4.0
+        or points this far outside it ...
+    max_cluster_points : int, default 8
+        ... more than this many within one fiducial's extent (see ``plate_marks``).
+    measurement_uncertainty_mm : float, default 0.005
+        Least standard uncertainty of one fiducial centre, mm.
+    max_cv_factor : float, default 20.0
+        A CV RMS above this many uncertainties ...
+    max_cv_fraction : float, default 0.5
+        ... and above this fraction of the deviations' RMS: the model explains little.
+    sweep_plan : tuple of SweepPass, default one "0+" pass
+        The passes over the marked plate; several (reversed, sensor turned) let the separation remove
+        what is fixed to the scanner frame or to one sweep's motion.
+    profiles_placed_by_pose : bool, default True
+        The cell places profiles by the robot's reported pose (else by time).
+    cell_time : CellTimeModel, optional
+        Sweep length and speed, robot moves.
+    separation : SeparationSettings, optional
+        None: the default for the placement (``sweep_plan.combine_sweeps``).
+    chain_map : ChainMap, optional
+        The lines' repeating robot error, removed from every sweep (None: off).
+
+    Raises
+    ------
+    ValueError
+        On the first bad field: ring radii not positive and increasing, a threshold not positive, a
+        bad count, a sweep too short to cover the grid, iterations out of order.
+    """
 
     grid_per_side: int = 19
     grid_size_mm: float = 190.0
@@ -329,10 +396,31 @@ def combined_centres_gls(measurements: list[FiducialMeasurement], settings: Proc
                          pose_scanner: PlatePose) -> tuple[np.ndarray, CombinedSweeps]:
     """Combine the marked plate's centres (K, 3, gls frame) from every sweep of the plan.
 
-    The centres (K, 3, gls frame) of the marked plate from every sweep of ``settings.sweep_plan``
-    (``sweep_plan.combine_sweeps``, placement as the settings say), put on the plate plane
-    ``pose_scanner``; and the combination. ``measurements`` are in the plan's order; with a
+    The combination is ``sweep_plan.combine_sweeps`` with the placement the settings say; with a
     ``settings.chain_map`` each sweep's centres lose their line's repeating error first.
+
+    Parameters
+    ----------
+    measurements : list of FiducialMeasurement
+        One per pass of ``settings.sweep_plan``, in its order (scanner base frame, mm).
+    settings : ProcedureSettings
+        The plan, placement, separation, chain map and ``scanner_to_gls``.
+    targets : numpy.ndarray, shape (N, 3)
+        The targets, gls frame, mm.
+    pose_scanner : PlatePose
+        The plate plane in the scanner base frame; the centres are put on it.
+
+    Returns
+    -------
+    centres : numpy.ndarray, shape (K, 3)
+        The centres, gls frame, mm.
+    combined : CombinedSweeps
+        The combination.
+
+    Raises
+    ------
+    CalibrationError
+        If the sweeps cannot be combined.
     """
     try:
         measurements = correct_measurements(settings.chain_map, measurements, settings.sweep_plan, pose_scanner)
@@ -513,19 +601,50 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
                     want_truth: bool, progress: Progress,
                     save_candidate: Callable[[list[PlateRun], list[TrainedModel]], Candidate],
                     active_calibration: bool = False) -> CalibrationOutcome:
-    """Run the calibrate flow. ``save_candidate`` stores a calibration without activating it.
+    """Run the calibrate flow; ``save_candidate`` stores a calibration without activating it.
 
     The cell is switched to the candidate for later iterations and validation; the caller activates
     it only when this returns without a ``rejection``, so a failure (``CalibrationError``) keeps the
     active one. The plain plate must be clean, the model must explain the measurement, and with
-    validation the candidate must beat the calibration in use (``acceptance_problem``); ``force``
-    allows a marked plate and training within the tolerance.
+    validation the candidate must beat the calibration in use (``acceptance_problem``).
 
-    ``active_calibration``: the cell corrects through a trained calibration (not the nominal model)
-    when the run starts. Its figure on the first plate is then self-consistency (the chain re-measures
+    With ``active_calibration`` the first plate's figure is self-consistency (the chain re-measures
     the positions that calibration was trained on, with the same repeating errors); so with
     validation it is marked on a further plate at the validation positions too, and the candidate is
     judged against that (``CalibrationOutcome.active_validation``).
+
+    Parameters
+    ----------
+    cell : Cell
+        The cell's steps (coroutines).
+    settings : ProcedureSettings
+        The calibration's settings.
+    iterations : int
+        Plates to train on; 0: ``settings.default_iterations``.
+    validate : bool
+        Mark and measure a validation plate through the candidate.
+    force : bool
+        Allow a marked plate and training within the tolerance.
+    want_truth : bool
+        Ask the cell for the ground truth (simulation only).
+    progress : callable
+        ``progress(stage: str, fraction: float, message: str) -> None``.
+    save_candidate : callable
+        ``save_candidate(runs, models) -> Candidate``: store a calibration without activating it.
+    active_calibration : bool, default False
+        The cell corrects through a trained calibration (not the nominal model) when the run starts.
+
+    Returns
+    -------
+    CalibrationOutcome
+        The plates, models, candidate and message; ``rejection`` set when the candidate must not be
+        activated.
+
+    Raises
+    ------
+    CalibrationError
+        When the calibration cannot go on (a cell step fails, the plate is not clean, too few
+        fiducials, a model that explains too little, ...); the message says why.
     """
     began = time.monotonic()
     clock = StageClock()

@@ -34,9 +34,32 @@ TAPER_MM = 10.0   # fade of the correction beyond the calibrated region (correct
 def region_around(targets_xy: np.ndarray, ring_radii_mm: Sequence[float], plane_z_mm: float = 0.0) -> CalibratedRegion:
     """Return the calibrated region: the fiducial targets' box padded by the outer ring radius.
 
-    The one rule of the calibrated region: the box of the fiducial targets (N, 2), padded by the
-    outer ring radius so that whole rings stay inside, on the plane ``z = plane_z_mm`` where the plate
-    was measured.
+    The one rule of the calibrated region: padded so that whole rings stay inside, on the plane
+    ``z = plane_z_mm`` where the plate was measured.
+
+    Parameters
+    ----------
+    targets_xy : numpy.ndarray, shape (N, 2)
+        The fiducial targets, gls frame, mm.
+    ring_radii_mm : sequence of float
+        The ring radii, mm.
+    plane_z_mm : float, default 0.0
+        Height of the calibration plane, mm.
+
+    Returns
+    -------
+    CalibratedRegion
+        The padded box.
+
+    Raises
+    ------
+    ValueError
+        If ``targets_xy`` is not (N, 2) finite or the plane is not finite.
+
+    Examples
+    --------
+    >>> region_around(np.array([[-95.0, -95.0], [95.0, 95.0]]), (2.5, 2.7))
+    CalibratedRegion(x_min=-97.7, x_max=97.7, y_min=-97.7, y_max=97.7, plane_z_mm=0.0)
     """
     box = CalibratedRegion.from_points(targets_xy, plane_z_mm)
     pad = max(ring_radii_mm)
@@ -56,12 +79,43 @@ def calibration_record(geometry: HeadGeometry, *, plate_pose, models: Sequence[M
                        uncertainty: Mapping | None = None) -> CalibrationRecord:
     """Return the record of a calibration, built the same way by the calibrate flow and by ``gls-train``.
 
-    ``models``: every model in order of application (earlier calibrations' first); ``trained``: the
-    ones trained now (their hyper-parameters are recorded); the first plate's ``targets_xy`` (N, 2),
-    ``measured_xyz`` (N, 3, gls frame, aligned) and ``deviations_xy`` Q - P (N, 2); whether that
-    plate was marked through the nominal model (what the discrepancy workflow assumes) or an earlier
-    calibration; ``source`` says where the data came from (an offline tool's inputs); ``uncertainty``
-    the certificate's U map (``correction.uncertainty_grid``), when there is one.
+    Parameters
+    ----------
+    geometry : HeadGeometry
+        The nominal head.
+    plate_pose : PlatePose
+        The plate (normal, centre, rotation, flatness).
+    models : sequence of mapping
+        Every model's ``to_dict()`` in order of application (earlier calibrations' first).
+    trained : sequence of TrainedModel
+        The ones trained now (their hyper-parameters are recorded).
+    region : CalibratedRegion
+        Where the models were trained.
+    targets_xy : numpy.ndarray, shape (N, 2)
+        The first plate's targets, mm.
+    measured_xyz : numpy.ndarray, shape (N, 3)
+        Its measured centres, gls frame, aligned, mm.
+    deviations_xy : numpy.ndarray, shape (N, 2)
+        Q - P, mm.
+    through_nominal_model : bool
+        That plate was marked through the nominal model (what the discrepancy workflow assumes),
+        else through an earlier calibration.
+    metrics : mapping
+        The run's metrics.
+    source : mapping, optional
+        Where the data came from (an offline tool's inputs).
+    uncertainty : mapping, optional
+        The certificate's U map (``correction.uncertainty_grid``), when there is one.
+
+    Returns
+    -------
+    CalibrationRecord
+        The validated record.
+
+    Raises
+    ------
+    CalibrationFileError
+        If the record does not validate.
     """
     hyper_parameters = {"trained_models": [
         {"method": model.method, "neurons": model.neurons, "spread_mm": model.spread_mm,
@@ -84,10 +138,34 @@ def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequ
                  chain_check: Optional[ChainCheck] = None) -> CalibrationRecord:
     """Build the record of a run from its trained ``models`` and its certificate's U map.
 
-    The record of a run whose ``models`` were trained on ``runs`` (after ``existing_models``),
-    with its certificate's U map (``uncertainty``; its chain term from ``chain_check`` when that
-    was made with the run's plan, assumed otherwise). A model the certificate does not cover (physics
-    first) leaves the map out: the file then serves NaN, as an older file does.
+    The U map's chain term comes from ``chain_check`` when that was made with the run's plan and is
+    assumed otherwise. A model the certificate does not cover (physics first) leaves the map out:
+    the file then serves NaN, as an older file does.
+
+    Parameters
+    ----------
+    geometry : HeadGeometry
+        The nominal head.
+    settings : ProcedureSettings
+        The run's settings (ring radii for the calibrated region).
+    runs : sequence of PlateRun
+        The plates the models were trained on.
+    models : sequence of TrainedModel
+        The models trained now.
+    existing_models : sequence of mapping
+        The models of the calibration in use, applied first.
+    chain_check : ChainCheck, optional
+        The reference check of the chain.
+
+    Returns
+    -------
+    CalibrationRecord
+        The validated record.
+
+    Raises
+    ------
+    CalibrationFileError
+        If the record does not validate.
     """
     first = runs[0]
     region = calibrated_region(settings, float(np.mean(first.targets[:, 2])))
@@ -108,21 +186,67 @@ def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequ
 
 
 def save_candidate(store: CalibrationStore, record: CalibrationRecord, geometry: HeadGeometry) -> Candidate:
-    """Store ``record`` without activating it; the candidate's file, record and the correction it describes."""
+    """Store ``record`` without activating it.
+
+    Parameters
+    ----------
+    store : CalibrationStore
+        The store.
+    record : CalibrationRecord
+        The validated record.
+    geometry : HeadGeometry
+        The nominal head.
+
+    Returns
+    -------
+    Candidate
+        The candidate's file, its record and the correction it describes.
+
+    Raises
+    ------
+    ValueError
+        If the record describes an unusable correction (checked before anything is saved).
+    """
     correction = correction_from_record(record, geometry)   # refuses an unusable record before saving
     return Candidate(str(store.save(record, activate=False)), correction, record)
 
 
 def record_models(record: Mapping) -> list[dict]:
-    """Return the model dicts of a record, in order of application."""
+    """Return the model dicts of a record, in order of application.
+
+    Parameters
+    ----------
+    record : mapping
+        A validated calibration record.
+
+    Returns
+    -------
+    list of dict
+        Copies of its models' ``to_dict()`` forms.
+    """
     return [dict(model) for model in record["models"]]
 
 
 def correction_from_record(record: Mapping, geometry: HeadGeometry) -> Correction:
-    """Build the correction a record describes; ValueError when it is unusable.
+    """Build the correction a record describes.
 
-    ValueError when its models or region are unusable, or when its field is not finite or beyond the
-    physical limit (:meth:`Correction.check_field`).
+    Parameters
+    ----------
+    record : mapping
+        A validated calibration record.
+    geometry : HeadGeometry
+        The nominal head.
+
+    Returns
+    -------
+    Correction
+        Its models, region, taper and U map (when the record holds one).
+
+    Raises
+    ------
+    ValueError
+        When its models or region are unusable, or when its field is not finite or beyond the
+        physical limit (:meth:`Correction.check_field`).
     """
     models = [model_from_dict(model) for model in record["models"]]
     region = CalibratedRegion.from_dict(record["calibrated_region"]) if models else None
@@ -149,7 +273,20 @@ def _warn_no_uncertainty_once() -> None:
 
 
 def record_fiducials(record: Mapping) -> tuple[np.ndarray, np.ndarray]:
-    """Commanded targets (N, 2) and measured positions (N, 2) of a record's first plate."""
+    """Return the commanded targets and measured positions of a record's first plate.
+
+    Parameters
+    ----------
+    record : mapping
+        A validated calibration record.
+
+    Returns
+    -------
+    commanded : numpy.ndarray, shape (N, 2)
+        The targets, gls frame, mm.
+    measured : numpy.ndarray, shape (N, 2)
+        The measured centres, gls frame, mm.
+    """
     fiducials = record["fiducials"]
     commanded = np.column_stack([fiducials["target_x"], fiducials["target_y"]]).astype(float)
     measured = np.column_stack([fiducials["measured_x"], fiducials["measured_y"]]).astype(float)
@@ -159,8 +296,19 @@ def record_fiducials(record: Mapping) -> tuple[np.ndarray, np.ndarray]:
 def record_identity(record: Mapping) -> tuple[str, datetime]:
     """Return a record's content hash (sha256 of its YAML, 16 hex digits) and creation time.
 
-    Which calibration a record is: a content hash (sha256 of its YAML, 16 hex digits) and its
-    creation time (UTC); what a correction answer names so that a client knows who answered.
+    Which calibration a record is: what a correction answer names so that a client knows who answered.
+
+    Parameters
+    ----------
+    record : mapping
+        A validated calibration record.
+
+    Returns
+    -------
+    content_hash : str
+        16 hex digits.
+    created : datetime.datetime
+        Its creation time, UTC when the record names no zone.
     """
     content_hash = hashlib.sha256(dump_record(record).encode("utf-8")).hexdigest()[:16]
     created = datetime.fromisoformat(record["created_utc"])

@@ -76,7 +76,15 @@ class CalibrationRecord(Mapping):
 
 
 class CalibrationFileError(ValueError):
-    """A calibration file (or record) that cannot be used; the message names the file and the problem."""
+    """A calibration file (or record) that cannot be used; the message names the file and the problem.
+
+    Parameters
+    ----------
+    source : str or os.PathLike or None
+        The file; None for a record not read from a file.
+    problem : str
+        What is wrong.
+    """
 
     def __init__(self, source: str | os.PathLike | None, problem: str) -> None:
         self.source = None if source is None else str(source)
@@ -264,12 +272,34 @@ def _first_non_finite(value: Any, path: str) -> str | None:
 
 
 def head_geometry(record: Mapping) -> HeadGeometry:
-    """Return the HeadGeometry stored in a (validated) record."""
+    """Return the HeadGeometry stored in a (validated) record.
+
+    Parameters
+    ----------
+    record : mapping
+        A validated calibration record.
+
+    Returns
+    -------
+    HeadGeometry
+        Its ``head`` block.
+    """
     return HeadGeometry(**{key: record["head"][key] for key in HEAD_KEYS})
 
 
 def dump_record(record: Mapping) -> str:
-    """YAML text of a record: keys in insertion order, short lists inline, floats at full precision."""
+    """Return the YAML text of a record: keys in insertion order, short lists inline, floats at full precision.
+
+    Parameters
+    ----------
+    record : mapping
+        The record (numpy values are converted to plain ones).
+
+    Returns
+    -------
+    str
+        The YAML text.
+    """
     return yaml.dump(to_plain(record), Dumper=_NoAliasDumper, sort_keys=False, default_flow_style=None,
                      allow_unicode=True)
 
@@ -355,7 +385,23 @@ def read_calibration_yaml(path: Path) -> Any:
 
 
 def load_record(path: str | os.PathLike) -> CalibrationRecord:
-    """Read and validate one calibration file; CalibrationFileError names the file and the problem."""
+    """Read and validate one calibration file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The calibration file.
+
+    Returns
+    -------
+    CalibrationRecord
+        The validated record.
+
+    Raises
+    ------
+    CalibrationFileError
+        Naming the file and the problem: unreadable, too large, empty, invalid YAML or an invalid record.
+    """
     path = Path(path)
     record = read_calibration_yaml(path)
     if record is None:

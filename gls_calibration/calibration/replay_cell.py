@@ -23,8 +23,25 @@ from gls_calibration.scan.bag_io import ReplayedSweep
 class ReplayCell(CoreCell):
     """A ``procedure.Cell`` that replays recorded sweeps and stand-stills in order.
 
-    ``procedure.Cell`` whose sweeps and stand-stills are ``sweeps`` in order (each checked to be the
-    kind asked for); calibrations live in ``store``.
+    Each recorded motion is checked to be the kind asked for; calibrations live in ``store``.
+
+    Parameters
+    ----------
+    sweeps : sequence of ReplayedSweep
+        The recorded motions, in the order the flow asks for them.
+    geometry : HeadGeometry
+        The nominal head.
+    store : CalibrationStore
+        Where calibrations are saved and the active one is read from.
+    physics_first : bool, default False
+        ``train`` fits a physical model of the head first.
+    training : TrainingOptions, optional
+        The grid search of the data-driven part.
+
+    Raises
+    ------
+    CalibrationError
+        If the store's active calibration cannot be read or is unusable.
     """
 
     def __init__(self, sweeps: Sequence[ReplayedSweep], geometry: HeadGeometry, store: CalibrationStore, *,

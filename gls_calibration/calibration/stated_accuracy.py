@@ -66,7 +66,28 @@ SELF_CONSISTENCY = "self-consistency"
 
 @dataclass(frozen=True)
 class ChainCheck:
-    """An independent check of the measurement chain against known centres (mm, k = 1)."""
+    """An independent check of the measurement chain against known centres (mm, k = 1).
+
+    Parameters
+    ----------
+    sigma_mm : tuple of 2 float
+        Per-axis standard uncertainty of the chain, mm; positive.
+    plan : str
+        The sweep plan it was measured with (stored as ``plan_label`` writes it).
+    placement : str
+        How profiles were placed, one of ``PLACEMENTS``.
+    reference : str
+        Names the plate with known centres it was measured on.
+    centres : int
+        Centres compared; at least 3.
+    chain_map : str, default NO_CHAIN_MAP
+        ``ChainMap.identity`` of the map applied while measuring it.
+
+    Raises
+    ------
+    ValueError
+        On the first bad field.
+    """
 
     sigma_mm: tuple[float, float]
     plan: str
@@ -122,12 +143,46 @@ def chain_check_from_mapping(document: Any) -> ChainCheck:
 
 
 def load_chain_check(path: str | Path) -> ChainCheck:
-    """Read and validate a reference check file; ValueError naming the file and the key."""
+    """Read and validate a reference check file.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The YAML file (one mapping ``reference_check``).
+
+    Returns
+    -------
+    ChainCheck
+        The validated check.
+
+    Raises
+    ------
+    ValueError
+        Naming the file and the key, for an unreadable file or YAML or a bad value.
+    """
     return read_config_file(path, "reference check file", chain_check_from_mapping)
 
 
 def save_chain_check(path: str | Path, check: ChainCheck) -> None:
-    """Write ``check`` atomically as a reference check file."""
+    """Write ``check`` atomically as a reference check file.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The YAML file to write.
+    check : ChainCheck
+        The check.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> check = ChainCheck((0.004, 0.005), "0+,0-", "pose", "certified plate 7", 49)
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     path = pathlib.Path(folder) / "reference_check.yaml"
+    ...     save_chain_check(path, check)
+    ...     load_chain_check(path) == check
+    True
+    """
     atomic_write_text(path, yaml.safe_dump({"reference_check": check.to_dict()}, sort_keys=False))
 
 

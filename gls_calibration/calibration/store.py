@@ -46,7 +46,21 @@ def _signature(path: Path) -> tuple[int, int, int] | None:
 
 
 class CalibrationStore:
-    """A directory of calibrations: an append-only history and a pointer to the active one."""
+    """A directory of calibrations: an append-only history and a pointer to the active one.
+
+    Parameters
+    ----------
+    directory : str or os.PathLike
+        The store's directory (made absolute); ``history/`` and ``active.yaml`` live in it.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     store = CalibrationStore(folder)
+    ...     store.active_path(), store.history()
+    (None, [])
+    """
 
     def __init__(self, directory: str | os.PathLike) -> None:
         # Absolute from the start: the paths it hands out (``save``) must name their files for
