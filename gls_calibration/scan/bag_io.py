@@ -178,7 +178,7 @@ def profile_msg(points_m: np.ndarray, frame_id: str, stamp_ns: int):
 
 
 class BagRecorder:
-    """Write a cell's streams to a new rosbag2 folder (use as a context manager).
+    """Writes a cell's streams to a new rosbag2 folder (use as a context manager).
 
     ``tap(topic, message)``, when given, sees every message as it is written (what a live subscriber
     would receive). The bag is written under a temporary name beside ``path`` and renamed when closed
@@ -431,7 +431,7 @@ def _read(reader: Reader, path: Path, layout: BagLayout, limits: ReplayLimits):
 
 
 class StreamAssembler:
-    """Collect a cell's streams (profiles, TF, motion stamps) and assemble sweeps from them.
+    """Collects a cell's streams (profiles, TF, motion stamps) and assemble sweeps from them.
 
     Fed message by message, from a bag or live as a subscriber sees them. The same arithmetic
     serves both, so a live run and its replay agree exactly.

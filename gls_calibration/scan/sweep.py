@@ -212,9 +212,9 @@ def nominal_start_pose(length_mm: float, direction: int = 1, orientation_deg: fl
     length_mm : float
         Length of the sweep, mm.
     direction : int, default 1
-        +1 or -1: the sweep runs along +y or -y of the sensor.
+        +1 or -1: the sweep travels along the sensor's +y or -y.
     orientation_deg : float, default 0.0
-        Turn of the sensor about z, degrees.
+        Turn of the sensor about its viewing axis, degrees.
 
     Returns
     -------
@@ -248,7 +248,7 @@ class PoseTrack:
     Parameters
     ----------
     max_poses : int
-        Most poses kept (bounded memory).
+        Most poses kept (bounded memory); later ones are ignored.
     """
 
     def __init__(self, max_poses: int) -> None:
@@ -296,7 +296,7 @@ class PoseTrack:
 
 
 class SweepCollector:
-    """Collect the profiles of one sweep with a bound on their number (bounded memory).
+    """Collects the profiles of one sweep with a bound on their number (bounded memory).
 
     Profiles that well-formed junk could slip in among the sweep's are told apart at the end
     (:meth:`members`): the sweep is the largest set of profiles with one wire layout (field types,
