@@ -41,7 +41,28 @@ class MarkRecord:
 
 
 class TruthHead:
-    """Marks joint-space polylines with the true (defective) head and keeps a marking log."""
+    """Marks joint-space polylines with the true (defective) head and keeps a marking log.
+
+    Parameters
+    ----------
+    geometry : HeadGeometry, optional
+        The nominal head; the default one when None.
+    effects : HeadEffects or mapping, optional
+        The true head's effects.
+    plate : Plate, optional
+        The plate marked; its pose sets the plate_tilt and working_distance effects.
+    mark_speed_mm_s : float, default 500.0
+        Marking speed, mm/s; positive.
+    jump_time_s : float, default 0.005
+        Time of a jump between polylines, s; non-negative.
+    straight_rays : bool, optional
+        Trace straight rays; None: the plate's measurement chain decides (True without a plate).
+
+    Raises
+    ------
+    ValueError
+        If a speed or time is out of range, or an effect contradicts the plate pose.
+    """
 
     def __init__(self, geometry: HeadGeometry | None = None,
                  effects: HeadEffects | Mapping[str, object] | None = None, *,

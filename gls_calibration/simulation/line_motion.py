@@ -31,7 +31,15 @@ AFTER_PROFILES = 5           # profiles the scanner streams after a motion, the 
 
 @dataclass(frozen=True)
 class LineCommand:
-    """A straight line of the flange: start and end poses (flange -> robot base, 4x4, mm), duration (s)."""
+    """A straight line of the flange: start and end poses (flange -> robot base, 4x4, mm), duration (s).
+
+    Parameters
+    ----------
+    start_flange_mm, end_flange_mm : numpy.ndarray, shape (4, 4)
+        Flange poses at the start and the end, mm.
+    duration_s : float
+        Duration of the motion, s.
+    """
 
     start_flange_mm: np.ndarray
     end_flange_mm: np.ndarray
@@ -42,8 +50,18 @@ class LineCommand:
 class MotionRun:
     """One simulated motion: what the scanner streams and what the robot reports, stamped in ns.
 
-    ``profiles_m`` (H, W, 4) float32 x, y, z (m, optical frame, y = 0 on the line), intensity;
-    ``reported_flange_mm`` (H, 4, 4) the flange pose the robot reports at each profile's stamp.
+    Parameters
+    ----------
+    start_ns, end_ns : int
+        Stamps of the motion's start and end, ns.
+    profile_stamps_ns : numpy.ndarray, shape (H,)
+        The profiles' stamps, ns.
+    profiles_m : numpy.ndarray, shape (H, W, 4)
+        float32 x, y, z (m, optical frame, y = 0 on the line) and intensity.
+    reported_flange_mm : numpy.ndarray, shape (H, 4, 4)
+        The flange pose the robot reports at each profile's stamp, mm.
+    data : SweepData
+        The simulated sweep behind it.
     """
 
     start_ns: int
@@ -92,7 +110,22 @@ class MotionRun:
 
 
 class SimulatedLineMotion:
-    """Runs commanded lines on a :class:`SimulatedCell` (its plate, scanner and robot errors)."""
+    """Runs commanded lines on a :class:`SimulatedCell` (its plate, scanner and robot errors).
+
+    Parameters
+    ----------
+    sim : SimulatedCell
+        The simulated cell.
+    flange_to_sensor : numpy.ndarray, shape (4, 4)
+        The hand-eye, sensor -> flange, mm.
+    profile_rate_hz : float
+        The scanner's profile rate, Hz; positive.
+
+    Raises
+    ------
+    ValueError
+        If ``profile_rate_hz`` is not positive.
+    """
 
     def __init__(self, sim: SimulatedCell, flange_to_sensor: np.ndarray, profile_rate_hz: float) -> None:
         if not (np.isfinite(profile_rate_hz) and profile_rate_hz > 0.0):

@@ -37,6 +37,18 @@ class RecordingCell(DirectCell):
 
     ``live_poses`` and ``live_measurements`` keep what the calibration flow measured, in order, for a
     comparison with a replay of the bag.
+
+    Parameters
+    ----------
+    *args, **kwargs
+        As for :class:`DirectCell`.
+    recorder : BagRecorder
+        The open bag the sweeps are written to.
+
+    Raises
+    ------
+    ValueError
+        If the cell does not place profiles by the robot's pose (a replay does).
     """
 
     def __init__(self, *args, recorder: BagRecorder, **kwargs) -> None:
@@ -100,7 +112,14 @@ class RecordingCell(DirectCell):
 def base_to_gls(config) -> np.ndarray:
     """Return the galvo head's frame in the recording's robot base frame (mm).
 
-    It is ``config.scanner_to_gls`` (the CAD mounting of a
-    :class:`~gls_calibration.simulation.world.SimConfig`) inverted.
+    Parameters
+    ----------
+    config : SimConfig
+        The simulated cell; its ``scanner_to_gls`` (the CAD mounting) is inverted.
+
+    Returns
+    -------
+    numpy.ndarray, shape (4, 4)
+        gls -> robot base, mm.
     """
     return np.linalg.inv(config.scanner_to_gls)

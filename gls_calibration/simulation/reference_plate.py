@@ -119,10 +119,23 @@ RAW_PLAN = MeasurementPlan()
 def calibration_plan(parameter_file: str | Path | None = None) -> MeasurementPlan:
     """Return the plan the calibration manager runs with ``parameter_file``.
 
-    The plan the calibration manager runs with ``parameter_file`` (default: the package's
-    ``config/gls.yaml``): its ``sweep.plan``, ``sweep.placed_by_pose``, ``sweep.plain_repeats``,
-    ``sweep.plain_step_mm`` and ``sweep.marked_step_mm``, the procedure's defaults for keys the file
-    leaves out. ValueError naming the file and key.
+    It reads ``sweep.plan``, ``sweep.placed_by_pose``, ``sweep.plain_repeats``, ``sweep.plain_step_mm``
+    and ``sweep.marked_step_mm``, with the procedure's defaults for keys the file leaves out.
+
+    Parameters
+    ----------
+    parameter_file : str or pathlib.Path, optional
+        A parameter file; default: the package's ``config/gls.yaml``.
+
+    Returns
+    -------
+    MeasurementPlan
+        The passes, placement, plain sweeps and profile steps.
+
+    Raises
+    ------
+    ValueError
+        Naming the file and key.
     """
     defaults = ProcedureSettings()
 
@@ -211,9 +224,26 @@ def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 
                           chain_map: ChainMap | None = None) -> ReferencePlateResult:
     """Scan the reference plate ``design`` at ``positions`` with ``plan``.
 
-    ``positions`` are plate-centre offsets (mm; None: the design's). ``chain_map``, when given, is
-    removed from every sweep: a calibration that runs with a chain map must state its accuracy from
-    a check made with it.
+    Parameters
+    ----------
+    config : SimConfig
+        The simulated cell.
+    plan : MeasurementPlan
+        How each placement is measured.
+    seed : int, default 1
+        Seed of the plates and sweeps.
+    positions : sequence of (float, float), optional
+        Plate-centre offsets, mm; None: the design's.
+    design : ReferencePlateDesign, default PAPER_PLATE
+        The plate with known centres.
+    chain_map : ChainMap, optional
+        Removed from every sweep: a calibration that runs with a chain map must state its accuracy
+        from a check made with it.
+
+    Returns
+    -------
+    ReferencePlateResult
+        Standard uncertainty (k = 1) and bias per axis, mm, and the centres found and expected.
     """
     positions = design.positions_mm if positions is None else positions
     residuals, measured_all, known_all, found, expected = [], [], [], 0, 0
@@ -249,6 +279,26 @@ def measure_chain_map(config: SimConfig, plan: MeasurementPlan, seed: int = 1, r
     plane of that placement's first sweep (no plain sweeps: the map needs only in-plane centres),
     paired with the known centres and handed to :func:`chain_map.fit_chain_map`. Cell time:
     ``repeats * len(plan.passes)`` sweeps per placement.
+
+    Parameters
+    ----------
+    config : SimConfig
+        The simulated cell.
+    plan : MeasurementPlan
+        The lines; it must place profiles by pose.
+    seed : int, default 1
+        Seed of the map's plates and sweeps.
+    repeats : int, default 2
+        Sweeps per line and placement; at least 1.
+    design : ReferencePlateDesign, default FIELD_PLATE
+        The plate with known centres.
+    fit : ChainMapFit, optional
+        How the map is fitted.
+
+    Returns
+    -------
+    ChainMap
+        The fitted map.
 
     Raises
     ------
@@ -296,6 +346,31 @@ def chain_check(result: ReferencePlateResult, plan: MeasurementPlan, config: Sim
 
     It is the ``result`` of :func:`reference_plate_check` on ``design``, with ``chain_map`` applied,
     in the form the manager reads (``stated_accuracy``): what the cell may state its accuracy from.
+
+    Parameters
+    ----------
+    result : ReferencePlateResult
+        The check's result.
+    plan : MeasurementPlan
+        The plan it was measured with.
+    config : SimConfig
+        The simulated cell (its preset and seed are named).
+    seed : int
+        The check's seed (named).
+    design : ReferencePlateDesign, default PAPER_PLATE
+        The plate with known centres.
+    chain_map : ChainMap, optional
+        The chain map applied while measuring it.
+
+    Returns
+    -------
+    ChainCheck
+        The validated check.
+
+    Raises
+    ------
+    ValueError
+        If the result does not make a valid :class:`ChainCheck` (e.g. fewer than 3 centres found).
     """
     return ChainCheck(sigma_mm=result.sigma_mm, plan=plan.label, placement=plan.placement,
                       reference=(f"simulated reference plate, {design.label}; preset "

@@ -109,7 +109,19 @@ class ScannerSettings:
 
 @dataclass(frozen=True)
 class Profile:
-    """One scan line: its index in the sweep, its time stamp (s) and W points (structured float32)."""
+    """One scan line: its index in the sweep, its time stamp (s) and W points (structured float32).
+
+    Parameters
+    ----------
+    index : int
+        The profile's index in the sweep.
+    stamp_s : float
+        Its time stamp, s.
+    points : numpy.ndarray, shape (W,)
+        Structured float32 points (x, y, z, intensity).
+    reported_pose : numpy.ndarray, shape (4, 4), optional
+        Sensor -> base frame B, mm, as the robot's encoder reports it.
+    """
 
     index: int
     stamp_s: float

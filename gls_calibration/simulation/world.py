@@ -44,7 +44,40 @@ _SWEEP_KEYS = ("length_mm",)
 
 @dataclass(frozen=True, eq=False)
 class SimConfig:
-    """Everything that defines a simulated cell (mm, rad, s)."""
+    """Everything that defines a simulated cell (mm, rad, s).
+
+    Parameters
+    ----------
+    seed : int, default 1
+        Seed of the cell's random draws.
+    geometry : HeadGeometry, optional
+        The nominal head.
+    effects : HeadEffects, optional
+        The true head's effects.
+    mark_speed_mm_s : float, default 500.0
+        Marking speed, mm/s; positive.
+    jump_time_s : float, default 0.005
+        Time of a jump between polylines, s; non-negative.
+    plate : PlateSettings, optional
+        The plate.
+    scanner : ScannerSettings, optional
+        The line scanner.
+    scanner_to_gls : numpy.ndarray, shape (4, 4), optional
+        The CAD mounting, scanner -> gls, mm; default: the scanner above the plate's centre.
+    mounting_error : numpy.ndarray, shape (4, 4), optional
+        The unknown mounting error in the scanner frame; default: none.
+    sweep_length_mm : float, default 200.0
+        Length of a sweep, mm; positive.
+    measurement_preset : str, default "ideal"
+        Name of the measurement chain's preset.
+    measurement : MeasurementChain, optional
+        The measurement chain.
+
+    Raises
+    ------
+    ValueError
+        If a speed, length or time is out of range.
+    """
 
     seed: int = 1
     geometry: HeadGeometry = HeadGeometry()
@@ -191,16 +224,41 @@ def sim_config_from_dict(document: Any, preset: str | None = None) -> SimConfig:
 def load_sim_config(path: str | Path | None = None, preset: str | None = None) -> SimConfig:
     """Read a sim configuration file (default: the package's ``config/sim.yaml``).
 
-    Raises ValueError with the file name for unreadable YAML, unknown keys or effect names, and
-    non-positive speeds or step sizes, unknown measurement presets, negative magnitudes and keys that
-    conflict with the preset. ``preset`` overrides the file's ``measurement.preset``.
+    Parameters
+    ----------
+    path : str or pathlib.Path, optional
+        The YAML file.
+    preset : str, optional
+        Overrides the file's ``measurement.preset``.
+
+    Returns
+    -------
+    SimConfig
+        The simulated cell.
+
+    Raises
+    ------
+    ValueError
+        With the file name for unreadable YAML, unknown keys or effect names, non-positive speeds or
+        step sizes, unknown measurement presets, negative magnitudes and keys that conflict with the preset.
     """
     return read_config_file(path if path is not None else default_sim_config_path(), "sim configuration",
                             lambda document: sim_config_from_dict(document, preset))
 
 
 class SimulatedCell:
-    """Truth head, plate and scanner of one configuration, wired so that marks land on the plate."""
+    """Truth head, plate and scanner of one configuration, wired so that marks land on the plate.
+
+    Parameters
+    ----------
+    config : SimConfig, optional
+        The cell; the default one when None.
+
+    Raises
+    ------
+    ValueError
+        If the configuration's effects contradict its plate pose.
+    """
 
     def __init__(self, config: SimConfig | None = None) -> None:
         self.config = config if config is not None else SimConfig()
