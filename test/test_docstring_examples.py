@@ -11,8 +11,9 @@ MODULES = ("gls_calibration.geometry.kinematics", "gls_calibration.geometry.opti
            "gls_calibration.discrepancy.selection", "gls_calibration.discrepancy.run_verdict",
            "gls_calibration.models.deviation_models", "gls_calibration.models.ols_rbf",
            "gls_calibration.models.thin_plate_spline", "gls_calibration.models.training",
-           "gls_calibration.correction.setpoints", "gls_calibration.calibration.record",
-           "gls_calibration.calibration.stated_accuracy", "gls_calibration.calibration.store",
+           "gls_calibration.correction.setpoints", "gls_calibration.correction.uncertainty_grid",
+           "gls_calibration.calibration.record", "gls_calibration.calibration.stated_accuracy",
+           "gls_calibration.calibration.store",
            "gls_calibration.report.files")
 
 

@@ -217,6 +217,17 @@ class Correction:
         If ``geometry`` is not a HeadGeometry, a model is not callable, models come without a region,
         the region or ``uncertainty`` has the wrong type, the calibration plane lies outside the focus
         range, or ``taper_mm`` is negative.
+
+    Examples
+    --------
+    A model that moves every point by 0.1 mm in x and y, trained on a 200 x 200 mm box:
+
+    >>> from gls_calibration.geometry.kinematics import HeadGeometry
+    >>> region = CalibratedRegion(-100.0, 100.0, -100.0, 100.0)
+    >>> correction = Correction(HeadGeometry(), [lambda points: np.full((len(points), 2), 0.1)], region)
+    >>> answer = correction.correct([0.0, 50.0], [0.0, 150.0])
+    >>> answer.x.tolist(), answer.y.tolist(), answer.inside_calibrated_field.tolist()
+    ([0.1, 50.0], [0.1, 150.0], [True, False])
     """
 
     def __init__(self, geometry: HeadGeometry, models: Sequence[DeviationModel] = (),

@@ -39,6 +39,12 @@ class UncertaintyGrid:
     ValueError
         If an axis is not 2 or more finite numbers increasing strictly, or ``u_k2_mm`` has not the
         shape (ny, nx), is not finite or holds negative values.
+
+    Examples
+    --------
+    >>> grid = UncertaintyGrid([0.0, 10.0], [0.0, 10.0], [[0.01, 0.02], [0.03, 0.04]])
+    >>> grid.at_point(5.0, 5.0), grid.at([0.0, 20.0], [10.0, 0.0]).tolist()
+    (0.025, [0.03, nan])
     """
 
     x_mm: np.ndarray

@@ -378,6 +378,19 @@ def pair_with_targets(measured, targets, *, max_rotation_deg: float = 15.0, gate
     ValueError
         If either set is not (M, 3) finite with at least 3 points or is collinear, the targets hold
         coincident points, a number is out of range, or ``measured_normal`` is not a non-zero 3-vector.
+
+    Examples
+    --------
+    A 5 x 5 grid measured turned by 3 deg and shifted, its last two fiducials not found:
+
+    >>> from gls_calibration.fiducials.targets import grid_targets
+    >>> targets = np.column_stack([grid_targets(5, 40.0), np.zeros(25)])
+    >>> angle = np.radians(3.0)
+    >>> turn = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    >>> measured = (targets[:-2] - [1.0, 2.0, 0.0]) @ turn.T
+    >>> pairing = pair_with_targets(measured, targets)
+    >>> len(pairing.target_index), pairing.missing_targets.tolist(), pairing.transform.translation.round(6).tolist()
+    (23, [23, 24], [1.0, 2.0, 0.0])
     """
     measured = as_points(measured, "measured", 3, min_length=3)
     targets = as_points(targets, "targets", 3, min_length=3)
