@@ -310,8 +310,8 @@ def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
     ------
     ValueError
         For bad points or times (shapes, too few, not finite), a bad sigma, an unknown criterion or
-        effect name, a negative ``max_steps``, user effect names that repeat or a user effect that
-        fails :func:`~gls_calibration.geometry.effect_table.check_user_effect`.
+        effect name, bad ``known_effects``, a negative ``max_steps``, user effect names that repeat
+        or a user effect that fails :func:`~gls_calibration.geometry.effect_table.check_user_effect`.
 
     Examples
     --------
