@@ -19,8 +19,9 @@ STAGES = ("common", "geometry", "scan", "fiducials", "registration", "discrepanc
           "calibration", "report", "simulation", "ros", "nodes", "cli")
 DOCUMENTED_STAGES = ("geometry", "scan", "fiducials", "registration", "discrepancy", "models", "correction",
                      "calibration", "report", "simulation")
-# Functions and classes whose constructor takes no parameter: nothing to put under "Parameters".
-NO_PARAMETERS = frozenset({"gls_calibration.geometry.head_config.default_head_config_path"})
+# Functions without parameters and protocols (no constructor): nothing to put under "Parameters".
+NO_PARAMETERS = frozenset({"gls_calibration.geometry.head_config.default_head_config_path",
+                           "gls_calibration.models.model_selection.DeviationModel"})
 
 
 def _module_name(path: Path) -> str:
@@ -118,10 +119,20 @@ def _is_generator(node: ast.AST) -> bool:
         isinstance(child, (ast.Yield, ast.YieldFrom)) for child in ast.walk(node))
 
 
+def _call_method(node: ast.AST) -> ast.AST | None:
+    """The ``__call__`` a class defines, else None."""
+    return next((child for child in getattr(node, "body", ()) if isinstance(child, ast.FunctionDef)
+                 and isinstance(node, ast.ClassDef) and child.name == "__call__"), None)
+
+
 def missing_sections(node: ast.AST, qualified_name: str) -> list[str]:
-    """The sections the docstring of ``node`` (``module.name``) lacks ("Parameters", "Returns"/"Yields")."""
+    """The sections the docstring of ``node`` (``module.name``) lacks ("Parameters", "Returns"/"Yields").
+
+    A class is called through its constructor (its docstring) and, when it defines one, its ``__call__``.
+    """
     sections = _sections(ast.get_docstring(node) or "")
-    missing = []
+    call = _call_method(node)
+    missing = [f"__call__ {section}" for section in missing_sections(call, "__call__")] if call else []
     if qualified_name not in NO_PARAMETERS and "Parameters" not in sections:
         missing.append("Parameters")
     if _returns_value(node):
@@ -150,6 +161,10 @@ def test_the_allow_list_holds_only_functions_without_parameters():
     public = public_stage_functions()
     for qualified in NO_PARAMETERS:
         node = public[tuple(qualified.rsplit(".", 1))]
+        if isinstance(node, ast.ClassDef):   # a protocol: no constructor of its own
+            assert any(getattr(base, "id", "") == "Protocol" for base in node.bases), qualified
+            assert not any(getattr(child, "name", "") == "__init__" for child in node.body), qualified
+            continue
         assert isinstance(node, ast.FunctionDef), qualified
         arguments = node.args
         assert not (arguments.posonlyargs or arguments.args or arguments.kwonlyargs
@@ -164,3 +179,8 @@ def test_the_check_sees_a_missing_section():
     tree = ast.parse(source)
     assert missing_sections(tree.body[0], "f") == ["Returns"]
     assert missing_sections(tree.body[1], "g") == ["Parameters"]
+    # and a class whose __call__ lacks its sections
+    callable_class = ast.parse('class C:\n    """A thing.\n\n    Parameters\n    ----------\n    a : int\n'
+                               '        A value.\n    """\n\n    def __call__(self, x) -> float:\n'
+                               '        """Return x."""\n')
+    assert missing_sections(callable_class.body[0], "C") == ["__call__ Parameters", "__call__ Returns"]

@@ -18,16 +18,21 @@ from gls_calibration.models.thin_plate_spline import ThinPlateSplineModel
 
 
 class DeviationModel(Protocol):
-    """What the correction needs from a model: a callable from points to deviations.
-
-    Parameters
-    ----------
-    points : array_like, shape (n, 2)
-        Where to evaluate (the argument of ``__call__``), mm.
-    """
+    """What the correction needs from a model: a callable from points (mm) to deviations (mm)."""
 
     def __call__(self, points) -> np.ndarray:
-        """Deviations (n, 2) mm at ``points`` (n, 2) mm."""
+        """Return the deviations at ``points``.
+
+        Parameters
+        ----------
+        points : array_like, shape (n, 2)
+            Where to evaluate, mm.
+
+        Returns
+        -------
+        numpy.ndarray, shape (n, 2)
+            The deviations, mm.
+        """
 
     def to_dict(self) -> dict:
         """Plain form of the model for the calibration file."""

@@ -191,7 +191,23 @@ class OLSRBFNetwork:
         return self.centres.shape[0]
 
     def __call__(self, points) -> np.ndarray:
-        """Predicted deviations (M, 2) in mm at ``points`` (M, 2) in mm."""
+        """Return the predicted deviations at ``points``.
+
+        Parameters
+        ----------
+        points : array_like, shape (M, 2)
+            Where to evaluate, mm.
+
+        Returns
+        -------
+        numpy.ndarray, shape (M, 2)
+            The deviations, mm.
+
+        Raises
+        ------
+        ValueError
+            If ``points`` is not a finite (M, 2) array.
+        """
         points = query_points(points)
         if points.shape[0] <= SMALL_BATCH:
             squared = np.sum((points[:, None, :] - self.centres) ** 2, axis=2)
