@@ -107,16 +107,28 @@ def _sections(docstring: str) -> set[str]:
     return {title for title, underline in zip(lines, lines[1:]) if title and re.fullmatch(r"-{3,}", underline)}
 
 
+def _own_nodes(function: ast.AST):
+    """The nodes of a function's body, without those of functions, lambdas and classes nested in it."""
+    pending = list(ast.iter_child_nodes(function))
+    while pending:
+        node = pending.pop()
+        yield node
+        if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef)):
+            pending.extend(ast.iter_child_nodes(node))
+
+
 def _returns_value(node: ast.AST) -> bool:
+    """Whether a function returns something other than None: by its annotation, else by its return statements."""
     if isinstance(node, ast.ClassDef):
         return False
     annotation = node.returns
-    return not (annotation is None or (isinstance(annotation, ast.Constant) and annotation.value is None))
+    if annotation is not None:
+        return not (isinstance(annotation, ast.Constant) and annotation.value is None)
+    return any(isinstance(child, ast.Return) and child.value is not None for child in _own_nodes(node))
 
 
 def _is_generator(node: ast.AST) -> bool:
-    return isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and any(
-        isinstance(child, (ast.Yield, ast.YieldFrom)) for child in ast.walk(node))
+    return any(isinstance(child, (ast.Yield, ast.YieldFrom)) for child in _own_nodes(node))
 
 
 def _call_method(node: ast.AST) -> ast.AST | None:
@@ -179,6 +191,13 @@ def test_the_check_sees_a_missing_section():
     tree = ast.parse(source)
     assert missing_sections(tree.body[0], "f") == ["Returns"]
     assert missing_sections(tree.body[1], "g") == ["Parameters"]
+    # without an annotation, a return statement with a value asks for Returns; a nested one does not
+    plain = ast.parse('def h(x):\n    """Do x.\n\n    Parameters\n    ----------\n    x : int\n        A value.\n'
+                      '    """\n    def inner():\n        return x\n    return inner()\n\n'
+                      'def k(x):\n    """Do x.\n\n    Parameters\n    ----------\n    x : int\n        A value.\n'
+                      '    """\n    def inner():\n        return x\n    inner()\n')
+    assert missing_sections(plain.body[0], "h") == ["Returns"]
+    assert missing_sections(plain.body[1], "k") == []
     # and a class whose __call__ lacks its sections
     callable_class = ast.parse('class C:\n    """A thing.\n\n    Parameters\n    ----------\n    a : int\n'
                                '        A value.\n    """\n\n    def __call__(self, x) -> float:\n'
