@@ -12,11 +12,9 @@ from pathlib import Path
 import re
 
 import gls_calibration
+from test_layering import STAGES     # the stages in pipeline order: one owner
 
 PACKAGE = Path(gls_calibration.__file__).parent
-# As in test_layering.py: the stages in pipeline order, then what sits on top of the core.
-STAGES = ("common", "geometry", "scan", "fiducials", "registration", "discrepancy", "models", "correction",
-          "calibration", "report", "simulation", "ros", "nodes", "cli")
 DOCUMENTED_STAGES = ("geometry", "scan", "fiducials", "registration", "discrepancy", "models", "correction",
                      "calibration", "report", "simulation")
 # Functions without parameters and protocols (no constructor): nothing to put under "Parameters".
