@@ -163,18 +163,20 @@ def _detect(image: np.ndarray, pitch: tuple[float, float], radii: np.ndarray, ma
     threshold = max(MIN_DETECTION_SCORE, median + DETECTION_SIGMAS * spread,
                     -median + DETECTION_SIGMAS * spread)
     distance_px = radii[-1] / max(binned_pitch)
+    found = {}      # peaks per polarity (True: dark marks)
     if marks_darker is None:
         # The polarity whose strongest peaks stand out more: bright marks correlate negatively.
         top = max(expected_count or 0, 4)
         strength = []
         for sign in (1.0, -1.0):
-            values = _correlation_peaks(sign * score, distance_px, threshold)
+            values = found[sign > 0] = _correlation_peaks(sign * score, distance_px, threshold)
             scores = np.sort(sign * score[values[:, 1].astype(int), values[:, 0].astype(int)])[::-1][:top] \
                 if len(values) else np.zeros(0)
             strength.append(float(np.sum(scores)))
         marks_darker = strength[0] >= strength[1]
     signed = score if marks_darker else -score
-    peaks = _correlation_peaks(signed, distance_px, threshold)
+    # The chosen polarity's peaks were found already when it was decided here.
+    peaks = found[marks_darker] if marks_darker in found else _correlation_peaks(signed, distance_px, threshold)
     if expected_count:
         peaks = peaks[:max(2 * expected_count, expected_count + 20)]
     values = signed[peaks[:, 1].astype(int), peaks[:, 0].astype(int)] if len(peaks) else np.empty(0)
