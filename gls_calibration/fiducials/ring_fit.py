@@ -265,15 +265,24 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
     gap = float(np.min(np.diff(radii_nominal))) if len(radii_nominal) > 1 else 4 * pitch_mm
     outside = np.abs(radial - mid) > half + margin
     background = np.median(profiles[:, :, outside], axis=2) if outside.any() else np.zeros(profiles.shape[:2])
-    darkness = np.clip(background[..., None] - profiles, 0.0, None)
     at = at.astype(np.float32)
+    # The window is zero beyond half the gap and half a sample from the expected radius: only the
+    # ``span`` samples from ``first`` on each ray enter, gathered from sliding-window views.
+    reach = gap / 2 + step / 2
+    span = min(int(np.ceil(2 * reach / step)) + 2, len(radial))
+    profile_runs = np.lib.stride_tricks.sliding_window_view(profiles, span, axis=-1)       # (M, A, S - K + 1, K)
+    radial_runs = np.lib.stride_tricks.sliding_window_view(radial, span)                    # (S - K + 1, K)
+    candidate, ray = np.arange(count)[:, None], np.arange(RAY_COUNT)[None, :]
     for ring, ring_offset in enumerate(offsets):
-        expected = (at + np.float32(ring_offset))[..., None]
-        window = np.clip((np.float32(gap / 2) - np.abs(radial - expected)) / np.float32(step) + np.float32(0.5),
-                         0.0, 1.0)
-        weight = darkness * window
+        expected = at + np.float32(ring_offset)                                             # (M, A)
+        first = np.clip(np.floor((np.nan_to_num(expected) - reach - radial[0]) / step), 0,
+                        len(radial) - span).astype(int)
+        near = radial_runs[first]                                                           # (M, A, K)
+        window = np.clip((np.float32(gap / 2) - np.abs(near - expected[..., None])) / np.float32(step)
+                         + np.float32(0.5), 0.0, 1.0)
+        weight = np.clip(background[..., None] - profile_runs[candidate, ray, first], 0.0, None) * window
         total = weight.sum(axis=2)
-        centroid = (weight * radial).sum(axis=2) / np.where(total > 0, total, 1.0)
+        centroid = (weight * near).sum(axis=2) / np.where(total > 0, total, 1.0)
         points = sampled_at[:, None, :] + centroid[..., None] * directions
         distance = np.linalg.norm(points - centres[:, None, :], axis=-1)
         good = used & (total > 0)
