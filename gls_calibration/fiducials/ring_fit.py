@@ -215,7 +215,7 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         profiles = _ray_profiles(pass_image, centres, offset, inverse, directions, radial)
         finite = np.isfinite(profiles)
         inside = finite.all(axis=2)
-        profiles = np.where(finite, profiles, np.float32(0.0))
+        np.copyto(profiles, np.float32(0.0), where=~finite)      # in place: a fresh array of this pass
         score = _correlate_rows(profiles, pair_template)
         # Search window (indices along the ray): +- margin about the nominal mid radius, then about
         # the last fitted one (rings of the wrong size stay in view and fail the radius check).
@@ -268,14 +268,14 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
     at = at.astype(np.float32)
     # The window is zero beyond half the gap and half a sample from the expected radius: only the
     # ``span`` samples from ``first`` on each ray enter, gathered from sliding-window views.
-    reach = gap / 2 + step / 2
-    span = min(int(np.ceil(2 * reach / step)) + 2, len(radial))
+    window_reach = gap / 2 + step / 2
+    span = min(int(np.ceil(2 * window_reach / step)) + 2, len(radial))
     profile_runs = np.lib.stride_tricks.sliding_window_view(profiles, span, axis=-1)       # (M, A, S - K + 1, K)
     radial_runs = np.lib.stride_tricks.sliding_window_view(radial, span)                    # (S - K + 1, K)
     candidate, ray = np.arange(count)[:, None], np.arange(RAY_COUNT)[None, :]
     for ring, ring_offset in enumerate(offsets):
         expected = at + np.float32(ring_offset)                                             # (M, A)
-        first = np.clip(np.floor((np.nan_to_num(expected) - reach - radial[0]) / step), 0,
+        first = np.clip(np.floor((np.nan_to_num(expected) - window_reach - radial[0]) / step), 0,
                         len(radial) - span).astype(int)
         near = radial_runs[first]                                                           # (M, A, K)
         window = np.clip((np.float32(gap / 2) - np.abs(near - expected[..., None])) / np.float32(step)
