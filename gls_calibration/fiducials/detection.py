@@ -139,9 +139,11 @@ def _detection_image(image: np.ndarray, pitch: tuple[float, float]):
     if factor_rows == factor_cols == 1:
         return image, (1, 1)
     height, width = image.shape[0] // factor_rows, image.shape[1] // factor_cols
-    binned = image[:height * factor_rows, :width * factor_cols].reshape(
-        height, factor_rows, width, factor_cols).mean(axis=(1, 3))
-    return binned.astype(np.float32), (factor_rows, factor_cols)
+    # Area interpolation at integer factors is the mean of each block (cv2: 0.002 s for a 2000 x 2000
+    # image against 0.03 s for numpy's mean over two strided axes; the last bit may differ).
+    binned = cv2.resize(np.ascontiguousarray(image[:height * factor_rows, :width * factor_cols], np.float32),
+                        (width, height), interpolation=cv2.INTER_AREA)
+    return binned, (factor_rows, factor_cols)
 
 
 def _detect(image: np.ndarray, pitch: tuple[float, float], radii: np.ndarray, marks_darker: bool | None,
