@@ -44,7 +44,8 @@ def _log_intensity(intensity: np.ndarray) -> np.ndarray:
     """
     # Every 4th pixel per axis gives the median to ~0.1 % at a 16th of the cost.
     floor = 0.01 * max(float(np.median(intensity[::4, ::4])), 1e-12)
-    return np.log(np.maximum(intensity, floor)).astype(np.float32)
+    clipped = np.maximum(intensity, floor)
+    return np.log(clipped, out=clipped).astype(np.float32)      # in place: one image-sized array less
 
 
 def _refinement_image(log_intensity: np.ndarray) -> np.ndarray:
