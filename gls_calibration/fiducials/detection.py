@@ -44,7 +44,8 @@ def _log_intensity(intensity: np.ndarray) -> np.ndarray:
     """
     # Every 4th pixel per axis gives the median to ~0.1 % at a 16th of the cost.
     floor = 0.01 * max(float(np.median(intensity[::4, ::4])), 1e-12)
-    return np.log(np.maximum(intensity, floor)).astype(np.float32)
+    clipped = np.maximum(intensity, floor)
+    return np.log(clipped, out=clipped).astype(np.float32)      # in place: one image-sized array less
 
 
 def _refinement_image(log_intensity: np.ndarray) -> np.ndarray:
@@ -139,9 +140,11 @@ def _detection_image(image: np.ndarray, pitch: tuple[float, float]):
     if factor_rows == factor_cols == 1:
         return image, (1, 1)
     height, width = image.shape[0] // factor_rows, image.shape[1] // factor_cols
-    binned = image[:height * factor_rows, :width * factor_cols].reshape(
-        height, factor_rows, width, factor_cols).mean(axis=(1, 3))
-    return binned.astype(np.float32), (factor_rows, factor_cols)
+    # Area interpolation at integer factors is the mean of each block (cv2: 0.002 s for a 2000 x 2000
+    # image against 0.03 s for numpy's mean over two strided axes; the last bit may differ).
+    binned = cv2.resize(np.ascontiguousarray(image[:height * factor_rows, :width * factor_cols], np.float32),
+                        (width, height), interpolation=cv2.INTER_AREA)
+    return binned, (factor_rows, factor_cols)
 
 
 def _detect(image: np.ndarray, pitch: tuple[float, float], radii: np.ndarray, marks_darker: bool | None,
@@ -163,18 +166,20 @@ def _detect(image: np.ndarray, pitch: tuple[float, float], radii: np.ndarray, ma
     threshold = max(MIN_DETECTION_SCORE, median + DETECTION_SIGMAS * spread,
                     -median + DETECTION_SIGMAS * spread)
     distance_px = radii[-1] / max(binned_pitch)
+    found = {}      # peaks per polarity (True: dark marks)
     if marks_darker is None:
         # The polarity whose strongest peaks stand out more: bright marks correlate negatively.
         top = max(expected_count or 0, 4)
         strength = []
         for sign in (1.0, -1.0):
-            values = _correlation_peaks(sign * score, distance_px, threshold)
+            values = found[sign > 0] = _correlation_peaks(sign * score, distance_px, threshold)
             scores = np.sort(sign * score[values[:, 1].astype(int), values[:, 0].astype(int)])[::-1][:top] \
                 if len(values) else np.zeros(0)
             strength.append(float(np.sum(scores)))
         marks_darker = strength[0] >= strength[1]
     signed = score if marks_darker else -score
-    peaks = _correlation_peaks(signed, distance_px, threshold)
+    # The chosen polarity's peaks were found already when it was decided here.
+    peaks = found[marks_darker] if marks_darker in found else _correlation_peaks(signed, distance_px, threshold)
     if expected_count:
         peaks = peaks[:max(2 * expected_count, expected_count + 20)]
     values = signed[peaks[:, 1].astype(int), peaks[:, 0].astype(int)] if len(peaks) else np.empty(0)

@@ -93,14 +93,15 @@ def _peak(score: np.ndarray, low: np.ndarray, width: int):
     ``low`` (M,) must keep the window and one neighbour on each side inside the profile. Returns
     the fractional index (M, A) and whether the maximum is interior (a real peak, not an end).
     """
-    index = low[:, None, None] + np.arange(width)[None, None, :]                   # (M, 1, W)
-    window = np.take_along_axis(score, np.broadcast_to(index, score.shape[:2] + (width,)), -1)
-    best = np.argmax(window, axis=-1)
+    count, rays, _ = score.shape
+    # Each candidate's window with one neighbour on either side, gathered as contiguous runs of a
+    # sliding-window view (an index per sample cost twice the time).
+    runs = np.lib.stride_tricks.sliding_window_view(score, width + 2, axis=-1)           # (M, A, S - W - 1, W + 2)
+    padded = runs[np.arange(count)[:, None], np.arange(rays)[None, :], (low - 1)[:, None]]   # (M, A, W + 2)
+    best = np.argmax(padded[..., 1:-1], axis=-1)
     interior = (best > 0) & (best < width - 1)
     at = low[:, None] + best
-    left = np.take_along_axis(score, (at - 1)[..., None], -1)[..., 0]
-    centre = np.take_along_axis(score, at[..., None], -1)[..., 0]
-    right = np.take_along_axis(score, (at + 1)[..., None], -1)[..., 0]
+    left, centre, right = np.moveaxis(np.take_along_axis(padded, best[..., None] + np.arange(3), -1), -1, 0)
     curvature = left - 2 * centre + right
     delta = np.where(curvature < 0, 0.5 * (left - right) / np.where(curvature < 0, curvature, -1.0), 0.0)
     return at + np.clip(delta, -0.5, 0.5), interior & (curvature < 0)
@@ -214,7 +215,7 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         profiles = _ray_profiles(pass_image, centres, offset, inverse, directions, radial)
         finite = np.isfinite(profiles)
         inside = finite.all(axis=2)
-        profiles = np.where(finite, profiles, np.float32(0.0))
+        np.copyto(profiles, np.float32(0.0), where=~finite)      # in place: a fresh array of this pass
         score = _correlate_rows(profiles, pair_template)
         # Search window (indices along the ray): +- margin about the nominal mid radius, then about
         # the last fitted one (rings of the wrong size stay in view and fail the radius check).
@@ -264,15 +265,24 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
     gap = float(np.min(np.diff(radii_nominal))) if len(radii_nominal) > 1 else 4 * pitch_mm
     outside = np.abs(radial - mid) > half + margin
     background = np.median(profiles[:, :, outside], axis=2) if outside.any() else np.zeros(profiles.shape[:2])
-    darkness = np.clip(background[..., None] - profiles, 0.0, None)
     at = at.astype(np.float32)
+    # The window is zero beyond half the gap and half a sample from the expected radius: only the
+    # ``span`` samples from ``first`` on each ray enter, gathered from sliding-window views.
+    window_reach = gap / 2 + step / 2
+    span = min(int(np.ceil(2 * window_reach / step)) + 2, len(radial))
+    profile_runs = np.lib.stride_tricks.sliding_window_view(profiles, span, axis=-1)       # (M, A, S - K + 1, K)
+    radial_runs = np.lib.stride_tricks.sliding_window_view(radial, span)                    # (S - K + 1, K)
+    candidate, ray = np.arange(count)[:, None], np.arange(RAY_COUNT)[None, :]
     for ring, ring_offset in enumerate(offsets):
-        expected = (at + np.float32(ring_offset))[..., None]
-        window = np.clip((np.float32(gap / 2) - np.abs(radial - expected)) / np.float32(step) + np.float32(0.5),
-                         0.0, 1.0)
-        weight = darkness * window
+        expected = at + np.float32(ring_offset)                                             # (M, A)
+        first = np.clip(np.floor((np.nan_to_num(expected) - window_reach - radial[0]) / step), 0,
+                        len(radial) - span).astype(int)
+        near = radial_runs[first]                                                           # (M, A, K)
+        window = np.clip((np.float32(gap / 2) - np.abs(near - expected[..., None])) / np.float32(step)
+                         + np.float32(0.5), 0.0, 1.0)
+        weight = np.clip(background[..., None] - profile_runs[candidate, ray, first], 0.0, None) * window
         total = weight.sum(axis=2)
-        centroid = (weight * radial).sum(axis=2) / np.where(total > 0, total, 1.0)
+        centroid = (weight * near).sum(axis=2) / np.where(total > 0, total, 1.0)
         points = sampled_at[:, None, :] + centroid[..., None] * directions
         distance = np.linalg.norm(points - centres[:, None, :], axis=-1)
         good = used & (total > 0)
@@ -293,6 +303,10 @@ def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, in
     """
     start = np.einsum("mij,mj->mi", inverse, centres - offset).astype(np.float32)      # (M, 2)
     heading = np.einsum("mij,aj->mai", inverse, directions).astype(np.float32)          # (M, A, 2)
-    map_x = start[:, None, None, 0] + heading[..., 0, None] * radial                    # (M, A, S)
-    map_y = start[:, None, None, 1] + heading[..., 1, None] * radial
-    return _sample_bicubic(image, map_x, map_y)
+    # Built in place (heading times radius, plus the start): the same float32 values, fewer temporaries.
+    maps = []
+    for axis in range(2):
+        positions = np.multiply(heading[..., axis, None], radial)                       # (M, A, S)
+        positions += start[:, None, None, axis]
+        maps.append(positions)
+    return _sample_bicubic(image, *maps)
