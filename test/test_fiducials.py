@@ -9,7 +9,7 @@ import pytest
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from gls_calibration.fiducials.detection import _prewhitening_kernel
+from gls_calibration.fiducials.detection import prewhitening_kernel
 from gls_calibration.fiducials.measure import FiducialMeasurement, _duplicates, measure_fiducials
 from gls_calibration.scan.plate_pose import estimate_plate_pose
 from rendering import BACKGROUND, MARK, plate_to_scanner, render_plate_scan
@@ -282,7 +282,7 @@ def test_moderated_uncertainties_are_raised_towards_the_plate_never_lowered():
     """Jackknife variances of equal true size scatter like chi2(23)/23: the low draws are raised towards
     the plate's typical one, nothing is lowered, a genuinely larger variance keeps its own, and a plate
     with too few candidates is left as it is."""
-    from gls_calibration.fiducials.centre_uncertainty import MODERATION_MIN_REFERENCE, _moderated
+    from gls_calibration.fiducials.centre_uncertainty import MODERATION_MIN_REFERENCE, moderated_covariance
     rng = np.random.default_rng(5)
     count, dof = 300, 23
     variance = 4e-6 * rng.chisquare(dof, size=(count, 2)) / dof          # (2 um)^2, per axis
@@ -290,7 +290,7 @@ def test_moderated_uncertainties_are_raised_towards_the_plate_never_lowered():
     covariance = np.zeros((count, 2, 2))
     covariance[:, 0, 0], covariance[:, 1, 1] = variance[:, 0], variance[:, 1]
     covariance[:, 0, 1] = covariance[:, 1, 0] = 0.3 * np.sqrt(variance[:, 0] * variance[:, 1])
-    moderated = _moderated(covariance, np.full(count, dof), np.ones(count, bool))
+    moderated = moderated_covariance(covariance, np.full(count, dof), np.ones(count, bool))
     after = np.stack([moderated[:, 0, 0], moderated[:, 1, 1]], axis=1)
     assert np.all(after >= variance * (1 - 1e-12))
     np.testing.assert_allclose(after[0], variance[0])                    # its own, larger variance stays
@@ -301,7 +301,7 @@ def test_moderated_uncertainties_are_raised_towards_the_plate_never_lowered():
     correlation = moderated[:, 0, 1] / np.sqrt(moderated[:, 0, 0] * moderated[:, 1, 1])
     np.testing.assert_allclose(correlation, 0.3)
     few = MODERATION_MIN_REFERENCE - 1
-    np.testing.assert_array_equal(_moderated(covariance[:few], np.full(few, dof), np.ones(few, bool)),
+    np.testing.assert_array_equal(moderated_covariance(covariance[:few], np.full(few, dof), np.ones(few, bool)),
                                   covariance[:few])
 
 
@@ -311,12 +311,12 @@ def test_centre_uncertainty_holds_for_edge_noise_correlated_along_the_ring(corre
     apart), fitted with the refinement's design: the stated variance of the centre is never well
     below the true one (Monte Carlo over 2000 rings). At l = 6 rays the sector jackknife alone gives
     half of it; the spectral estimate follows the noise's power in the first harmonic."""
-    from gls_calibration.fiducials.centre_uncertainty import (SECTORS, _centre_covariance, _harmonic_design,
+    from gls_calibration.fiducials.centre_uncertainty import (SECTORS, centre_covariance, harmonic_design,
                                                               _spectral_covariance)
     from gls_calibration.fiducials.ring_fit import RAY_COUNT
     rng = np.random.default_rng(3)
     count = 2000
-    design = _harmonic_design(np.linspace(0.0, 2 * np.pi, RAY_COUNT, endpoint=False))
+    design = harmonic_design(np.linspace(0.0, 2 * np.pi, RAY_COUNT, endpoint=False))
     lag = np.minimum(np.arange(RAY_COUNT), RAY_COUNT - np.arange(RAY_COUNT))
     spectrum = np.fft.fft(np.exp(-lag**2 / (2 * max(correlation_rays, 1e-3) ** 2))).real.clip(0.0)
     noise = np.fft.ifft(np.fft.fft(rng.standard_normal((count, RAY_COUNT)), axis=1) * np.sqrt(spectrum), axis=1).real
@@ -325,7 +325,7 @@ def test_centre_uncertainty_holds_for_edge_noise_correlated_along_the_ring(corre
     true_variance = np.mean(solution[:, 1:3] ** 2)
     used = np.ones(noise.shape, bool)
     sector_of_ray = (np.arange(RAY_COUNT) * SECTORS) // RAY_COUNT
-    stated, _ = _centre_covariance(design, residual, used, sector_of_ray)
+    stated, _ = centre_covariance(design, residual, used, sector_of_ray)
     spectral, _ = _spectral_covariance(design, residual, used)
     assert 0.85 <= np.mean(np.diagonal(spectral, axis1=1, axis2=2)) / true_variance <= 1.2
     assert 0.85 <= np.mean(np.diagonal(stated, axis1=1, axis2=2)) / true_variance <= 1.4
@@ -342,7 +342,7 @@ def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px, 
     # averaged over four (which blurs thin lines under speckle and shifts them by the local phase).
     # The fifth case is a 200 mm plate (every 20th point kept), where a coarse lattice search could
     # mistake the drift for another; the last two are clouds turned by 20° and -35° (a robot's frame).
-    from gls_calibration.fiducials.raster import _rasterised_image
+    from gls_calibration.fiducials.raster import rasterised_image
     from gls_calibration.scan.plate_pose import PlatePose
     pitch = 0.1
     col, row = np.meshgrid(np.arange(size_px) + offset_px, np.arange(size_px * 3 // 4) + offset_px)
@@ -354,7 +354,7 @@ def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px, 
     xyz = np.column_stack([u, v, np.zeros(u.size)])
     pose = PlatePose(normal=np.array([0.0, 0.0, 1.0]), centre=np.zeros(3), rotation=np.eye(3),
                      flatness_rms_mm=0.0, inlier_count=u.size, inlier_fraction=1.0)
-    plate = _rasterised_image(xyz, intensity, pose, pitch)
+    plate = rasterised_image(xyz, intensity, pose, pitch)
     pixel = np.linalg.solve(plate.raster_matrix, (xyz[:, :2] - plate.raster_origin).T)
     assert np.abs(pixel - np.round(pixel)).max() < 0.01
     column, row = np.round(pixel).astype(int)
@@ -408,12 +408,12 @@ def test_prewhitening_makes_correlated_noise_white_and_leaves_white_noise_alone(
     smooth = ndimage.gaussian_filter(rng.standard_normal((512, 512)), 1.5, mode="wrap")
     correlated = (0.3 * smooth / smooth.std() + 0.05 * rng.standard_normal((512, 512))).astype(np.float32)
     # Tiles under a candidate's disc are left out of the spectrum; the rest are plenty.
-    kernel = _prewhitening_kernel(correlated, np.array([[256.0, 256.0]]), 40.0)
+    kernel = prewhitening_kernel(correlated, np.array([[256.0, 256.0]]), 40.0)
     whitened = cv2.filter2D(correlated, cv2.CV_32F, kernel, borderType=cv2.BORDER_REFLECT)[32:-32, 32:-32]
     assert _lag_one_correlation(correlated[32:-32, 32:-32]) > 0.75
     assert abs(_lag_one_correlation(whitened)) < 0.05
     white = rng.standard_normal((512, 512)).astype(np.float32)
-    kernel = _prewhitening_kernel(white, np.empty((0, 2)), 40.0)
+    kernel = prewhitening_kernel(white, np.empty((0, 2)), 40.0)
     # White noise: a unit impulse less the mean of the kernel's window (a mild high pass).
     centre = kernel.shape[0] // 2
     assert kernel[centre, centre] > 0.99 and np.abs(np.delete(kernel.ravel(), kernel.size // 2)).max() < 0.05
@@ -421,9 +421,9 @@ def test_prewhitening_makes_correlated_noise_white_and_leaves_white_noise_alone(
 
 def test_prewhitening_needs_noise_and_bare_steel():
     rng = np.random.default_rng(4)
-    assert _prewhitening_kernel(np.full((256, 256), 5.0, np.float32), np.empty((0, 2)), 10.0) is None
+    assert prewhitening_kernel(np.full((256, 256), 5.0, np.float32), np.empty((0, 2)), 10.0) is None
     noise = rng.standard_normal((256, 256)).astype(np.float32)
     # 64 tiles of 32 px, all under candidates' discs: no bare steel to take a spectrum from.
     everywhere = np.array([(c, r) for r in range(16, 256, 32) for c in range(16, 256, 32)], float)
-    assert _prewhitening_kernel(noise, everywhere, 30.0) is None
-    assert _prewhitening_kernel(noise[:100, :100], np.empty((0, 2)), 10.0) is None   # 9 tiles
+    assert prewhitening_kernel(noise, everywhere, 30.0) is None
+    assert prewhitening_kernel(noise[:100, :100], np.empty((0, 2)), 10.0) is None   # 9 tiles

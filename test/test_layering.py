@@ -133,3 +133,22 @@ def test_the_checks_see_a_late_import_and_a_circle(tmp_path):
     typed.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
                      "    from gls_calibration.calibration.procedure import ProcedureSettings\n")
     assert imports_of(typed) == {"gls_calibration.calibration.procedure"}
+
+
+def private_names_imported(path: Path) -> list[str]:
+    """The underscore names ``path`` imports from other modules of the package (``module.name``)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    return [f"{node.module}.{alias.name}" for node in ast.walk(tree)
+            if isinstance(node, ast.ImportFrom) and node.level == 0
+            and (node.module or "").startswith("gls_calibration.")
+            for alias in node.names if alias.name.startswith("_") and not alias.name.startswith("__")]
+
+
+def test_no_module_imports_another_modules_private_name(tmp_path):
+    # A name another module uses is part of its module's interface: it goes without the underscore.
+    offenders = [f"{module_name_of(path)} imports {name}" for path in sorted(PACKAGE.rglob("*.py"))
+                 for name in private_names_imported(path)]
+    assert offenders == []
+    sample = tmp_path / "sample.py"
+    sample.write_text("from gls_calibration.fiducials.ring_fit import refine_ring_centres, _private\n")
+    assert private_names_imported(sample) == ["gls_calibration.fiducials.ring_fit._private"]

@@ -32,7 +32,7 @@ MODERATION_MIN_REFERENCE = 10
 """Candidates a plate needs before their uncertainties are moderated towards its typical one."""
 
 
-def _harmonic_design(angles: np.ndarray) -> np.ndarray:
+def harmonic_design(angles: np.ndarray) -> np.ndarray:
     """Radial model of a ring seen from near its centre: r(theta) = R + a cos + b sin + c cos 2 + d sin 2.
 
     (a, b) is the centre's offset from the ray origin (first order, exact at the fixed point of the
@@ -43,7 +43,7 @@ def _harmonic_design(angles: np.ndarray) -> np.ndarray:
                      np.sin(2 * angles)], axis=-1)
 
 
-def _sector_sums(values: np.ndarray, sector_of_ray: np.ndarray) -> np.ndarray:
+def sector_sums(values: np.ndarray, sector_of_ray: np.ndarray) -> np.ndarray:
     """Sum ``values`` (M, A, ...) over the rays of each sector (M, SECTORS, ...).
 
     Sums of ``values`` (M, A, ...) over the rays of each sector (M, SECTORS, ...); the rays of a
@@ -53,8 +53,8 @@ def _sector_sums(values: np.ndarray, sector_of_ray: np.ndarray) -> np.ndarray:
     return np.add.reduceat(values, starts, axis=1)
 
 
-def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarray,
-                       sector_of_ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarray,
+                      sector_of_ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Return the centre's covariance (M, 2, 2) from the radial residuals, and its dof (M,).
 
     Covariance (M, 2, 2) of the fitted centre (plate axes, mm^2) from the radial residuals, and its
@@ -70,9 +70,9 @@ def _centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarra
     parameters = design.shape[-1]
     u = np.asarray(used, dtype=float)       # the fit's weight per ray, 0 where unused
     full_design = np.broadcast_to(design, (count, rays, parameters))
-    sector_normal = _sector_sums(np.einsum("mai,ma,maj->maij", full_design, u, full_design), sector_of_ray)
-    sector_score = _sector_sums(full_design * (u * np.where(u > 0, residual, 0.0))[..., None], sector_of_ray)
-    jackknife, groups = sector_jackknife(sector_normal, sector_score, _sector_sums(u, sector_of_ray) > 0,
+    sector_normal = sector_sums(np.einsum("mai,ma,maj->maij", full_design, u, full_design), sector_of_ray)
+    sector_score = sector_sums(full_design * (u * np.where(u > 0, residual, 0.0))[..., None], sector_of_ray)
+    jackknife, groups = sector_jackknife(sector_normal, sector_score, sector_sums(u, sector_of_ray) > 0,
                                          total_right=np.zeros((count, parameters)))
     jackknife = jackknife[:, 1:3, 1:3]
     spectral, spectral_dof = _spectral_covariance(design, residual, used)
@@ -128,7 +128,7 @@ def _spectral_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndar
     return covariance[:, 1:3, 1:3], np.maximum(weight.sum(axis=1) / correlation_time, 2.0)
 
 
-def _moderated(covariance: np.ndarray, dof: np.ndarray, reference: np.ndarray) -> np.ndarray:
+def moderated_covariance(covariance: np.ndarray, dof: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """Raise each axis' variance of centre covariances (M, 2, 2) to its empirical-Bayes posterior.
 
     Centre covariances (M, 2, 2) with each axis' variance raised to its empirical-Bayes
@@ -165,7 +165,7 @@ def _moderated(covariance: np.ndarray, dof: np.ndarray, reference: np.ndarray) -
     return covariance * scale[:, :, None] * scale[:, None, :]
 
 
-def _plane_to_cloud_sigma(covariance: np.ndarray, pose: PlatePose) -> np.ndarray:
+def plane_to_cloud_sigma(covariance: np.ndarray, pose: PlatePose) -> np.ndarray:
     """Per-axis standard uncertainty (M, 2) along the cloud's x and y of plate-axis covariances."""
     in_plane = np.asarray(pose.rotation, dtype=float)[:, :2]
     cloud = np.einsum("ij,mjk,lk->mil", in_plane, covariance, in_plane)

@@ -21,7 +21,7 @@ MIN_DETECTION_SCORE = 0.12
 
 PREWHITENING_TILE_PX = 32
 """Side (pixels) of the bare-steel tiles whose averaged periodogram is the noise spectrum the centre
-fit is prewhitened by (``_prewhitening_kernel``): 1/32 cycle per pixel resolves speckle correlated
+fit is prewhitened by (``prewhitening_kernel``): 1/32 cycle per pixel resolves speckle correlated
 over 1-2 pixels, and a 19x19 plate at 0.1 mm holds about 1 100 such tiles clear of its rings."""
 
 PREWHITENING_KERNEL_PX = 11
@@ -36,7 +36,7 @@ PREWHITENING_FLOOR = 1e-3
 about 1 / sqrt(floor), so spectral bins the periodogram put near zero by chance stay bounded."""
 
 
-def _log_intensity(intensity: np.ndarray) -> np.ndarray:
+def log_intensity_image(intensity: np.ndarray) -> np.ndarray:
     """Return the log intensity (H, W) float32: it makes the multiplicative speckle additive.
 
     Log intensity (H, W) float32: speckle is multiplicative, so it becomes additive and equal on
@@ -48,7 +48,7 @@ def _log_intensity(intensity: np.ndarray) -> np.ndarray:
     return np.log(clipped, out=clipped).astype(np.float32)      # in place: one image-sized array less
 
 
-def _refinement_image(log_intensity: np.ndarray) -> np.ndarray:
+def refinement_image(log_intensity: np.ndarray) -> np.ndarray:
     """Return the whitened image for detection and ring tracking (a high-passed log intensity).
 
     Whitened image for detection and ring tracking: the log intensity minus its Gaussian blur of
@@ -58,8 +58,8 @@ def _refinement_image(log_intensity: np.ndarray) -> np.ndarray:
     return log_intensity - cv2.GaussianBlur(log_intensity, (0, 0), HIGH_PASS_SIGMA_PX)
 
 
-def _prewhitening_kernel(log_intensity: np.ndarray, candidates_px: np.ndarray,
-                         clear_radius_px: float) -> np.ndarray | None:
+def prewhitening_kernel(log_intensity: np.ndarray, candidates_px: np.ndarray,
+                        clear_radius_px: float) -> np.ndarray | None:
     """Filter (K, K) float32 that whitens the noise of bare steel, or None without enough of it.
 
     The noise spectrum is the mean periodogram (Hann window, each tile's mean removed) of the
@@ -147,8 +147,8 @@ def _detection_image(image: np.ndarray, pitch: tuple[float, float]):
     return binned, (factor_rows, factor_cols)
 
 
-def _detect(image: np.ndarray, pitch: tuple[float, float], radii: np.ndarray, marks_darker: bool | None,
-            expected_count: int | None):
+def detect_rings(image: np.ndarray, pitch: tuple[float, float], radii: np.ndarray, marks_darker: bool | None,
+                 expected_count: int | None):
     """Candidate centres (M, 2) as (column, row) pixels of ``image``, their scores, and the polarity."""
     binned, (factor_rows, factor_cols) = _detection_image(image, pitch)
     binned_pitch = (pitch[0] * factor_rows, pitch[1] * factor_cols)

@@ -27,7 +27,7 @@ What we know is used throughout: every fiducial is two concentric rings of known
    symmetric profile template makes each edge point unbiased by background level, linear shading
    and the rings' blur. These passes run on the high-passed log image; the
    last fit, which gives the centre, runs on the log image prewhitened by the noise spectrum of the
-   plate's bare steel (``_prewhitening_kernel``), so that correlated speckle weighs less at the
+   plate's bare steel (``prewhitening_kernel``), so that correlated speckle weighs less at the
    spatial frequencies where it is strong.
 4. Quality per centre: the ring amplitude is measured on 24 angular sectors at the fitted circle;
    ``coverage`` is the share of sectors where the rings are seen, and rays of unseen sectors are
@@ -35,7 +35,7 @@ What we know is used throughout: every fiducial is two concentric rings of known
    delete-one-sector jackknife of the edge points' ring fit (a fiducial's own local trouble) and a
    spectral estimate (edge noise correlated along the ring, whose power in the first harmonic, the
    centre, the residuals do not show; ``_spectral_covariance``), its variances raised towards the
-   plate's typical one where they came out low by chance (``_moderated``), plus ``MODEL_SIGMA_MM``.
+   plate's typical one where they came out low by chance (``moderated_covariance``), plus ``MODEL_SIGMA_MM``.
 5. Status: candidates are rejected with a reason (``spurious``: coverage below ``SPURIOUS_COVERAGE``,
    no ring there; ``partial``: coverage below ``MIN_COVERAGE``;
    ``radius``: a ring's semi-axes (mean radius +- its second harmonic) off the nominal radius, which
@@ -56,11 +56,11 @@ from scipy.spatial import cKDTree
 
 from gls_calibration.common.validation import as_finite_array
 from gls_calibration.fiducials import merged_pairs as merged_fiducials
-from gls_calibration.fiducials.centre_uncertainty import MODEL_SIGMA_MM, _moderated, _plane_to_cloud_sigma
-from gls_calibration.fiducials.detection import (PREWHITENING_KERNEL_PX, _detect, _log_intensity, _prewhitening_kernel,
-                                                 _refinement_image)
-from gls_calibration.fiducials.raster import LINE_HALF_WIDTH_MM, _local_affines, _organized_image, _rasterised_image
-from gls_calibration.fiducials.ring_fit import _refine
+from gls_calibration.fiducials.centre_uncertainty import MODEL_SIGMA_MM, moderated_covariance, plane_to_cloud_sigma
+from gls_calibration.fiducials.detection import (PREWHITENING_KERNEL_PX, detect_rings, log_intensity_image,
+                                                 prewhitening_kernel, refinement_image)
+from gls_calibration.fiducials.raster import LINE_HALF_WIDTH_MM, local_affines, organized_image, rasterised_image
+from gls_calibration.fiducials.ring_fit import refine_ring_centres
 from gls_calibration.fiducials.targets import RING_RADII_MM
 from gls_calibration.scan.plate_pose import PlatePose
 
@@ -202,7 +202,7 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=RING_RAD
     ``xyz`` is organized (H, W, 3) with ``intensity`` (H, W), or unorganized (N, 3) with (N,); NaNs
     are allowed. ``pose`` is the plate pose from ``estimate_plate_pose``. ``pixel_size_mm`` is the
     raster pitch for unorganized clouds; None takes it from the cloud's own point spacing
-    (``_rasterised_image``). ``marks_darker`` None finds the polarity from the image.
+    (``rasterised_image``). ``marks_darker`` None finds the polarity from the image.
     A candidate is accepted when both semi-axes of every fitted ring are within ``radius_tolerance_mm``
     of its nominal radius (None: :data:`RADIUS_TOLERANCE_FRACTION` of the largest radius, 0.12 mm for
     the published 2.7 mm ring: an uncalibrated scanner marks rings a few percent too large, 2.78 mm
@@ -272,28 +272,28 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=RING_RAD
     except (TypeError, ValueError) as error:
         raise ValueError(f"xyz and intensity must be numeric: {error}") from None
     if xyz.ndim == 3 and xyz.shape[2] == 3 and intensity.shape == xyz.shape[:2]:
-        plate = _organized_image(xyz, intensity, pose)
+        plate = organized_image(xyz, intensity, pose)
     elif xyz.ndim == 2 and xyz.shape[1] == 3 and intensity.shape == xyz.shape[:1]:
-        plate = _rasterised_image(xyz, intensity, pose, pixel_size_mm, float(radii_nominal[0]))
+        plate = rasterised_image(xyz, intensity, pose, pixel_size_mm, float(radii_nominal[0]))
     else:
         raise ValueError("xyz must be (H, W, 3) with intensity (H, W), or (N, 3) with intensity (N,); "
                          f"got {xyz.shape} and {intensity.shape}")
 
-    log_intensity = _log_intensity(plate.intensity)
-    whitened = _refinement_image(log_intensity)
+    log_intensity = log_intensity_image(plate.intensity)
+    whitened = refinement_image(log_intensity)
     height, width = whitened.shape
-    candidates, _, marks_darker = _detect(whitened, plate.pitch, radii_nominal, marks_darker, expected_count)
+    candidates, _, marks_darker = detect_rings(whitened, plate.pitch, radii_nominal, marks_darker, expected_count)
     image = whitened if marks_darker else -whitened
     pitch = min(plate.pitch)
     if len(candidates):
         half_px = int(np.ceil((radii_nominal[-1] + 0.5) / pitch))
-        offset, jacobian, affine_ok = _local_affines(plate, candidates, half_px)
+        offset, jacobian, affine_ok = local_affines(plate, candidates, half_px)
         start_uv = offset + np.einsum("mij,mj->mi", jacobian, candidates)
-        kernel = _prewhitening_kernel(log_intensity, candidates,
-                                      (radii_nominal[-1] + RING_CLEARANCE_MM) / min(plate.pitch))
+        kernel = prewhitening_kernel(log_intensity, candidates,
+                                     (radii_nominal[-1] + RING_CLEARANCE_MM) / min(plate.pitch))
         fit_image = None if kernel is None else cv2.filter2D(
             log_intensity, cv2.CV_32F, kernel if marks_darker else -kernel, borderType=cv2.BORDER_REFLECT)
-        fit = _refine(image, start_uv, offset, jacobian, radii_nominal, pitch, fit_image)
+        fit = refine_ring_centres(image, start_uv, offset, jacobian, radii_nominal, pitch, fit_image)
     else:
         affine_ok = np.zeros(0, bool)
         offset, jacobian, fit_image = np.empty((0, 2)), np.empty((0, 2, 2)), None
@@ -310,9 +310,9 @@ def measure_fiducials(xyz, intensity, pose: PlatePose, *, ring_radii_mm=RING_RAD
     radius_ok = np.all(np.abs(fit["radii"] - radii_nominal) + fit["ellipticity"][:, None] <= radius_tolerance_mm,
                        axis=1)
     reference = fit["fit_ok"] & (fit["coverage"] >= MIN_COVERAGE) & radius_ok
-    covariance = _moderated(fit["covariance"], fit["dof"], reference) + MODEL_SIGMA_MM**2 * np.eye(2)
+    covariance = moderated_covariance(fit["covariance"], fit["dof"], reference) + MODEL_SIGMA_MM**2 * np.eye(2)
     sigma_plane = np.sqrt(np.stack([covariance[:, 0, 0], covariance[:, 1, 1]], axis=-1))
-    sigma_xy = _plane_to_cloud_sigma(covariance, pose)
+    sigma_xy = plane_to_cloud_sigma(covariance, pose)
     reasons = np.full(len(candidates), STATUS_OK, dtype=object)
     # The first failing check names the reason, most basic first.
     checks = (("fit", fit["fit_ok"] & affine_ok), ("spurious", fit["coverage"] >= SPURIOUS_COVERAGE),

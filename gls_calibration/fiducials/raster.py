@@ -33,7 +33,7 @@ points, 6-8 um RMS); 0.067 mm found all 361 in each of the issue's conditions, 0
 (docs/fiducial-measurement.md, *Plates from two renderers*)."""
 
 MIN_NORMAL_Z_FOR_CLOUD_RASTER = 0.7
-"""A cloud without a lattice is rasterised in its own x-y (``_rasterised_image``) when the plate's
+"""A cloud without a lattice is rasterised in its own x-y (``rasterised_image``) when the plate's
 normal is within about 45 deg of the cloud's z; steeper, on the plate's plane."""
 
 LATTICE_TILE_PX = 125.0
@@ -153,7 +153,7 @@ def _median_spacing(lines_uv: np.ndarray, axis: int) -> float:
     return float(np.median(lengths))
 
 
-def _organized_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose) -> _PlateImage:
+def organized_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose) -> _PlateImage:
     """Image of an organized cloud: one pixel per point."""
     valid = _finite_points(xyz, intensity)
     if np.count_nonzero(valid) == 0:
@@ -264,8 +264,8 @@ def _edge_turn(points: np.ndarray) -> np.ndarray:
     return np.array([[np.cos(turn_rad), np.sin(turn_rad)], [-np.sin(turn_rad), np.cos(turn_rad)]])   # by -turn
 
 
-def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
-                      pixel_size_mm: float | None, smallest_radius_mm: float = RING_RADII_MM[0]) -> _PlateImage:
+def rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
+                     pixel_size_mm: float | None, smallest_radius_mm: float = RING_RADII_MM[0]) -> _PlateImage:
     """Image of an unorganized cloud: mean intensity of the points falling in each plane pixel.
 
     ``pixel_size_mm`` None takes the pixel from the cloud's own point spacing (``_point_spacing``):
@@ -377,7 +377,7 @@ def _rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
     return _PlateImage(image, None, -to_plane @ shift, pitch, to_plane)
 
 
-def _local_affines(plate: _PlateImage, centres_px: np.ndarray, half_px: int):
+def local_affines(plate: _PlateImage, centres_px: np.ndarray, half_px: int):
     """Per candidate: plane offset (M, 2) and 2x2 Jacobian (M, 2, 2) with uv = offset + J @ (col, row)."""
     count = len(centres_px)
     if plate.cloud_xyz is None:

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from gls_calibration.common.robust import NORMAL_MAD_SCALE
-from gls_calibration.fiducials.centre_uncertainty import SECTORS, _centre_covariance, _harmonic_design, _sector_sums
+from gls_calibration.fiducials.centre_uncertainty import SECTORS, centre_covariance, harmonic_design, sector_sums
 
 
 RAY_COUNT = 256
@@ -173,8 +173,8 @@ def _second_harmonic(radius_per_ray: np.ndarray, angles: np.ndarray) -> np.ndarr
         2.0 / len(angles))
 
 
-def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacobian: np.ndarray,
-            radii_nominal: np.ndarray, pitch_mm: float, fit_image: np.ndarray | None = None) -> dict:
+def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacobian: np.ndarray,
+                        radii_nominal: np.ndarray, pitch_mm: float, fit_image: np.ndarray | None = None) -> dict:
     """Sub-pixel double-ring fit per candidate (see the module docstring, step 3 and 4).
 
     ``PASSES`` passes on ``image`` follow the rings and give the coverage and the rings' radii; with
@@ -193,7 +193,7 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
     half = (len(pair_template) - 1) / 2 * step
     angles = np.linspace(0.0, 2 * np.pi, RAY_COUNT, endpoint=False)
     directions = np.stack([np.cos(angles), np.sin(angles)], axis=-1)         # (A, 2)
-    design = _harmonic_design(angles)                                        # (A, 5)
+    design = harmonic_design(angles)                                        # (A, 5)
     sector_of_ray = (np.arange(RAY_COUNT) * SECTORS) // RAY_COUNT
     inverse = np.linalg.inv(jacobian)
     centres = centres_uv.copy()
@@ -237,8 +237,8 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
         # Ring amplitude of every ray at the fitted circle: erased arcs read about zero there.
         position = np.clip(np.rint((at - radial[0]) / step).astype(int), 0, len(radial) - 1)
         amplitude = np.where(inside, np.take_along_axis(score, position[..., None], -1)[..., 0], np.nan)
-        sector_sum = _sector_sums(np.where(np.isfinite(amplitude), amplitude, 0.0), sector_of_ray)
-        sector_n = _sector_sums(np.isfinite(amplitude).astype(float), sector_of_ray)
+        sector_sum = sector_sums(np.where(np.isfinite(amplitude), amplitude, 0.0), sector_of_ray)
+        sector_n = sector_sums(np.isfinite(amplitude).astype(float), sector_of_ray)
         with np.errstate(invalid="ignore", divide="ignore"):
             sector = np.where(sector_n > 0, sector_sum / sector_n, np.nan)
         reference = _row_nanquantile(sector, 0.75)
@@ -257,7 +257,7 @@ def _refine(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacob
     # Second harmonic of the tracked ring (half the difference of its axes): a ring on the plate is a
     # circle, so this is small; the envelope of two offset rings (a merged detection) is not.
     ellipticity = np.hypot(*_second_harmonic(at, angles).T)
-    covariance, dof = _centre_covariance(design, final_residual, final_weight, sector_of_ray)
+    covariance, dof = centre_covariance(design, final_residual, final_weight, sector_of_ray)
 
     # Each ring's radius about the final centre: darkness centroid in a window of +- half the ring
     # gap around its expected position on every used ray (a check of the ring sizes, not the centre).
