@@ -119,7 +119,7 @@ def test_sweeps_from_a_peer_process_match_closed_form_and_bad_streams_are_refuse
     assert "1 out of order dropped" in swapped.message and "20 profiles of 41 points" in swapped.message
     _check_closed_form(swapped, 20, -1, 90.0)
 
-    held_back = acquire()     # one profile of the line comes 1.5 s after the end: the sweep is taken without it
+    held_back = acquire()     # one profile of the line comes LATE_S (3 s) after the end: the sweep is taken without it
     assert held_back.success and "20 profiles of 41 points" in held_back.message, held_back.message
     assert "late" not in held_back.message
     _check_closed_form(held_back, 20, 1, 0.0)
