@@ -229,9 +229,21 @@ class _TranslationVote:
 
     def votes(self, measured_2d: np.ndarray) -> tuple[int, tuple[int, int]]:
         """Most differences in any 2x2-cell box (a cluster split by a cell edge still counts whole)."""
-        _, cells = self._cells(measured_2d)
-        counts = np.bincount(cells[:, 0] * self.shape[1] + cells[:, 1],
-                             minlength=self.shape[0] * self.shape[1]).reshape(self.shape)
+        # The cells of _cells, one axis at a time and in place: the same arithmetic, so the same cells,
+        # without the interleaved (N*K, 2) temporaries (about 9x faster; 62 votes per pairing).
+        inverse = 1.0 / self.gate
+        index = None
+        for axis in (0, 1):
+            differences = np.subtract.outer(self.target_2d[:, axis], measured_2d[:, axis])
+            differences -= self.low[axis]
+            differences *= inverse
+            cells = differences.astype(np.int64)
+            if index is None:
+                index = cells
+                index *= self.shape[1]
+            else:
+                index += cells
+        counts = np.bincount(index.ravel(), minlength=self.shape[0] * self.shape[1]).reshape(self.shape)
         boxes = counts[:-1, :-1] + counts[1:, :-1] + counts[:-1, 1:] + counts[1:, 1:]
         best = np.unravel_index(int(np.argmax(boxes)), boxes.shape)
         return int(boxes[best]), (int(best[0]), int(best[1]))
