@@ -5,8 +5,9 @@ from gls_calibration.registration.rigid import _rotation_2d, _TranslationVote
 
 
 def _reference_votes(vote: _TranslationVote, measured_2d: np.ndarray) -> tuple[int, tuple[int, int]]:
-    """The vote from the interleaved cells (``_cells``, which ``shift`` uses), counted and boxed another way."""
-    _, cells = vote._cells(measured_2d)
+    """The vote computed another way: cells of interleaved (N*K, 2) differences, counted with add.at."""
+    differences = (vote.target_2d[:, None, :] - measured_2d[None, :, :]).reshape(-1, 2)
+    cells = ((differences - vote.low) * (1.0 / vote.gate)).astype(np.int64)
     counts = np.zeros(vote.shape, dtype=np.int64)
     np.add.at(counts, (cells[:, 0], cells[:, 1]), 1)
     boxes = np.lib.stride_tricks.sliding_window_view(counts, (2, 2)).sum(axis=(2, 3))
