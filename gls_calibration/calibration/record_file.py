@@ -17,9 +17,11 @@ from pathlib import Path
 import stat
 from typing import Any
 
+import numpy as np
 import yaml
 
 import gls_calibration
+from gls_calibration.common.bounded_yaml import load_bounded_yaml
 from gls_calibration.common.files import nan_to_none, to_plain
 from gls_calibration.correction.uncertainty_grid import UNCERTAINTY_KEY, UncertaintyGrid
 from gls_calibration.geometry.kinematics import HeadGeometry
@@ -28,9 +30,6 @@ FORMAT_VERSION = 2
 # Version 1 stored a thin-plate spline as its training data (refitted when loaded) and had no
 # calibration plane or taper in the region (z = 0 and 10 mm); such files still load.
 READABLE_FORMAT_VERSIONS = (1, 2)
-# libyaml's parser when PyYAML was built with it: ~10x faster than the pure-Python one on a
-# calibration file (the spline's centres and weights are hundreds of numbers).
-_SafeLoader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 _SafeDumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 REQUIRED_KEYS = (
     "format_version", "software_version", "created_utc", "head", "plate_pose", "models",
@@ -38,6 +37,8 @@ REQUIRED_KEYS = (
 )
 FIDUCIAL_KEYS = ("target_x", "target_y", "measured_x", "measured_y", "measured_z", "dx", "dy")
 HEAD_KEYS = tuple(field.name for field in dataclasses.fields(HeadGeometry))
+_NUMBER_TYPES = {int, float}    # the exact types of YAML numbers (bool and numpy scalars: one by one)
+_FLOAT_TYPE = {float}
 
 
 class CalibrationRecord(Mapping):
@@ -134,6 +135,12 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
+def _all_numbers(values: list) -> bool:
+    """Whether every item of ``values`` is a number (:func:`_is_number`)."""
+    # the item types in one pass in C; subclasses (bool, numpy scalars) one by one
+    return set(map(type, values)) <= _NUMBER_TYPES or all(_is_number(item) for item in values)
+
+
 def validate_record(record: Any, source: str | os.PathLike | None = None) -> None:
     """Raise CalibrationFileError naming ``source`` and the first problem found in ``record``.
 
@@ -157,7 +164,7 @@ def validate_record(record: Any, source: str | os.PathLike | None = None) -> Non
             fail(f"key '{key}' must be a number, got {_type_name(value)}")
 
     def require_numbers(value: Any, key: str, length: int | None = None) -> None:
-        if not isinstance(value, list) or not all(_is_number(item) for item in value):
+        if not isinstance(value, list) or not _all_numbers(value):
             fail(f"key '{key}' must be a list of numbers, got {_type_name(value)}")
         if length is not None and len(value) != length:
             fail(f"key '{key}' must hold {length} numbers, got {len(value)}")
@@ -262,6 +269,9 @@ def _first_non_finite(value: Any, path: str) -> str | None:
             if found is not None:
                 return found
     elif isinstance(value, (list, tuple)):
+        if value and set(map(type, value)) == _FLOAT_TYPE:    # a list of floats checked in one go
+            finite = np.isfinite(np.array(value, dtype=float))
+            return None if finite.all() else f"{path}[{int(np.argmin(finite))}]"
         for index, item in enumerate(value):
             found = _first_non_finite(item, f"{path}[{index}]")
             if found is not None:
@@ -305,7 +315,7 @@ def dump_record(record: Mapping) -> str:
 
 
 class _NoAliasDumper(_SafeDumper):
-    """Writes a repeated object in full: the reader refuses aliases (see _check_structure)."""
+    """Writes a repeated object in full: the reader refuses aliases (see ``bounded_yaml``)."""
 
     def ignore_aliases(self, data):  # noqa: D102 (PyYAML's hook)
         return True
@@ -313,27 +323,6 @@ class _NoAliasDumper(_SafeDumper):
 
 MAX_FILE_BYTES = 4 * 1024 * 1024   # a 19x19 calibration is ~0.1 MB; bounds memory and parsing time
 MAX_YAML_DEPTH = 32                # a calibration file nests 5 levels deep
-_OPENING_EVENTS = (yaml.SequenceStartEvent, yaml.MappingStartEvent)
-_CLOSING_EVENTS = (yaml.SequenceEndEvent, yaml.MappingEndEvent)
-
-
-def _check_structure(text: str) -> None:
-    """Raise YAMLError for aliases or for nesting deeper than MAX_YAML_DEPTH.
-
-    An alias bomb expands exponentially when walked; construction recurses once per level. The
-    parser is lazy: a hostile document is refused after a few events, however long it is.
-    """
-    depth = 0
-    for event in yaml.parse(text, Loader=_SafeLoader):
-        if isinstance(event, yaml.AliasEvent):
-            raise yaml.composer.ComposerError(None, None, "aliases are not allowed", event.start_mark)
-        if isinstance(event, _OPENING_EVENTS):
-            depth += 1
-            if depth > MAX_YAML_DEPTH:
-                raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_YAML_DEPTH} levels",
-                                                  event.start_mark)
-        elif isinstance(event, _CLOSING_EVENTS):
-            depth -= 1
 
 
 def read_bounded_text(path: str | os.PathLike, limit_bytes: int = MAX_FILE_BYTES) -> str:
@@ -371,12 +360,11 @@ def read_calibration_yaml(path: Path) -> Any:
     """Parse a YAML file, turning read and syntax errors into CalibrationFileError.
 
     The one place where calibration files and pointers are read: bounded size, regular files only,
-    no aliases, bounded nesting (see read_bounded_text and _check_structure).
+    no aliases, bounded nesting (see read_bounded_text and ``bounded_yaml``).
     """
     text = read_bounded_text(path)
     try:
-        _check_structure(text)
-        return yaml.load(text, Loader=_SafeLoader)
+        return load_bounded_yaml(text, MAX_YAML_DEPTH)
     except yaml.YAMLError as error:
         where = getattr(error, "problem_mark", None)
         location = f" at line {where.line + 1}, column {where.column + 1}" if where is not None else ""

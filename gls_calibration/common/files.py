@@ -70,6 +70,9 @@ def _fsync_directory(directory: Path) -> None:
         os.close(descriptor)
 
 
+_PLAIN_ITEM_TYPES = {float, int, bool, str, type(None)}
+
+
 def to_plain(value: Any) -> Any:
     """Convert dataclass records, numpy arrays/scalars, tuples and paths inside ``value`` to YAML-safe Python types."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
@@ -77,8 +80,11 @@ def to_plain(value: Any) -> Any:
     if isinstance(value, Mapping):
         return {str(key): to_plain(item) for key, item in value.items()}
     if isinstance(value, np.ndarray):
-        return to_plain(value.tolist())
+        # numbers come out of tolist() plain already; object arrays may hold anything
+        return value.tolist() if value.dtype.kind in "biuf" else to_plain(value.tolist())
     if isinstance(value, (list, tuple)):
+        if set(map(type, value)) <= _PLAIN_ITEM_TYPES:     # the common list of numbers, copied in one go
+            return list(value)
         return [to_plain(item) for item in value]
     if isinstance(value, np.generic):
         return value.item()

@@ -244,24 +244,37 @@ class _TranslationVote:
         self.low = target_2d.min(axis=0) - measured_radius - gate
         self.shape = ((np.ptp(target_2d, axis=0) + 2.0 * measured_radius + 2.0 * gate) / gate).astype(np.int64) + 2
 
-    def _cells(self, measured_2d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        differences = (self.target_2d[:, None, :] - measured_2d[None, :, :]).reshape(-1, 2)
-        return differences, ((differences - self.low) * (1.0 / self.gate)).astype(np.int64)
+    def _cells(self, measured_2d: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
+        """Every target-minus-measured difference along ``axis`` (N, K) and the cell it falls in."""
+        differences = np.subtract.outer(self.target_2d[:, axis], measured_2d[:, axis])
+        return differences, ((differences - self.low[axis]) * (1.0 / self.gate)).astype(np.int64)
 
     def votes(self, measured_2d: np.ndarray) -> tuple[int, tuple[int, int]]:
         """Most differences in any 2x2-cell box (a cluster split by a cell edge still counts whole)."""
-        _, cells = self._cells(measured_2d)
-        counts = np.bincount(cells[:, 0] * self.shape[1] + cells[:, 1],
-                             minlength=self.shape[0] * self.shape[1]).reshape(self.shape)
+        # The cells of _cells, in place: the same arithmetic, so the same cells, without temporaries
+        # (62 votes per pairing; with interleaved (N*K, 2) arrays they took 9x as long).
+        inverse = 1.0 / self.gate
+        index = None
+        for axis in (0, 1):
+            differences = np.subtract.outer(self.target_2d[:, axis], measured_2d[:, axis])
+            differences -= self.low[axis]
+            differences *= inverse
+            cells = differences.astype(np.int64)
+            if index is None:
+                index = cells
+                index *= self.shape[1]
+            else:
+                index += cells
+        counts = np.bincount(index.ravel(), minlength=self.shape[0] * self.shape[1]).reshape(self.shape)
         boxes = counts[:-1, :-1] + counts[1:, :-1] + counts[:-1, 1:] + counts[1:, 1:]
         best = np.unravel_index(int(np.argmax(boxes)), boxes.shape)
         return int(boxes[best]), (int(best[0]), int(best[1]))
 
     def shift(self, measured_2d: np.ndarray, box: tuple[int, int]) -> np.ndarray:
         """Median difference inside the winning box."""
-        differences, cells = self._cells(measured_2d)
-        inside = np.all((cells >= box) & (cells <= np.add(box, 1)), axis=1)
-        return np.median(differences[inside], axis=0)
+        (along_x, cells_x), (along_y, cells_y) = self._cells(measured_2d, 0), self._cells(measured_2d, 1)
+        inside = (cells_x >= box[0]) & (cells_x <= box[0] + 1) & (cells_y >= box[1]) & (cells_y <= box[1] + 1)
+        return np.median(np.column_stack([along_x[inside], along_y[inside]]), axis=0)
 
 
 def _voters(measured_2d: np.ndarray, count: int) -> np.ndarray:

@@ -17,7 +17,11 @@ from gls_calibration.ros.service_errors import DeadlineExpired, ServiceCallError
 
 
 DEFAULT_NAMESPACE = "gls"
-POLL_PERIOD_S = 0.05          # how often a pending call checks its deadline and its server
+POLL_PERIOD_S = 0.05          # how often a wait for a condition checks it
+# How often a pending call checks its deadline and its server. Each check wakes the node's executor
+# twice, and every wake rebuilds its wait set and resumes every coroutine in progress (rclpy): at
+# 0.05 s this was most of the calibration manager's CPU while it waited for sweeps.
+WATCH_PERIOD_S = 0.15
 SERVER_GONE_CONFIRM_S = 0.3   # a server absent from the graph this long is gone (not a discovery blip)
 SERVER_WAIT_S = 2.0           # how long a call waits for its server to appear before failing
 
@@ -263,7 +267,8 @@ class GlsNode(Node):
         """Await ``future`` (or ``condition()``) with a deadline, failing early when a watched server leaves.
 
         One polling timer does all the checks, so any finite ``timeout_s`` is safe (a timer of 1e308 s
-        is not).
+        is not): every ``POLL_PERIOD_S`` with a ``condition``, else every ``WATCH_PERIOD_S`` (the
+        deadline is then met within that).
         """
         if not math.isfinite(timeout_s) or timeout_s <= 0.0:
             raise ServiceCallError(f"invalid time limit {timeout_s!r} s")
@@ -296,7 +301,8 @@ class GlsNode(Node):
                         f"the server of {client.srv_name} ({servers[client]}) disappeared after "
                         f"{now - began:.1f} s; step abandoned"))
                     return
-        timer = self.create_timer(min(POLL_PERIOD_S, timeout_s), poll, callback_group=self.reentrant_group)
+        period_s = POLL_PERIOD_S if condition is not None else WATCH_PERIOD_S
+        timer = self.create_timer(min(period_s, timeout_s), poll, callback_group=self.reentrant_group)
         try:
             failure = await waiter
         finally:
