@@ -363,3 +363,23 @@ def test_scanned_marks_recover_the_true_landing_points_full_grid():
     rms, found = measured_against_truth(19, 190.0)
     assert found == 361
     assert rms <= 0.02
+
+
+def _line_motion_run(start_ns: int):
+    from scipy.spatial.transform import Rotation
+    from gls_calibration.simulation.line_motion import MotionRun
+    rows = 200
+    stamps = start_ns + np.round(np.arange(rows) * (1e9 / 150.0)).astype(np.int64)
+    poses = np.repeat(np.eye(4)[None], rows, axis=0)
+    poses[:, 1, 3] = np.linspace(0.0, 20.0, rows)
+    poses[:, :3, :3] = Rotation.from_rotvec(np.outer(np.linspace(0.0, 1e-3, rows), [0.0, 0.0, 1.0])).as_matrix()
+    return MotionRun(int(stamps[0]), int(stamps[-1]), stamps, np.zeros((rows, 2, 4), np.float32), poses, None)
+
+
+def test_reported_poses_do_not_depend_on_when_the_motion_ran():
+    # A TF sample's pose at a given time into the motion is the same whenever the motion ran: absolute ns
+    # (~1.8e18) as float64 keep only 256 ns, which made repeated simulated runs differ in the last digits
+    # (3e-6 mm here before the fix).
+    offsets = np.round(np.arange(-5, 700) * (1e9 / 250.0)).astype(np.int64)
+    first, later = _line_motion_run(1_795_000_000_000_000_123), _line_motion_run(1_795_000_003_123_456_789)
+    np.testing.assert_array_equal(first.flange_at(first.start_ns + offsets), later.flange_at(later.start_ns + offsets))

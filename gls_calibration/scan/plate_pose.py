@@ -24,8 +24,13 @@ MIN_PLATE_POINTS = 1000
 RANSAC_SUBSAMPLE = 100_000
 """Points handed to RANSAC; enough for a well-conditioned hypothesis, cheap on 4 M-point scans."""
 
-LSQ_REFITS = 2
-"""Inlier selection + least-squares rounds on the full cloud after RANSAC."""
+LSQ_MAX_REFITS = 20
+"""Most inlier selection + least-squares rounds on the full cloud after RANSAC.
+
+The rounds stop when the inliers no longer change: the plane is then a function of the cloud alone,
+not of the RANSAC hypothesis it started from (Open3D's RANSAC draws differently with the number of
+OpenMP threads, which made repeated runs differ in the last digits).
+"""
 
 
 @dataclass(frozen=True)
@@ -177,8 +182,13 @@ def estimate_plate_pose(points, *, distance_threshold_mm: float = 0.2, head_dire
     centre = -d * normal / np.linalg.norm([a, b, c])
 
     flatness = float("nan")
-    for _ in range(LSQ_REFITS):
-        inliers = cloud[np.abs(cloud @ normal - centre @ normal) <= distance_threshold_mm]
+    chosen = None
+    for _ in range(LSQ_MAX_REFITS):
+        mask = np.abs(cloud @ normal - centre @ normal) <= distance_threshold_mm
+        if chosen is not None and np.array_equal(mask, chosen):
+            break       # the same inliers fit the same plane
+        chosen = mask
+        inliers = cloud[mask]
         if len(inliers) < 3:
             break
         centre, normal, flatness = _least_squares_plane(inliers)

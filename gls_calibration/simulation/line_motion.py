@@ -77,8 +77,11 @@ class MotionRun:
         Reported flange poses (N, 4, 4) at ``stamps_ns``: linear in time between the profiles' poses
         (slerp for the rotation), held before the first and after the last.
         """
-        knots = self.profile_stamps_ns.astype(float)
-        times = np.clip(np.asarray(stamps_ns, dtype=float), knots[0], knots[-1])
+        # Times from the motion's first profile: absolute ns (~1.8e18) as float64 keep only 256 ns, and the
+        # poses would depend on when the motion ran (repeated simulated runs differed in the last digits).
+        first = self.profile_stamps_ns[0]
+        knots = (self.profile_stamps_ns - first).astype(float)
+        times = np.clip((np.asarray(stamps_ns, dtype=np.int64) - first).astype(float), knots[0], knots[-1])
         poses = np.repeat(np.eye(4)[None], times.size, axis=0)
         for axis in range(3):
             poses[:, axis, 3] = np.interp(times, knots, self.reported_flange_mm[:, axis, 3])
