@@ -59,7 +59,6 @@ class UncertaintyGrid:
         # plain lists for the one-target path (bisect on a list beats numpy per call)
         object.__setattr__(self, "_x_list", self.x_mm.tolist())
         object.__setattr__(self, "_y_list", self.y_mm.tolist())
-        object.__setattr__(self, "_u_rows", self.u_k2_mm.tolist())
         spacing = (np.diff(self.x_mm), np.diff(self.y_mm))
         object.__setattr__(self, "_uniform",
                            bool(all(np.allclose(step, step.mean(), rtol=1e-9, atol=0.0) for step in spacing)))
@@ -132,9 +131,10 @@ class UncertaintyGrid:
         i = min(max(bisect_right(xs, x) - 1, 0), last_x)
         j = min(max(bisect_right(ys, y) - 1, 0), last_y)
         tx, ty = (x - xs[i]) / (xs[i + 1] - xs[i]), (y - ys[j]) / (ys[j + 1] - ys[j])
-        low, high = self._u_rows[j], self._u_rows[j + 1]
-        bottom = low[i] + tx * (low[i + 1] - low[i])
-        top = high[i] + tx * (high[i + 1] - high[i])
+        flat, index = self._point[-1], j * len(xs) + i      # U once, as the uniform path reads it
+        low, high = flat[index], flat[index + len(xs)]
+        bottom = low + tx * (flat[index + 1] - low)
+        top = high + tx * (flat[index + len(xs) + 1] - high)
         return bottom + ty * (top - bottom)
 
     def at(self, x, y) -> np.ndarray:
