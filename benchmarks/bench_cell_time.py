@@ -18,37 +18,25 @@ Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_cell_time.py [--pr
 from __future__ import annotations
 
 import argparse
-import asyncio
 import dataclasses
 import statistics
 import tempfile
 from pathlib import Path
 
+from direct_runs import calibrate_validated, direct_cell, plan_settings
 from gls_calibration.calibration import procedure
-from gls_calibration.calibration.record import build_record, save_candidate
-from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.registration.sweep_plan import parse_plan
-from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.reference_plate import calibration_plan, measure_chain_map
-from gls_calibration.simulation.world import SimulatedCell, load_sim_config
+from gls_calibration.simulation.world import load_sim_config
 
 PLANS = ((4, "0+,0-,90+,90-"), (1, "0+,0-,90+,90-"), (2, "0+,90+"), (1, "0+,90+"), (1, "0+"))
 """(plain sweeps, passes over the marked plate); the first is config/gls.yaml's."""
 
 
 def calibrate(preset: str, seed: int, plain_sweeps: int, passes: str, chain_map, store_dir: Path) -> dict:
-    config = dataclasses.replace(load_sim_config(preset=preset), seed=seed)
-    cell = DirectCell(SimulatedCell(config), CalibrationStore(store_dir))
-    plan = calibration_plan()
-    settings = cell.settings(sweep_plan=parse_plan(passes), plain_sweeps=plain_sweeps,
-                             plain_sweep_step_mm=plan.plain_step_mm, marked_sweep_step_mm=plan.marked_step_mm,
-                             profiles_placed_by_pose=True, chain_map=chain_map)
-
-    def save(runs, models):
-        return save_candidate(cell.store, build_record(config.geometry, settings, runs, models, []), config.geometry)
-
-    outcome = asyncio.run(procedure.calibrate(cell, settings, iterations=1, validate=True, force=True,
-                                              want_truth=True, progress=lambda *_: None, save_candidate=save))
+    cell = direct_cell(dataclasses.replace(load_sim_config(preset=preset), seed=seed), store_dir)
+    outcome = calibrate_validated(cell, plan_settings(cell, sweep_plan=parse_plan(passes), plain_sweeps=plain_sweeps,
+                                                      profiles_placed_by_pose=True, chain_map=chain_map))
     validation = outcome.validation
     return {"true_rms": validation.true_metrics.full.rms_abs_mm, "measured_rms": validation.metrics.full.rms_abs_mm,
             "cell_time_s": sum(run.cell_time_s for run in outcome.runs) + validation.cell_time_s}

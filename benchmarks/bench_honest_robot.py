@@ -23,21 +23,18 @@ Run: .venv/bin/python benchmarks/bench_honest_robot.py [--presets paper_like car
 from __future__ import annotations
 
 import argparse
-import asyncio
 import dataclasses
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
+from direct_runs import calibrate_validated, direct_cell, plan_settings
 from gls_calibration.calibration import procedure
-from gls_calibration.calibration.record import build_record, save_candidate
-from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.registration.chain_map import ChainMap
 from gls_calibration.registration.separation import SeparationSettings
-from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.reference_plate import FIELD_PLATE, calibration_plan, measure_chain_map
-from gls_calibration.simulation.world import SimulatedCell, load_sim_config
+from gls_calibration.simulation.world import load_sim_config
 
 ROBOT_OFF = dict(robot_scale_error=0.0, robot_along_error_mm=0.0, robot_path_error_mm=0.0, robot_along_wander_mm=0.0)
 
@@ -57,22 +54,12 @@ def map_cell_time_s(repeats: int) -> float:
 
 def calibrate_once(preset: str, seed: int, robot: bool, separation: SeparationSettings | None, store_dir: Path,
                    chain_map: ChainMap | None = None) -> dict:
-    config = cell_config(preset, seed, robot)
-    cell = DirectCell(SimulatedCell(config), CalibrationStore(store_dir))
-    plan = calibration_plan()
-    settings = cell.settings(sweep_plan=plan.passes, plain_sweeps=plan.plain_sweeps,
-                             plain_sweep_step_mm=plan.plain_step_mm, marked_sweep_step_mm=plan.marked_step_mm,
-                             profiles_placed_by_pose=plan.placed_by_pose)
+    cell = direct_cell(cell_config(preset, seed, robot), store_dir)
+    settings = plan_settings(cell, chain_map=chain_map)
     if separation is not None:
         settings = dataclasses.replace(settings, separation=separation)
-    settings = dataclasses.replace(settings, chain_map=chain_map)
-
-    def save(runs, models):
-        return save_candidate(cell.store, build_record(config.geometry, settings, runs, models, []), config.geometry)
-
     began = time.perf_counter()
-    outcome = asyncio.run(procedure.calibrate(cell, settings, iterations=1, validate=True, force=True,
-                                              want_truth=True, progress=lambda *_: None, save_candidate=save))
+    outcome = calibrate_validated(cell, settings)
     validation = outcome.validation
     return {"measured_rms": validation.metrics.full.rms_abs_mm, "measured_max": validation.metrics.full.max_abs_mm,
             "true_rms": validation.true_metrics.full.rms_abs_mm, "true_max": validation.true_metrics.full.max_abs_mm,

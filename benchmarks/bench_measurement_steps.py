@@ -24,13 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+from direct_runs import direct_cell, plan_settings
 from gls_calibration.calibration import procedure
-from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.fiducials.targets import grid_targets
 from gls_calibration.registration.sweep_plan import parse_plan
-from gls_calibration.simulation.direct_cell import DirectCell
-from gls_calibration.simulation.reference_plate import calibration_plan
-from gls_calibration.simulation.world import SimulatedCell, load_sim_config
+from gls_calibration.simulation.world import load_sim_config
 
 WAYS = (("one sweep placed by time (the paper's way)", "0+", False),
         ("one sweep placed by pose", "0+", True),
@@ -42,11 +40,9 @@ WAYS = (("one sweep placed by time (the paper's way)", "0+", False),
 
 def measurement_error(preset: str, seed: int, passes: str, by_pose: bool, store_dir: Path) -> tuple[float, float]:
     """RMS and max (mm) of one plate's MEASURED minus TRUE deviations, their common shift removed."""
-    config = dataclasses.replace(load_sim_config(preset=preset), seed=seed)
-    cell = DirectCell(SimulatedCell(config), CalibrationStore(store_dir), placed_by_pose=by_pose)
-    plan = calibration_plan()
-    settings = cell.settings(sweep_plan=parse_plan(passes), plain_sweep_step_mm=plan.plain_step_mm,
-                             marked_sweep_step_mm=plan.marked_step_mm, profiles_placed_by_pose=by_pose)
+    cell = direct_cell(dataclasses.replace(load_sim_config(preset=preset), seed=seed), store_dir,
+                       placed_by_pose=by_pose)
+    settings = plan_settings(cell, sweep_plan=parse_plan(passes), profiles_placed_by_pose=by_pose)
     run = asyncio.run(procedure.run_plate(cell, settings, grid_targets(19, 190.0), lambda *_: None, (0.0, 1.0),
                                           want_truth=True))
     error = run.deviations - run.true_deviations

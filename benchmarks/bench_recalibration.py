@@ -26,25 +26,8 @@ from pathlib import Path
 
 from gls_calibration.calibration import procedure
 from gls_calibration.calibration.outcome import summarise
-from gls_calibration.calibration.record import build_record, record_models, save_candidate
-from gls_calibration.calibration.store import CalibrationStore
-from gls_calibration.simulation.direct_cell import DirectCell
-from gls_calibration.simulation.reference_plate import calibration_plan
-from gls_calibration.simulation.world import SimulatedCell, load_sim_config
-
-
-def calibrate(cell: DirectCell, settings: procedure.ProcedureSettings) -> procedure.CalibrationOutcome:
-    """One forced, validated calibration through ``cell``, as the manager runs it: the candidate holds
-    the active calibration's models and the new one (trained through them)."""
-    geometry = cell.sim.config.geometry
-    active = cell.store.active_path()
-    existing = record_models(cell.store.load(active)) if active else []
-
-    def save(runs, models):
-        return save_candidate(cell.store, build_record(geometry, settings, runs, models, existing), geometry)
-    return asyncio.run(procedure.calibrate(cell, settings, iterations=1, validate=True, force=True, want_truth=True,
-                                           progress=lambda *_: None, save_candidate=save,
-                                           active_calibration=active is not None))
+from direct_runs import calibrate_validated, direct_cell, plan_settings
+from gls_calibration.simulation.world import load_sim_config
 
 
 def figures(run: procedure.PlateRun) -> str:
@@ -57,20 +40,17 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
     config = dataclasses.replace(load_sim_config(preset=args.preset), seed=args.seed)
-    plan = calibration_plan()
     began = time.perf_counter()
     with tempfile.TemporaryDirectory() as folder:
-        cell = DirectCell(SimulatedCell(config), CalibrationStore(Path(folder)))
-        settings = cell.settings(sweep_plan=plan.passes, plain_sweeps=plan.plain_sweeps,
-                                 plain_sweep_step_mm=plan.plain_step_mm, marked_sweep_step_mm=plan.marked_step_mm,
-                                 profiles_placed_by_pose=plan.placed_by_pose)
-        first = calibrate(cell, settings)
+        cell = direct_cell(config, Path(folder))
+        settings = plan_settings(cell)
+        first = calibrate_validated(cell, settings)
         print(f"{args.preset} seed {args.seed}, first calibration: {first.message}; candidate on the validation grid "
               f"{figures(first.validation)} mm RMS")
         cell.store.activate(first.candidate.path)
         cell.reload_active_now()
         asyncio.run(cell.exchange_plate())
-        second = calibrate(cell, settings)
+        second = calibrate_validated(cell, settings)
     summary = summarise(second)
     uncertainty = max(procedure.centre_uncertainty_mm(second.runs[0], settings),
                       procedure.centre_uncertainty_mm(second.validation, settings))

@@ -11,7 +11,6 @@ Run: .venv/bin/python benchmarks/bench_standstill.py [--preset ideal] [--seeds 2
 from __future__ import annotations
 
 import argparse
-import asyncio
 import dataclasses
 import tempfile
 import time
@@ -19,12 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from direct_runs import calibrate_validated, direct_cell, plan_settings
 from gls_calibration.calibration import procedure
-from gls_calibration.calibration.record import build_record, save_candidate
-from gls_calibration.calibration.store import CalibrationStore
-from gls_calibration.simulation.direct_cell import DirectCell
-from gls_calibration.simulation.reference_plate import calibration_plan
-from gls_calibration.simulation.world import SimulatedCell, load_sim_config
+from gls_calibration.simulation.world import load_sim_config
 
 
 def radial_scale(targets_xy: np.ndarray, deviations: np.ndarray) -> tuple[float, float]:
@@ -35,18 +31,8 @@ def radial_scale(targets_xy: np.ndarray, deviations: np.ndarray) -> tuple[float,
 
 
 def calibrate_once(preset: str, seed: int, standstill: bool, store_dir: Path) -> procedure.PlateRun:
-    config = dataclasses.replace(load_sim_config(preset=preset), seed=seed)
-    cell = DirectCell(SimulatedCell(config), CalibrationStore(store_dir))
-    plan = calibration_plan()
-    settings = cell.settings(sweep_plan=plan.passes, plain_sweeps=plan.plain_sweeps,
-                             plain_sweep_step_mm=plan.plain_step_mm, marked_sweep_step_mm=plan.marked_step_mm,
-                             profiles_placed_by_pose=plan.placed_by_pose, standstill_height=standstill)
-
-    def save(runs, models):
-        return save_candidate(cell.store, build_record(config.geometry, settings, runs, models, []), config.geometry)
-    outcome = asyncio.run(procedure.calibrate(cell, settings, iterations=1, validate=True, force=True,
-                                              want_truth=True, progress=lambda *_: None, save_candidate=save))
-    return outcome.validation
+    cell = direct_cell(dataclasses.replace(load_sim_config(preset=preset), seed=seed), store_dir)
+    return calibrate_validated(cell, plan_settings(cell, standstill_height=standstill)).validation
 
 
 def main() -> None:
