@@ -29,7 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 import math
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Optional
 
 import numpy as np
 
@@ -155,12 +155,18 @@ def calibration_plan(parameter_file: str | Path | None = None) -> MeasurementPla
 
 @dataclass(frozen=True)
 class ReferencePlateResult:
-    """Standard uncertainty (k = 1) and bias per axis (gls x, y), mm, of one plan."""
+    """Standard uncertainty (k = 1) and bias per axis (gls x, y), mm, of one plan.
+
+    ``known_xy_mm`` and ``residuals_mm`` (N, 2) are the known centres found and their residuals
+    after each position's best rigid motion (None when not kept), for studies of the check's field.
+    """
 
     sigma_mm: tuple[float, float]
     bias_mm: tuple[tuple[float, float], ...]    # per position
     found: int
     expected: int
+    known_xy_mm: Optional[np.ndarray] = None
+    residuals_mm: Optional[np.ndarray] = None
 
 
 def reference_pattern(design: ReferencePlateDesign = PAPER_PLATE) -> np.ndarray:
@@ -261,7 +267,7 @@ def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 
     joint = _aligned_residuals(np.vstack(measured_all), np.vstack(known_all))
     bounds = np.cumsum([0] + [len(m) for m in measured_all])
     bias = tuple(tuple(float(v) for v in joint[a:b].mean(axis=0)) for a, b in zip(bounds[:-1], bounds[1:]))
-    return ReferencePlateResult(sigma, bias, found, expected)
+    return ReferencePlateResult(sigma, bias, found, expected, np.vstack(known_all)[:, :2], stacked)
 
 
 CHAIN_MAP_SEED_BASE = 7919
