@@ -55,6 +55,7 @@ from gls_calibration.models.physical_model import physics_first_parts, refit_phy
 
 CONTRIBUTIONS = ("measurement", "chain", "model", "plate_height")
 COVERED_TYPES = LINEAR_TYPES + ("sum",)     # "sum": physics first (``physical_model.train_physics_then_rbf``)
+_SAME_POINT_MM = 1e-9     # a model's centre is a training point within this
 CHAIN_FROM_CHECK = "reference check"
 CHAIN_ASSUMED = "assumed: no reference check of this plan"
 
@@ -240,7 +241,8 @@ def blocked_cv_model_error(landed: np.ndarray, corrections: np.ndarray, sigma: n
 
     tree = cKDTree(landed)
     pitch = float(np.median(tree.query(landed, k=2)[0][:, 1]))
-    make = _refit(model)
+    make = _refit(model, model.get("type") in LINEAR_TYPES
+                  and trained_at(model, landed, corrections) is not landed)
     index = np.rint((landed - landed.min(axis=0)) / pitch).astype(np.int64)
     distances, excess = [], []
     rng = np.random.default_rng(settings.cv_seed)
@@ -283,20 +285,59 @@ def _measurement_variance(model: Mapping[str, Any], landed: np.ndarray, correcti
         response = physics_response_matrix(model, landed + corrections, corrections, points)     # (2M, 2N)
         per_component = (response ** 2) @ np.repeat(sigma ** 2, 2)
         return per_component.reshape(-1, 2).mean(axis=1)
-    return (response_matrix(model, landed, points) ** 2) @ (sigma ** 2)
+    return (response_matrix(model, trained_at(model, landed, corrections), points) ** 2) @ (sigma ** 2)
 
 
-def _refit(model: Mapping[str, Any]):
+def trained_at(model: Mapping[str, Any], landed: np.ndarray, corrections: np.ndarray) -> np.ndarray:
+    """Return where a data-driven model was trained: at the landed points P, or at the targets P + Y.
+
+    A physics-first training that named no effect is a plain OLS network or spline trained at the
+    targets (``physical_model.train_physics_then_rbf``). Both models' centres are training points
+    (all of them for a spline, the chosen ones for an OLS network), so they tell which.
+
+    Parameters
+    ----------
+    model : mapping
+        An ``ols_rbf`` or ``thin_plate_spline`` model's ``to_dict()`` form.
+    landed, corrections : numpy.ndarray (N, 2)
+        The landed points P and the corrections Y it was trained on, mm.
+
+    Returns
+    -------
+    numpy.ndarray (N, 2)
+        P or P + Y, mm.
+
+    Raises
+    ------
+    ValueError
+        When the model's centres are neither.
+    """
+    from scipy.spatial import cKDTree
+
+    centres = np.asarray(model.get("centres", ()), dtype=float).reshape(-1, 2)
+    if not len(centres):
+        return landed       # no unit: the model is its bias, the mean of Y wherever it was trained
+    for points in (landed, landed + corrections):
+        if float(np.max(cKDTree(points).query(centres)[0])) <= _SAME_POINT_MM:
+            return points
+    raise ValueError(f"{model.get('type')}: its centres are neither the landed points nor the targets given")
+
+
+def _refit(model: Mapping[str, Any], at_targets: bool = False):
     """Return a function (X, Y) -> model refitted with ``model``'s hyper-parameters.
 
     For physics first, X are the landed points P and Y the corrections as ``train_correction`` takes
-    them: the model is refitted at the targets P + Y with its effects and its RBF's settings held.
+    them: the model is refitted at the targets P + Y with its effects and its RBF's settings held;
+    ``at_targets``: an OLS network or spline trained at the targets P + Y (physics first, no effect named).
     """
     kind = model.get("type")
     if kind == "sum":
         _, residual = physics_first_parts(model)
         residual_refit = _refit(residual)
         return lambda x, y: refit_physics_then_rbf(model, x + y, y, residual_refit)
+    if at_targets:
+        refit = _refit(model)
+        return lambda x, y: refit(x + y, y)
     if kind == "ols_rbf":
         spread, goal, limit = float(model["spread_mm"]), float(model.get("mse_goal_mm2", 0.0)), model.get("max_neurons")
         return lambda x, y: rbf.OLSRBFNetwork(x, y, spread, goal, limit)

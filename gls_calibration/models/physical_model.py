@@ -109,7 +109,7 @@ class PhysicalDeviationModel:
     @classmethod
     def aligned(cls, geometry: HeadGeometry, effects: HeadEffects, targets_xy, measured_xy, *,
                 inverse: bool = True) -> "PhysicalDeviationModel":
-        """Return the model of ``effects`` with the rigid motion fitting its landing of ``targets_xy`` to ``measured_xy``.
+        """Return the model of ``effects``, its landing of ``targets_xy`` rigidly fitted onto ``measured_xy``.
 
         Parameters
         ----------
@@ -138,7 +138,7 @@ class PhysicalDeviationModel:
         return cls(geometry, effects, alignment.rotation_rad, alignment.translation_mm, inverse=inverse)
 
     def parameter_vector(self) -> np.ndarray:
-        """Return the parameters as one vector: each effect's values (stored order), rotation (rad), translation (mm)."""
+        """Return the parameters as one vector: the effects' values (stored order), rotation (rad), translation (mm)."""
         values = [value for parameters in self.effects.values.values() for value in parameters]
         return np.array(values + [self.rotation_rad, *self.translation_mm], dtype=float)
 
