@@ -406,6 +406,7 @@ def test_physics_first_budget_gives_a_finite_map_with_every_contribution():
                                              "y_max": 95.0}, 490.0, None, False)
     assert np.all(np.isfinite(budget.grid.u_k2_mm)) and np.all(budget.grid.u_k2_mm > 0.0)
     measurement = budget.contribution("measurement")
+    assert measurement.basis == "per-centre sigma through the model (physics first: linearised at its solution)"
     # 169 centres of 4 um: the fitted model averages them (below one centre's sigma in the field)
     assert 0.0 < measurement.rms_mm < 0.004
     assert budget.contribution("model").rms_mm > 0.0

@@ -215,7 +215,10 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
     u_grid = COVERAGE_FACTOR * total
     central = (np.abs(points[:, 0]) <= 75.0 + 1e-9) & (np.abs(points[:, 1]) <= 75.0 + 1e-9)
     contributions = (
-        _contribution("measurement", measurement_var, "per-centre sigma through the model (exact, linear)"),
+        _contribution("measurement", measurement_var,
+                      "per-centre sigma through the model (physics first: linearised at its solution)"
+                      if any(training.model.get("type") == "sum" for training in trainings)
+                      else "per-centre sigma through the model (exact, linear)"),
         _contribution("chain", np.full(len(points), chain_var), chain_basis),
         _contribution("model", model_var, f"blocked CV (2x2, 3x3 fiducials): {model_rms_at_pitch:.4f} mm 2-D at "
                                           f"{pitch:.2f} mm, exponent {exponent:.2f}"),
