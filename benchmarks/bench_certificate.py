@@ -14,7 +14,7 @@ through the correction node in a process of its own; with and without U timed in
 the median of the per-pair ratios and its quartiles, of wall and of CPU time.
 
 Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_certificate.py [--presets careful paper_like]
-     [--seeds 1 2 3 4 5] [--grid 19]
+     [--seeds 1 2 3 4 5] [--grid 19] [--physics-first]
      PYTHONPATH=. .venv/bin/python benchmarks/bench_certificate.py --cost --cost-ros [--pairs 41]
      (ROS_DOMAIN_ID defaults to 57 and discovery to localhost for the nodes it starts)
 """
@@ -41,15 +41,20 @@ from gls_calibration.simulation.reference_plate import FIELD_PLATE, calibration_
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 
 
-def certify_once(preset: str, seed: int, grid: int, store_dir: Path, with_check: bool = True) -> dict:
-    """One calibration with validation and its certificate; per validation fiducial |true error| and U."""
+def certify_once(preset: str, seed: int, grid: int, store_dir: Path, with_check: bool = True,
+                 physics_first: bool = False) -> dict:
+    """One calibration with validation and its certificate; per validation fiducial |true error| and U.
+
+    ``physics_first``: the cell trains the named physical effects first and the RBF/TPS on what they
+    leave (``training.train_correction``), as ``gls-sim-cell --physics-first``.
+    """
     config = dataclasses.replace(load_sim_config(preset=preset), seed=seed)
     plan = calibration_plan()
     check = None
     if with_check:
         result = reference_plate_check(config, plan, seed=seed, design=FIELD_PLATE)
         check = chain_check(result, plan, config, seed, FIELD_PLATE)
-    cell = DirectCell(SimulatedCell(config), CalibrationStore(store_dir))
+    cell = DirectCell(SimulatedCell(config), CalibrationStore(store_dir), physics_first=physics_first)
     settings = cell.settings(sweep_plan=plan.passes, plain_sweeps=plan.plain_sweeps, grid_per_side=grid,
                              plain_sweep_step_mm=plan.plain_step_mm, marked_sweep_step_mm=plan.marked_step_mm,
                              profiles_placed_by_pose=plan.placed_by_pose)
@@ -68,7 +73,7 @@ def certify_once(preset: str, seed: int, grid: int, store_dir: Path, with_check:
     targets = validation.paired_targets_xy
     u = budget.grid.at(targets[:, 0], targets[:, 1])
     true_error = np.hypot(*validation.true_deviations.T)
-    return {"u": u, "true": true_error, "budget": budget, "budget_s": budget_s,
+    return {"u": u, "true": true_error, "budget": budget, "budget_s": budget_s, "method": outcome.models[0].method,
             "true_rms": float(np.sqrt(np.mean(true_error ** 2)))}
 
 
@@ -296,6 +301,8 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3, 4, 5])
     parser.add_argument("--grid", type=int, default=19)
     parser.add_argument("--no-check", action="store_true", help="no reference check: the chain term is assumed")
+    parser.add_argument("--physics-first", action="store_true",
+                        help="train the named physical effects first, the RBF/TPS on what they leave")
     parser.add_argument("--cost", action="store_true", help="only the serving cost of U, in process (no calibration)")
     parser.add_argument("--cost-ros", action="store_true",
                         help="only the serving cost of U through the correction node in its own process")
@@ -309,14 +316,16 @@ def main() -> None:
             serving_cost_ros(args.pairs)
         return
     print(f"grid {args.grid}x{args.grid}, plan {calibration_plan().label}, validation {args.grid - 1}x{args.grid - 1} "
-          f"half a pitch off; reference check {'none' if args.no_check else FIELD_PLATE.label}; mm")
+          f"half a pitch off; reference check {'none' if args.no_check else FIELD_PLATE.label}; "
+          f"{'physics first' if args.physics_first else 'RBF/TPS alone'}; mm; host load (1, 5, 15 min) "
+          f"{' '.join(f'{load:.2f}' for load in os.getloadavg())}", flush=True)
     print(f"{'preset':11s} {'seed':>4s} {'coverage':>8s} {'median U':>8s} {'TRUE rms':>8s} {'U/TRUE':>6s} "
-          + " ".join(f"{name:>12s}" for name in CONTRIBUTIONS) + f" {'budget s':>8s}")
+          + " ".join(f"{name:>12s}" for name in CONTRIBUTIONS) + f" {'budget s':>8s} method")
     for preset in args.presets:
         pooled_u, pooled_true, ratios = [], [], []
         for seed in args.seeds:
             with tempfile.TemporaryDirectory() as folder:
-                row = certify_once(preset, seed, args.grid, Path(folder), not args.no_check)
+                row = certify_once(preset, seed, args.grid, Path(folder), not args.no_check, args.physics_first)
             covered = float(np.mean(row["true"] <= row["u"]))
             median_u = float(np.median(row["u"]))
             ratios.append(median_u / row["true_rms"])
@@ -324,7 +333,7 @@ def main() -> None:
             pooled_true.append(row["true"])
             parts = " ".join(f"{row['budget'].contribution(name).rms_mm:12.4f}" for name in CONTRIBUTIONS)
             print(f"{preset:11s} {seed:4d} {covered:8.3f} {median_u:8.4f} {row['true_rms']:8.4f} {ratios[-1]:6.2f} "
-                  f"{parts} {row['budget_s']:8.2f}", flush=True)
+                  f"{parts} {row['budget_s']:8.2f} {row['method']}", flush=True)
         u, true = np.concatenate(pooled_u), np.concatenate(pooled_true)
         true_rms = float(np.sqrt(np.mean(true ** 2)))
         print(f"{preset:11s} pooled coverage {np.mean(true <= u):.3f} over {u.size} fiducials (target 0.92-0.985); "

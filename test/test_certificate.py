@@ -256,6 +256,24 @@ def test_a_small_calibration_reports_its_certificate_and_coverage_that_can_fail(
     np.testing.assert_allclose([float(row["u_k2_mm"]) for row in rows], u)
 
 
+def test_a_physics_first_calibration_stores_and_serves_its_certificate(tmp_path, caplog):
+    from gls_calibration.calibration.store import CalibrationStore
+    from gls_calibration.simulation.direct_cell import DirectCell
+    from gls_calibration.simulation.world import SimulatedCell
+    from test_procedure import FAST, run_calibrate, small_config
+
+    cell = DirectCell(SimulatedCell(small_config()), CalibrationStore(tmp_path / "store"), physics_first=True)
+    with caplog.at_level("WARNING"):
+        outcome = run_calibrate(cell, cell.settings(**FAST), validate=True, force=True)
+    assert outcome.models[0].method.startswith("physics+") and outcome.candidate.record["models"][0]["type"] == "sum"
+    assert "no uncertainty map" not in caplog.text
+    grid = outcome.candidate.correction.uncertainty
+    assert grid is not None and "uncertainty" in outcome.candidate.record
+    targets = outcome.validation.paired_targets_xy
+    served = outcome.candidate.correction.correct(targets[:, 0], targets[:, 1]).uncertainty_k2_mm
+    assert np.all(np.isfinite(served)) and np.all(served > 0.0)
+
+
 # --- served by the correction node ---------------------------------------------------------------
 
 def test_both_correction_services_answer_u_and_a_bad_grid_keeps_the_served_calibration(ros_context, add_node,
@@ -318,9 +336,121 @@ def test_gls_export_and_gls_correct_write_the_uncertainty_column(tmp_path):
     assert np.isfinite(exported["uncertainty_k2_mm"]).any()
 
 
-def test_a_physics_first_model_gets_no_certificate_rather_than_a_wrong_one():
+# --- physics first: the physical fit linearised at its solution ----------------------------------
+
+def physics_first_data(effects, seed: int, outlier: bool):
+    """13x13 targets and deviations ``Q - P`` of a simulated head with ``effects``, a smooth bump the
+    physics cannot explain, 4 um noise and, with ``outlier``, one gross outlier (point 17)."""
+    from gls_calibration.fiducials.targets import grid_targets
+    from gls_calibration.geometry.kinematics import HeadGeometry, inverse
+    from gls_calibration.geometry.optics import PhysicalHead
+
+    rng = np.random.default_rng(seed)
+    targets = grid_targets(13, 190.0)
+    joints = inverse(HeadGeometry(), targets[:, 0], targets[:, 1])
+    landed = PhysicalHead(HeadGeometry(), effects).land(joints.alpha_x, joints.alpha_y)[:, :2]
+    landed += rng.normal(0.0, 0.004, landed.shape)
+    landed[:, 0] += 0.02 * np.exp(-((targets[:, 0] - 30.0) ** 2 + (targets[:, 1] + 20.0) ** 2) / 2000.0)
+    if outlier:
+        landed[17] += (0.15, -0.1)
+    return targets, targets - landed
+
+
+# Two simulated heads: a gain and plate tilt (the spline takes the rest), and a Y gain, mirror offsets and a
+# working distance with one gross outlier the effect fit leaves out (the OLS network takes the rest).
+HEADS = [({"galvo_gain_x": [0.0107], "plate_tilt": [0.0167, -0.01]}, 5, False, "thin_plate_spline"),
+         ({"galvo_gain_y": [-0.006], "mirror_offset": [0.8, -0.5], "working_distance": [2.0]}, 6, True, "ols_rbf")]
+
+
+@pytest.mark.parametrize("effects, seed, outlier, residual_type", HEADS)
+def test_physics_first_response_matches_finite_difference_refits_of_the_real_training(effects, seed, outlier,
+                                                                                      residual_type):
+    from gls_calibration.models.linear_response import physics_response_matrix
+    from gls_calibration.models.physical_model import train_physics_then_rbf
+
+    targets, deviations = physics_first_data(effects, seed, outlier)
+    model, report = train_physics_then_rbf(targets, deviations)
+    described = model.to_dict()
+    assert report.uses_physics and described["models"][1]["type"] == residual_type
+    assert bool(report.discrepancy.outliers) == outlier
+    points = np.random.default_rng(2).uniform(-95.0, 95.0, (40, 2))
+    response = physics_response_matrix(described, targets, deviations, points)
+    assert response.shape == (80, 2 * len(targets))
+    rng = np.random.default_rng(9)
+    changes = {"noise": rng.normal(0.0, 1e-4, deviations.shape),
+               "smooth": 1e-4 * np.column_stack([targets[:, 0] / 95.0, targets[:, 0] * targets[:, 1] / 95.0 ** 2]),
+               "point 17": np.zeros_like(deviations)}
+    changes["point 17"][17, 0] = 1e-3      # the outlier, when there is one: the physics must not move
+    for name, change in changes.items():
+        refit, refit_report = train_physics_then_rbf(targets, deviations + change)
+        again = refit.to_dict()
+        # the same selection (effects, units, spread or smoothing): only then is a refit a derivative
+        assert refit_report.named_effects == report.named_effects, name
+        for key in ("type", "spread_mm", "smoothing"):
+            assert again["models"][1].get(key) == described["models"][1].get(key), name
+        np.testing.assert_array_equal(again["models"][1]["centres"], described["models"][1]["centres"])
+        moved = (refit(points) - model(points)).ravel()
+        predicted = response @ change.ravel()
+        assert np.linalg.norm(predicted - moved) <= 0.01 * np.linalg.norm(moved), name
+
+
+def test_physics_first_budget_gives_a_finite_map_with_every_contribution():
+    from gls_calibration.models.physical_model import train_physics_then_rbf
+
+    effects, seed, outlier, _ = HEADS[0]
+    targets, deviations = physics_first_data(effects, seed, outlier)
+    model, _ = train_physics_then_rbf(targets, deviations)
+    # trained as train_correction trains it: at the landed points P = Q - Y on the corrections Y
+    training = TrainingData(targets - deviations, deviations, np.full(len(targets), 0.004), model.to_dict())
+    budget = uncertainty_budget([training], {**REGION, "x_min": -95.0, "x_max": 95.0, "y_min": -95.0,
+                                             "y_max": 95.0}, 490.0, None, False)
+    assert np.all(np.isfinite(budget.grid.u_k2_mm)) and np.all(budget.grid.u_k2_mm > 0.0)
+    measurement = budget.contribution("measurement")
+    assert measurement.basis == "per-centre sigma through the model (physics first: linearised at its solution)"
+    # 169 centres of 4 um: the fitted model averages them (below one centre's sigma in the field)
+    assert 0.0 < measurement.rms_mm < 0.004
+    assert budget.contribution("model").rms_mm > 0.0
+
+
+def test_a_physics_first_training_that_names_no_effect_is_certified_where_it_was_trained():
+    from gls_calibration.calibration.uncertainty import trained_at
+    from gls_calibration.models.physical_model import train_physics_then_rbf
+
+    from gls_calibration.fiducials.targets import grid_targets
+
+    targets = grid_targets(13, 190.0)        # a nominal head with a narrow bump, measured with 4 um noise
+    deviations = np.random.default_rng(4).normal(0.0, 0.004, targets.shape)
+    deviations[:, 0] += 0.02 * np.exp(-((targets[:, 0] - 30.0) ** 2 + (targets[:, 1] + 20.0) ** 2) / 300.0)
+    model, report = train_physics_then_rbf(targets, deviations)
+    assert not report.uses_physics       # a plain spline, trained at the targets Q = P + Y
+    assert model.to_dict()["type"] == "thin_plate_spline"
+    landed = targets - deviations
+    assert trained_at(model.to_dict(), landed, deviations) is not landed
+    np.testing.assert_allclose(trained_at(model.to_dict(), landed, deviations), targets, atol=1e-12)
+    budget = uncertainty_budget([TrainingData(landed, deviations, np.full(len(landed), 0.004), model.to_dict())],
+                                REGION, 490.0, None, False)
+    assert np.all(np.isfinite(budget.grid.u_k2_mm))
+    with pytest.raises(ValueError, match="ols_rbf: its centres are neither the landed points nor the targets given"):
+        trained_at({"type": "ols_rbf", "centres": [[500.0, 500.0]]}, landed, deviations)
+
+
+def test_physics_response_and_budget_refuse_what_they_do_not_cover():
+    from gls_calibration.models.linear_response import physics_response_matrix
+    from gls_calibration.models.physical_model import train_physics_then_rbf
+
     xy, _, noisy = grid_data()
-    training = TrainingData(xy, noisy, np.full(len(xy), 0.004), {"type": "sum", "models": []})
-    with pytest.raises(ValueError, match="the certificate covers OLS RBF networks and thin-plate splines trained on "
-                                         "the corrections, not a model of type 'sum'"):
+    with pytest.raises(ValueError, match=r"a physics-first model is the sum of a physical model and one of ols_rbf, "
+                                         r"thin_plate_spline, got parts \[\]"):
+        physics_response_matrix({"type": "sum", "models": []}, xy, noisy, xy)
+    with pytest.raises(ValueError, match="model type must be 'sum', got 'thin_plate_spline'"):
+        physics_response_matrix(ThinPlateSplineModel(xy, noisy, 10.0).to_dict(), xy, noisy, xy)
+    effects, seed, outlier, _ = HEADS[0]
+    targets, deviations = physics_first_data(effects, seed, outlier)
+    described = train_physics_then_rbf(targets, deviations)[0].to_dict()
+    with pytest.raises(ValueError, match=r"deviations must have the shape of targets_xy \(169, 2\), got \(168, 2\)"):
+        physics_response_matrix(described, targets, deviations[:-1], xy)
+    training = TrainingData(xy, noisy, np.full(len(xy), 0.004), {"type": "physical"})
+    with pytest.raises(ValueError, match="the certificate covers OLS RBF networks, thin-plate splines and "
+                                         "physics-first sums trained on the corrections, not a model of type "
+                                         "'physical'"):
         uncertainty_budget([training], REGION, 490.0, None, False)

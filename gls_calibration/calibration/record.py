@@ -139,8 +139,8 @@ def build_record(geometry: HeadGeometry, settings: ProcedureSettings, runs: Sequ
     """Build the record of a run from its trained ``models`` and its certificate's U map.
 
     The U map's chain term comes from ``chain_check`` when that was made with the run's plan and is
-    assumed otherwise. A model the certificate does not cover (physics first) leaves the map out:
-    the file then serves NaN, as an older file does.
+    assumed otherwise. Every trained type is covered (RBF/TPS alone and physics first); a budget that
+    cannot be made (bad training data) leaves the map out: the file then serves NaN, as an older file does.
 
     Parameters
     ----------

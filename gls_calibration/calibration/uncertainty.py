@@ -11,7 +11,9 @@ name stays ``uncertainty_k2_mm`` (the issue's), the factor used is this one.
 The budget (all from what the cell knows; no simulation truth):
 
 (a) ``measurement``: each centre's stated standard uncertainty (``PlateRun.sigma_mm``), carried
-    through the trained model exactly (``models.linear_response``: the fit is linear in its data).
+    through the trained model exactly (``models.linear_response``: the fit is linear in its data);
+    a physics-first model through its linearisation at the solution (``physics_response_matrix``,
+    x and y coupled: the per-axis figure is the mean of the two axes' variances).
 (b) ``chain``: the correlated error of the measurement chain that the sweep plan does not remove and
     the model learns as if it were the head's: from the reference check of the same plan
     (``ChainCheck``), its per-axis sigma with the random part of one centre taken out (the check's
@@ -25,7 +27,9 @@ The budget (all from what the cell knows; no simulation truth):
     noise, fitted as ``e(d) = e(pitch) (d / pitch)^q`` (q from the two distances, kept within 1..2),
     gives the term at the distance d of every point to its nearest fiducial. Distance rather than
     curvature: what a fiducial pins down is local, and the CV measures the error at known distances
-    directly, while a curvature estimate would come from the same noisy model it judges.
+    directly, while a curvature estimate would come from the same noisy model it judges. A
+    physics-first model is refitted on the folds with its effects and RBF settings held
+    (``physical_model.refit_physics_then_rbf``), as the others keep their hyper-parameters.
 (d) ``plate_height``: a plate height error dz scales the landed field by dz / h about the axis
     (h: working distance to the calibration plane): radial error r dz / h, not removed by a rigid
     motion. Once for the calibration's plate and once for the plate a target is used on (measured
@@ -46,9 +50,12 @@ from gls_calibration.calibration.stated_accuracy import ChainCheck
 from gls_calibration.common.validation import as_positive_number
 from gls_calibration.correction.uncertainty_grid import COVERAGE_FACTOR, UncertaintyGrid
 from gls_calibration.models import rbf
-from gls_calibration.models.linear_response import response_matrix
+from gls_calibration.models.linear_response import LINEAR_TYPES, physics_response_matrix, response_matrix
+from gls_calibration.models.physical_model import physics_first_parts, refit_physics_then_rbf
 
 CONTRIBUTIONS = ("measurement", "chain", "model", "plate_height")
+COVERED_TYPES = LINEAR_TYPES + ("sum",)     # "sum": physics first (``physical_model.train_physics_then_rbf``)
+_SAME_POINT_MM = 1e-9     # a model's centre is a training point within this
 CHAIN_FROM_CHECK = "reference check"
 CHAIN_ASSUMED = "assumed: no reference check of this plan"
 
@@ -156,10 +163,9 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
     if not trainings:
         raise ValueError("uncertainty_budget needs at least one trained model and its training data")
     for training in trainings:
-        if training.model.get("type") not in ("ols_rbf", "thin_plate_spline"):
-            # physics first: its data-driven part is trained at the targets on what the physics leaves
-            raise ValueError(f"the certificate covers OLS RBF networks and thin-plate splines trained on the "
-                             f"corrections, not a model of type {training.model.get('type')!r}")
+        if training.model.get("type") not in COVERED_TYPES:
+            raise ValueError(f"the certificate covers OLS RBF networks, thin-plate splines and physics-first sums "
+                             f"trained on the corrections, not a model of type {training.model.get('type')!r}")
     x_min, x_max, y_min, y_max = (float(region[key]) for key in ("x_min", "x_max", "y_min", "y_max"))
     if not (x_max > x_min and y_max > y_min):
         raise ValueError(f"calibrated region is empty: x {x_min:g}..{x_max:g}, y {y_min:g}..{y_max:g} mm")
@@ -174,8 +180,7 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
     random_var = []
     for training in trainings:
         landed, corrections, sigma = _checked(training)
-        response = response_matrix(training.model, landed, points)
-        measurement_var += (response ** 2) @ (sigma ** 2)
+        measurement_var += _measurement_variance(training.model, landed, corrections, sigma, points)
         random_var.append(float(np.mean(sigma ** 2)))
     first = trainings[0]
     landed, corrections, sigma = _checked(first)
@@ -210,7 +215,10 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
     u_grid = COVERAGE_FACTOR * total
     central = (np.abs(points[:, 0]) <= 75.0 + 1e-9) & (np.abs(points[:, 1]) <= 75.0 + 1e-9)
     contributions = (
-        _contribution("measurement", measurement_var, "per-centre sigma through the model (exact, linear)"),
+        _contribution("measurement", measurement_var,
+                      "per-centre sigma through the model (physics first: linearised at its solution)"
+                      if any(training.model.get("type") == "sum" for training in trainings)
+                      else "per-centre sigma through the model (exact, linear)"),
         _contribution("chain", np.full(len(points), chain_var), chain_basis),
         _contribution("model", model_var, f"blocked CV (2x2, 3x3 fiducials): {model_rms_at_pitch:.4f} mm 2-D at "
                                           f"{pitch:.2f} mm, exponent {exponent:.2f}"),
@@ -236,7 +244,8 @@ def blocked_cv_model_error(landed: np.ndarray, corrections: np.ndarray, sigma: n
 
     tree = cKDTree(landed)
     pitch = float(np.median(tree.query(landed, k=2)[0][:, 1]))
-    make = _refit(model)
+    make = _refit(model, model.get("type") in LINEAR_TYPES
+                  and trained_at(model, landed, corrections) is not landed)
     index = np.rint((landed - landed.min(axis=0)) / pitch).astype(np.int64)
     distances, excess = [], []
     rng = np.random.default_rng(settings.cv_seed)
@@ -271,9 +280,67 @@ def blocked_cv_model_error(landed: np.ndarray, corrections: np.ndarray, sigma: n
     return pitch, at_pitch, exponent
 
 
-def _refit(model: Mapping[str, Any]):
-    """Return a function (X, Y) -> model refitted with ``model``'s hyper-parameters."""
+def _measurement_variance(model: Mapping[str, Any], landed: np.ndarray, corrections: np.ndarray, sigma: np.ndarray,
+                          points: np.ndarray) -> np.ndarray:
+    """Per-axis variance (M,) of the model at ``points`` from independent per-centre errors ``sigma`` (per axis)."""
+    if model.get("type") == "sum":
+        # physics first: trained at the targets Q = P + Y on Y, Q fixed (``training.train_correction``)
+        response = physics_response_matrix(model, landed + corrections, corrections, points)     # (2M, 2N)
+        per_component = (response ** 2) @ np.repeat(sigma ** 2, 2)
+        return per_component.reshape(-1, 2).mean(axis=1)
+    return (response_matrix(model, trained_at(model, landed, corrections), points) ** 2) @ (sigma ** 2)
+
+
+def trained_at(model: Mapping[str, Any], landed: np.ndarray, corrections: np.ndarray) -> np.ndarray:
+    """Return where a data-driven model was trained: at the landed points P, or at the targets P + Y.
+
+    A physics-first training that named no effect is a plain OLS network or spline trained at the
+    targets (``physical_model.train_physics_then_rbf``). Both models' centres are training points
+    (all of them for a spline, the chosen ones for an OLS network), so they tell which.
+
+    Parameters
+    ----------
+    model : mapping
+        An ``ols_rbf`` or ``thin_plate_spline`` model's ``to_dict()`` form.
+    landed, corrections : numpy.ndarray (N, 2)
+        The landed points P and the corrections Y it was trained on, mm.
+
+    Returns
+    -------
+    numpy.ndarray (N, 2)
+        P or P + Y, mm.
+
+    Raises
+    ------
+    ValueError
+        When the model's centres are neither.
+    """
+    from scipy.spatial import cKDTree
+
+    centres = np.asarray(model.get("centres", ()), dtype=float).reshape(-1, 2)
+    if not len(centres):
+        return landed       # no unit: the model is its bias, the mean of Y wherever it was trained
+    for points in (landed, landed + corrections):
+        if float(np.max(cKDTree(points).query(centres)[0])) <= _SAME_POINT_MM:
+            return points
+    raise ValueError(f"{model.get('type')}: its centres are neither the landed points nor the targets given")
+
+
+def _refit(model: Mapping[str, Any], at_targets: bool = False):
+    """Return a function (X, Y) -> model refitted with ``model``'s hyper-parameters.
+
+    For physics first, X are the landed points P and Y the corrections as ``train_correction`` takes
+    them: the model is refitted at the targets P + Y with its effects and its RBF's settings held;
+    ``at_targets``: an OLS network or spline trained at the targets P + Y (physics first, no effect named).
+    """
     kind = model.get("type")
+    if kind == "sum":
+        _, residual = physics_first_parts(model)
+        residual_refit = _refit(residual)
+        return lambda x, y: refit_physics_then_rbf(model, x + y, y, residual_refit)
+    if at_targets:
+        refit = _refit(model)
+        return lambda x, y: refit(x + y, y)
     if kind == "ols_rbf":
         spread, goal, limit = float(model["spread_mm"]), float(model.get("mse_goal_mm2", 0.0)), model.get("max_neurons")
         return lambda x, y: rbf.OLSRBFNetwork(x, y, spread, goal, limit)

@@ -65,16 +65,16 @@ from gls_calibration.discrepancy.results import (
     CandidateScore, DiscrepancyResult, EffectsFit, EffectStep, FloorEvidence, Implausible, NoiseFloor, Outlier,
     ResidualLocation, StructureTest, Verdict)
 from gls_calibration.discrepancy.run_verdict import run_verdict_lines
-from gls_calibration.discrepancy.selection import CRITERIA, RIGID_NOTE, explain
+from gls_calibration.discrepancy.selection import CRITERIA, MIN_NOISE_MM, RIGID_NOTE, explain, fit_inliers
 from gls_calibration.discrepancy.separability import SEPARABLE_AT, Separability, separability
 from gls_calibration.discrepancy.verdict import naming_phrase, verdict_lines
 from gls_calibration.registration.rigid import RigidAlignment2D, align_rigid_2d
 
 __all__ = [
-    "CRITERIA", "MIN_POINTS", "NOISE_SOURCES", "RIGID_NOTE", "SEPARABLE_AT", "CandidateScore", "DiscrepancyResult",
-    "EffectStep", "EffectsFit", "FloorEvidence", "Implausible", "NoiseFloor", "ObservabilityReport", "Outlier",
-    "ResidualLocation", "RigidAlignment2D", "Separability", "StructureTest", "Verdict", "align_rigid_2d",
-    "average_repeats", "estimate_noise_floor", "explain", "fit_effects", "locate_residual", "naming_phrase",
-    "observability_report", "physical_prediction", "run_verdict_lines", "separability", "structure_test",
-    "verdict_lines",
+    "CRITERIA", "MIN_NOISE_MM", "MIN_POINTS", "NOISE_SOURCES", "RIGID_NOTE", "SEPARABLE_AT", "CandidateScore",
+    "DiscrepancyResult", "EffectStep", "EffectsFit", "FloorEvidence", "Implausible", "NoiseFloor",
+    "ObservabilityReport", "Outlier", "ResidualLocation", "RigidAlignment2D", "Separability", "StructureTest",
+    "Verdict", "align_rigid_2d", "average_repeats", "estimate_noise_floor", "explain", "fit_effects",
+    "fit_inliers", "locate_residual", "naming_phrase", "observability_report", "physical_prediction",
+    "run_verdict_lines", "separability", "structure_test", "verdict_lines",
 ]

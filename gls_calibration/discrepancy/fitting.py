@@ -266,6 +266,33 @@ def fit_effects(commanded_xy, measured_xy, geometry: HeadGeometry, names: Sequen
     Starts from the known value of each named effect (zero when unknown); the fitted values replace
     them. The rigid motion of the measured frame is solved in closed form inside every evaluation.
     ``sigma_axis_mm`` scales the covariance (default: the noise floor estimated from the data).
+
+    Parameters
+    ----------
+    commanded_xy : array_like, shape (N, 2)
+        Nominal targets in the gls frame, mm.
+    measured_xy : array_like, shape (N, 2)
+        Measured mark positions in any frame a rigid motion away, mm.
+    geometry : HeadGeometry
+        The nominal head.
+    names : sequence of str
+        The effects to fit (unique names of the effect table).
+    known_effects : HeadEffects or mapping, optional
+        Effects already in the model; the named ones start from their values here.
+    t : array_like, shape (N,), optional
+        Marking time, s.
+    sigma_axis_mm : float or array_like (N,), optional
+        Per-axis noise, mm: a number scales the covariance only, per-point values also weight the fit.
+
+    Returns
+    -------
+    EffectsFit
+        The fitted values, their covariance, the landing, the aligned residual and the chi-square.
+
+    Raises
+    ------
+    ValueError
+        For bad points or times, repeated or unknown effect names, or bad ``known_effects``.
     """
     commanded_xy, measured_xy, t = check_inputs(commanded_xy, measured_xy, t)
     names = tuple(names)

@@ -31,6 +31,7 @@ from gls_calibration.registration.rigid import align_rigid_2d
 
 CRITERIA = ("bic", "aic")
 RIGID_PARAMETERS = 3     # rotation and translation of the measured frame
+MIN_NOISE_MM = 1e-4      # lower bound of an estimated noise (explain's default)
 FULL_FITS = 5            # candidates per step fitted fully after the linearised screening
 RIGID_NOTE = ("Rotation and translation between the measured frame and the gls frame are removed by a "
               "rigid alignment: they are not observable from these data and are never named as effects.")
@@ -253,12 +254,47 @@ def _outliers(predict: Predictor, measured_xy: np.ndarray, known: HeadEffects,
                  for i in np.flatnonzero(mask))
 
 
+def fit_inliers(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
+                known_effects: HeadEffects | Mapping | None = None, *,
+                min_noise_mm: float = MIN_NOISE_MM) -> np.ndarray:
+    """Return the points :func:`explain` fits (no time, no user effects): True except its gross outliers.
+
+    Parameters
+    ----------
+    commanded_xy : array_like, shape (N, 2)
+        Nominal targets in the gls frame, mm.
+    measured_xy : array_like, shape (N, 2)
+        Measured mark positions in any frame a rigid motion away, mm.
+    geometry : HeadGeometry, optional
+        The nominal head; the default one when None.
+    known_effects : HeadEffects or mapping, optional
+        Effects already in the model.
+    min_noise_mm : float, default MIN_NOISE_MM
+        Lower bound of the estimated noise, mm (``explain``'s ``min_noise_mm``).
+
+    Returns
+    -------
+    numpy.ndarray of bool, shape (N,)
+        False for the points ``explain`` leaves out of every fit.
+
+    Raises
+    ------
+    ValueError
+        For bad points (shapes, too few, not finite) or bad ``known_effects``.
+    """
+    commanded_xy, measured_xy, _ = check_inputs(commanded_xy, measured_xy, None)
+    predict = Predictor(geometry if geometry is not None else HeadGeometry(), commanded_xy, None)
+    inliers = np.ones(len(commanded_xy), dtype=bool)
+    inliers[[o.index for o in _outliers(predict, measured_xy, as_effects(known_effects), min_noise_mm)]] = False
+    return inliers
+
+
 def explain(commanded_xy, measured_xy, geometry: HeadGeometry | None = None,
             known_effects: HeadEffects | Mapping | None = None, t=None, *,
             sigma_mm=None, user_effects: Sequence[UserEffect] = (),
             candidates: Sequence[str] | None = None, criterion: str = "bic", name_threshold: float = 10.0,
             indistinguishable_within: float = 6.0, structure_alpha: float = 1e-3, max_steps: int = 6,
-            min_noise_mm: float = 1e-4, reject_outliers: bool = True) -> DiscrepancyResult:
+            min_noise_mm: float = MIN_NOISE_MM, reject_outliers: bool = True) -> DiscrepancyResult:
     """Find and name the effects missing from the model that explain the measured deviations.
 
     Without repeats or ``sigma_mm`` the floor is estimated from the residual and the result says

@@ -42,7 +42,8 @@ from typing import Any, Optional
 import numpy as np
 
 from gls_calibration.common.validation import as_finite_array, as_matching_points, as_points, require_key, require_type
-from gls_calibration.discrepancy import MIN_POINTS, DiscrepancyResult, explain
+from gls_calibration.discrepancy import MIN_POINTS, DiscrepancyResult, explain, fit_effects, fit_inliers
+from gls_calibration.geometry.effect_table import EFFECT_TABLE
 from gls_calibration.geometry.kinematics import HeadGeometry, inverse
 from gls_calibration.geometry.optics import HeadEffects, PhysicalHead
 from gls_calibration.models import rbf
@@ -50,6 +51,10 @@ from gls_calibration.registration.rigid import align_rigid_2d
 
 _INVERSE_TOLERANCE_MM = 1e-9
 _INVERSE_MAX_ITERATIONS = 30
+# typical sizes of the rigid motion's parameters (rotation rad, translation mm), as the effect table
+# gives its parameters' typical sizes: the scale of a finite-difference step
+_RIGID_TYPICAL = (1e-3, 1.0, 1.0)
+RESIDUAL_TYPES = ("ols_rbf", "thin_plate_spline")
 
 
 def _geometry_from_dict(data: Any) -> HeadGeometry:
@@ -99,11 +104,77 @@ class PhysicalDeviationModel:
         The rigid motion is the least-squares fit of the model's landing onto the measured points
         (the exact inverse of the alignment the discrepancy fit applies to the measurement).
         """
+        return cls.aligned(result.geometry, result.model_effects, targets_xy, measured_xy, inverse=inverse)
+
+    @classmethod
+    def aligned(cls, geometry: HeadGeometry, effects: HeadEffects, targets_xy, measured_xy, *,
+                inverse: bool = True) -> "PhysicalDeviationModel":
+        """Return the model of ``effects``, its landing of ``targets_xy`` rigidly fitted onto ``measured_xy``.
+
+        Parameters
+        ----------
+        geometry : HeadGeometry
+            The nominal head.
+        effects : HeadEffects
+            The effects of the model.
+        targets_xy, measured_xy : array_like, shape (N, 2)
+            The commanded targets (gls frame) and where they were measured, mm.
+        inverse : bool, default True
+            The correction is the exact inverse of the model.
+
+        Returns
+        -------
+        PhysicalDeviationModel
+            The model, its landing carried into the measurement's frame.
+
+        Raises
+        ------
+        ValueError
+            For mismatched or non-finite points.
+        """
         targets_xy, measured_xy = as_matching_points(targets_xy, measured_xy, "targets_xy", "measured_xy", 2)
-        unaligned = cls(result.geometry, result.model_effects, inverse=inverse)
+        unaligned = cls(geometry, effects, inverse=inverse)
         alignment, _ = align_rigid_2d(unaligned.landing(targets_xy), measured_xy)
-        return cls(result.geometry, result.model_effects, alignment.rotation_rad, alignment.translation_mm,
-                   inverse=inverse)
+        return cls(geometry, effects, alignment.rotation_rad, alignment.translation_mm, inverse=inverse)
+
+    def parameter_vector(self) -> np.ndarray:
+        """Return the parameters as one vector: the effects' values (stored order), rotation (rad), translation (mm)."""
+        values = [value for parameters in self.effects.values.values() for value in parameters]
+        return np.array(values + [self.rotation_rad, *self.translation_mm], dtype=float)
+
+    def parameter_scales(self) -> np.ndarray:
+        """Return the typical size of each parameter of :meth:`parameter_vector` (effect table; rigid motion)."""
+        typical = [parameter.typical for name in self.effects.values for parameter in EFFECT_TABLE[name].parameters]
+        return np.array(typical + list(_RIGID_TYPICAL), dtype=float)
+
+    def with_parameters(self, vector) -> "PhysicalDeviationModel":
+        """Return the same model (geometry, effect names, inverse) with the parameters ``vector``.
+
+        Parameters
+        ----------
+        vector : array_like
+            As :meth:`parameter_vector` orders them.
+
+        Returns
+        -------
+        PhysicalDeviationModel
+            The model with these parameters.
+
+        Raises
+        ------
+        ValueError
+            For a vector of another length or with non-finite values.
+        """
+        vector = as_finite_array(vector, "parameter vector", ndim=1)
+        current = self.parameter_vector()
+        if vector.shape != current.shape:
+            raise ValueError(f"parameter vector must hold {current.size} values, got {vector.size}")
+        effects, start = {}, 0
+        for name, parameters in self.effects.values.items():
+            effects[name] = tuple(float(value) for value in vector[start:start + len(parameters)])
+            start += len(parameters)
+        return PhysicalDeviationModel(self.geometry, HeadEffects(effects), float(vector[-3]), vector[-2:],
+                                      inverse=self.inverse)
 
     def landing(self, commanded_xy) -> np.ndarray:
         """Where the modelled head lands (M, 2), measurement frame, when commanded to ``commanded_xy`` nominally."""
@@ -289,3 +360,74 @@ def train_physics_then_rbf(targets_xy, deviations, geometry: Optional[HeadGeomet
         physical_model=physical, residual_model=residual_model, selection=selection, discrepancy=result,
         duration_s=time.perf_counter() - began)
     return model, report
+
+
+def physics_first_parts(model: Mapping[str, Any]) -> tuple[PhysicalDeviationModel, Mapping[str, Any]]:
+    """Return the physical part and the residual model's description of a physics-first model's description.
+
+    Parameters
+    ----------
+    model : mapping
+        A ``sum`` model's ``to_dict()`` form as :func:`train_physics_then_rbf` makes it: a ``physical``
+        part, then an ``ols_rbf`` or ``thin_plate_spline`` part.
+
+    Returns
+    -------
+    tuple
+        (the physical part as a :class:`PhysicalDeviationModel`, the residual part's mapping).
+
+    Raises
+    ------
+    ValueError
+        For another type or other parts.
+    """
+    require_type(model, "sum")
+    parts = require_key(model, "models")
+    kinds = ([part.get("type") if isinstance(part, Mapping) else type(part).__name__ for part in parts]
+             if isinstance(parts, Sequence) and not isinstance(parts, (str, bytes)) else None)
+    if kinds is None or len(kinds) != 2 or kinds[0] != "physical" or kinds[1] not in RESIDUAL_TYPES:
+        raise ValueError(f"a physics-first model is the sum of a physical model and one of "
+                         f"{', '.join(RESIDUAL_TYPES)}, got parts {kinds}")
+    return PhysicalDeviationModel.from_dict(parts[0]), parts[1]
+
+
+def refit_physics_then_rbf(model: Mapping[str, Any], targets_xy, deviations,
+                           refit_residual: Callable[[np.ndarray, np.ndarray], rbf.DeviationModel]) -> SumModel:
+    """Refit a physics-first model on other data with its structure held: the same effects and RBF settings.
+
+    What :func:`train_physics_then_rbf` does with the selection held fixed: the effects the model
+    holds are fitted again (from their values in ``model``, least squares on the points the
+    discrepancy workflow keeps, the rigid motion profiled out), the rigid motion of the model's landing
+    onto the measurement is fitted on all points, and the residual model is refitted by
+    ``refit_residual`` on what the physics leaves.
+
+    Parameters
+    ----------
+    model : mapping
+        The physics-first model's description (see :func:`physics_first_parts`).
+    targets_xy, deviations : array_like, shape (N, 2)
+        The targets Q and the deviations ``Q - P`` to fit, mm.
+    refit_residual : callable
+        ``(targets (N, 2), residual (N, 2)) -> model`` with the residual model's hyper-parameters.
+
+    Returns
+    -------
+    SumModel
+        The refitted physical model plus the refitted residual model.
+
+    Raises
+    ------
+    ValueError
+        For a model that is not physics first, mismatched points or too few of them.
+    """
+    physical, _ = physics_first_parts(model)
+    targets_xy, deviations = as_matching_points(targets_xy, deviations, "targets_xy", "deviations", 2,
+                                                min_length=MIN_POINTS)
+    measured = targets_xy - deviations
+    inliers = fit_inliers(targets_xy, measured, physical.geometry)
+    # sigma only scales the fit's covariance: the fit is unweighted, as in train_physics_then_rbf
+    fitted = fit_effects(targets_xy[inliers], measured[inliers], physical.geometry, tuple(physical.effects.values),
+                         known_effects=physical.effects, sigma_axis_mm=1.0)
+    refitted = PhysicalDeviationModel.aligned(physical.geometry, fitted.effects, targets_xy, measured,
+                                              inverse=physical.inverse)
+    return SumModel([refitted, refit_residual(targets_xy, deviations - refitted.measured_deviation(targets_xy))])
