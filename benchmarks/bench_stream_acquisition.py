@@ -37,6 +37,12 @@ from gls_calibration.ros.runtime import NodeThreads
 from gls_calibration.ros.stream_topics import LAYOUT, static_qos, stream_qos, time_msg, transform_msg
 from gls_calibration.scan.bag_io import StreamAssembler
 
+try:      # the node's answer as it builds it (the tree before issue 33's stream work: two conversions)
+    from gls_calibration.ros.pointcloud import xyzi_cloud_to_msg as answer_msg
+except ImportError:
+    def answer_msg(xyz_mm, intensity, frame_id, stamp):
+        return conversions.cloud_to_msg(conversions.xyzi_array(xyz_mm, intensity), frame_id, stamp)
+
 NS_PER_S = 1_000_000_000
 PROFILE_RATE_HZ = 150.0
 TF_RATE_HZ = 250.0
@@ -141,6 +147,13 @@ def main() -> int:
         assembly_s = time.thread_time() - began
         if sweep.xyz_mm.shape != (args.profiles, args.points, 3) or not np.isfinite(sweep.xyz_mm).all():
             raise SystemExit(f"unexpected sweep {sweep.xyz_mm.shape}")
+        began = time.thread_time()
+        answer = answer_msg(sweep.xyz_mm, sweep.intensity, node.frame_id, time_msg(int(sweep.stamps_ns[0])))
+        answer_s = time.thread_time() - began
+        began = time.thread_time()
+        serialize_message(answer)
+        answer_wire_s = time.thread_time() - began
+        del answer
         for label, publisher, messages in (("between sweeps: flange poses", tf_pub, poses),
                                            ("between sweeps: profiles", profiles_pub, clouds)):
             before = thread_cpu_s(thread)
@@ -170,6 +183,8 @@ def main() -> int:
     for label, seconds, count in rows:
         print(f"  {label:48s} {1e6 * seconds:8.1f} us  ({count} messages)")
     print(f"  {'sweep assembly at the end, per profile':48s} {1e6 * assembly_s / args.profiles:8.1f} us")
+    print(f"  {'the answer: sweep to PointCloud2, per profile':48s} {1e6 * answer_s / args.profiles:8.1f} us")
+    print(f"  {'the answer: rclpy serialisation, per profile':48s} {1e6 * answer_wire_s / args.profiles:8.1f} us")
     return 0
 
 

@@ -101,8 +101,8 @@ def test_bulk_insertion_keeps_the_order_and_the_errors_of_single_ones():
     for stamp, pose in zip(stamps, poses):
         single.set_transform("a", "b", int(stamp), pose)
     lookups = np.arange(1, 10)
-    assert np.array_equal(bulk.try_lookup_many("a", "b", lookups, 10)[0], single.try_lookup_many("a", "b", lookups,
-                                                                                                10)[0], equal_nan=True)
+    assert np.array_equal(bulk.try_lookup_many("a", "b", lookups, 10)[0],
+                          single.try_lookup_many("a", "b", lookups, 10)[0], equal_nan=True)
     bad = poses.copy()
     bad[4, 0, 0] = np.nan
     with pytest.raises(ValueError, match=r"^the transform a -> c at 1 ns is not a finite 4x4 pose$"):
@@ -176,3 +176,33 @@ def test_malformed_stream_bytes_are_a_problem_of_the_sweep_not_a_crash(acquisiti
         "at byte 40 (cut short?)",
         "a message on /tf: TFMessage: encapsulation 0x0005 is not plain CDR (0x0000 or 0x0001)"]
     assert session.profiles == 2 and len(session.assembler.profiles) == 1
+
+
+def reference_cloud_msg(xyz_mm: np.ndarray, intensity: np.ndarray, frame_id: str, stamp) -> PointCloud2:
+    """The answer as it was built before: a float32 cloud in mm field by field, then divided field by field."""
+    points = np.empty(xyz_mm.shape[:-1], dtype=conversions.xyzi_dtype())
+    for axis, name in enumerate("xyz"):
+        points[name] = xyz_mm[..., axis]
+    points["intensity"] = intensity
+    wire = np.empty(points.shape, dtype=conversions.xyzi_dtype())
+    for name in "xyz":
+        np.divide(points[name], np.float32(1000.0), out=wire[name], dtype=np.float32)
+    wire["intensity"] = points["intensity"]
+    return conversions.array_to_pointcloud2(wire, frame_id=frame_id, stamp=stamp)
+
+
+@pytest.mark.parametrize("shape", [(7,), (3, 5), (0,), (2, 0), (1, 1), (40, 33)])
+def test_the_answer_cloud_is_the_one_built_field_by_field(shape):
+    from gls_calibration.ros.pointcloud import xyzi_cloud_to_msg
+
+    rng = np.random.default_rng(len(shape) * 100 + shape[0])
+    xyz = rng.normal(0.0, 300.0, shape + (3,))
+    xyz.reshape(-1)[::7] = np.nan
+    intensity = rng.uniform(size=shape)
+    expected = reference_cloud_msg(xyz, intensity, "robot_base", time_msg(12345))
+    assert xyzi_cloud_to_msg(xyz, intensity, "robot_base", time_msg(12345)) == expected
+    assert conversions.cloud_to_msg(conversions.xyzi_array(xyz, intensity), "robot_base", time_msg(12345)) == expected
+    with pytest.raises(ValueError, match=r"^intensity must have shape \(2, 3\) to match xyz, got \(3, 2\)$"):
+        xyzi_cloud_to_msg(np.zeros((2, 3, 3)), np.zeros((3, 2)), "robot_base")
+    with pytest.raises(ValueError, match=r"^xyz must have shape \(W, 3\) or \(H, W, 3\), got \(3,\)$"):
+        xyzi_cloud_to_msg(np.zeros(3), np.zeros(()), "robot_base")

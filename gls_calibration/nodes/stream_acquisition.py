@@ -41,8 +41,9 @@ from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
 from gls_calibration.nodes.scan_acquisition import request_problem
-from gls_calibration.ros import cdr, conversions
+from gls_calibration.ros import cdr
 from gls_calibration.ros.base import GlsNode, take_waiting
+from gls_calibration.ros.pointcloud import xyzi_cloud_to_msg
 from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import ServiceCallError
 from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC, line_msg, static_qos, stamp_ns, stream_qos, time_msg
@@ -177,7 +178,7 @@ class StreamAcquisitionNode(GlsNode):
         self._add(session, self.layout.scan_topic, message)
 
     def _malformed(self, session: Optional[Session], problem: str) -> None:
-        """A message that is not what its topic carries: a problem of the running sweep, else a warning."""
+        """Note a message that is not what its topic carries: a problem of the running sweep, else a warning."""
         if session is not None:
             session.problems.append(problem)
         else:
@@ -317,8 +318,8 @@ class StreamAcquisitionNode(GlsNode):
             return response
         finally:
             self.session = None
-        points = conversions.xyzi_array(sweep.xyz_mm, sweep.intensity)
-        response.cloud = conversions.cloud_to_msg(points, self.frame_id, time_msg(int(sweep.stamps_ns[0])))
+        response.cloud = xyzi_cloud_to_msg(sweep.xyz_mm, sweep.intensity, self.frame_id,
+                                           time_msg(int(sweep.stamps_ns[0])))
         response.placed_by_pose = True
         response.success = True
         outside = session.profiles - session.out_of_order - sweep.xyz_mm.shape[0]

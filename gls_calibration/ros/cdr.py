@@ -147,7 +147,7 @@ class _Reader:
         return self.raw[self.at - 1]
 
     def string_bytes(self, length: int) -> str:
-        """The string of ``length`` bytes (its NUL included) at the cursor."""
+        """Read the string of ``length`` bytes (its NUL included) at the cursor."""
         if length == 0:
             raise ValueError(f"{self.kind}: a string of length 0 at byte {self.at - 4} (no terminating NUL)")
         self._need(length)
@@ -165,12 +165,12 @@ class _Reader:
         return self.string_bytes(self.u32())
 
     def header(self) -> Header:
-        """A ``std_msgs/Header`` (stamp, then the frame's name)."""
+        """Read a ``std_msgs/Header`` (stamp, then the frame's name)."""
         sec, nanosec, length = self.unpack(self._header, 4)
         return Header(Time(sec, nanosec), self.string_bytes(length))
 
     def count(self, element_bytes: int) -> int:
-        """A sequence's length, refused when its elements cannot fit in the rest of the message."""
+        """Read a sequence's length, refused when its elements cannot fit in the rest of the message."""
         count = self.u32()
         if count * element_bytes > len(self.raw) - self.at:
             raise ValueError(f"{self.kind}: a sequence of {count} elements at byte {self.at - 4} is longer than "

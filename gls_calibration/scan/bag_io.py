@@ -471,7 +471,7 @@ class StreamAssembler:
 
     @property
     def buffer(self):
-        """The TF buffer of everything added so far (:class:`~gls_calibration.scan.tf_buffer.TfBuffer`).
+        """Return the TF buffer of everything added so far (:class:`~gls_calibration.scan.tf_buffer.TfBuffer`).
 
         Reading it first adds the transforms still pending (:meth:`flush`).
         """

@@ -121,8 +121,8 @@ class TfBuffer:
         bad = ~np.isfinite(poses).all(axis=(1, 2))
         with np.errstate(invalid="ignore"):
             gram = np.abs(rotations @ np.swapaxes(rotations, 1, 2) - np.eye(3))
-            bad |= ~(gram <= _GRAM_LIMIT).all(axis=(1, 2)) | (np.linalg.det(np.where(bad[:, None, None], np.eye(3),
-                                                                                       rotations)) < 0)
+            finite_rotations = np.where(bad[:, None, None], np.eye(3), rotations)    # det refuses NaN
+            bad |= ~(gram <= _GRAM_LIMIT).all(axis=(1, 2)) | (np.linalg.det(finite_rotations) < 0)
         first = int(np.argmax(bad)) if bad.any() else stamps_ns.size
         with self._lock:
             known = self._parent.get(child)
