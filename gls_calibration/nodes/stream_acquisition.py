@@ -41,8 +41,9 @@ from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
 from gls_calibration.nodes.scan_acquisition import request_problem
-from gls_calibration.ros import conversions
-from gls_calibration.ros.base import GlsNode
+from gls_calibration.ros import cdr
+from gls_calibration.ros.base import GlsNode, take_waiting
+from gls_calibration.ros.pointcloud import xyzi_cloud_to_msg
 from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import ServiceCallError
 from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC, line_msg, static_qos, stamp_ns, stream_qos, time_msg
@@ -52,6 +53,9 @@ from gls_calibration.scan.sweep import nominal_start_pose
 from gls_calibration_msgs.srv import AcquireSweep
 
 ROBOT_WAIT_S = 5.0     # how long to wait for the robot's command subscription to match before commanding
+# Messages of a stream taken in one callback (see take_waiting): the executor's wake-up per message was most of
+# the node's CPU; 100 profiles are ~5 ms of work, the longest a service request or the other stream waits.
+TAKE_AT_ONCE = 100
 
 
 @dataclass
@@ -108,10 +112,14 @@ class StreamAcquisitionNode(GlsNode):
         self.late = 0      # profiles of that motion that came after it was taken
         # the streams one callback at a time, each topic in arrival order: a profile's order and the newest
         # stamps mean what they say (a multi-threaded executor would otherwise run them side by side)
+        # The two fast streams arrive serialised (raw): read by ros/cdr without rclpy's message objects, the point
+        # data a view of the received bytes; a callback takes what queued meanwhile (TAKE_AT_ONCE).
         group = MutuallyExclusiveCallbackGroup()
         depth = self.max_profiles
-        self.create_subscription(PointCloud2, scan_topic, self.on_profile, stream_qos(depth), callback_group=group)
-        self.create_subscription(TFMessage, LAYOUT.tf_topic, self.on_tf, stream_qos(depth), callback_group=group)
+        self.profile_subscription = self.create_subscription(PointCloud2, scan_topic, self.on_profile,
+                                                             stream_qos(depth), callback_group=group, raw=True)
+        self.tf_subscription = self.create_subscription(TFMessage, LAYOUT.tf_topic, self.on_tf, stream_qos(depth),
+                                                        callback_group=group, raw=True)
         self.create_subscription(TFMessage, LAYOUT.tf_static_topic, self.on_tf_static, static_qos(),
                                  callback_group=group)
         self.create_subscription(Header, LAYOUT.motion_start_topic, self.on_start, stream_qos(10), callback_group=group)
@@ -129,10 +137,22 @@ class StreamAcquisitionNode(GlsNode):
         except ValueError as error:
             session.problems.append(str(error))
 
-    def on_profile(self, message: PointCloud2) -> None:
-        """Keep a profile of the running acquisition; one stamped before the newest is dropped and counted."""
+    def on_profile(self, raw: bytes) -> None:
+        """Keep the profiles (serialised PointCloud2) of the running acquisition, this one and those queued.
+
+        One stamped before the newest is dropped and counted.
+        """
+        self._profile(raw)
+        for waiting in take_waiting(self.profile_subscription, TAKE_AT_ONCE):
+            self._profile(waiting)
+
+    def _profile(self, raw: bytes) -> None:
         session = self.session
-        stamp = stamp_ns(message.header.stamp)
+        try:
+            stamp = cdr.header_stamp_ns(raw)
+        except ValueError as error:
+            self._malformed(session, f"a profile on {self.layout.scan_topic}: {error}")
+            return
         if session is None:
             if self.closed is not None and self.closed[0] <= stamp <= self.closed[1]:
                 self.late += 1      # of the sweep already taken: said in the next answer
@@ -150,14 +170,39 @@ class StreamAcquisitionNode(GlsNode):
                 session.problems.append(f"more than {self.max_profiles} profiles (parameter max_profiles) came "
                                         "during the acquisition")
             return
+        try:
+            message = cdr.read_pointcloud2(raw)
+        except ValueError as error:
+            session.problems.append(f"a profile on {self.layout.scan_topic}: {error}")
+            return
         self._add(session, self.layout.scan_topic, message)
 
-    def on_tf(self, message: TFMessage) -> None:
-        """Add a TF message to the running sweep's buffer (ignored between sweeps)."""
+    def _malformed(self, session: Optional[Session], problem: str) -> None:
+        """Note a message that is not what its topic carries: a problem of the running sweep, else a warning."""
+        if session is not None:
+            session.problems.append(problem)
+        else:
+            self.get_logger().warning(problem, throttle_duration_sec=1.0)
+
+    def on_tf(self, raw: bytes) -> None:
+        """Add the TF messages (serialised), this one and those queued, to the running sweep's buffer.
+
+        Ignored between sweeps.
+        """
+        self._tf(raw)
+        for waiting in take_waiting(self.tf_subscription, TAKE_AT_ONCE):
+            self._tf(waiting)
+
+    def _tf(self, raw: bytes) -> None:
         session = self.session
         if session is None:
             return
         session.last_arrival_s = time.monotonic()
+        try:
+            message = cdr.read_tf_message(raw)
+        except ValueError as error:
+            session.problems.append(f"a message on {LAYOUT.tf_topic}: {error}")
+            return
         for transform in message.transforms:
             if transform.child_frame_id == self.layout.flange_frame:
                 session.newest_tf_ns = max(session.newest_tf_ns, stamp_ns(transform.header.stamp))
@@ -273,8 +318,8 @@ class StreamAcquisitionNode(GlsNode):
             return response
         finally:
             self.session = None
-        points = conversions.xyzi_array(sweep.xyz_mm, sweep.intensity)
-        response.cloud = conversions.cloud_to_msg(points, self.frame_id, time_msg(int(sweep.stamps_ns[0])))
+        response.cloud = xyzi_cloud_to_msg(sweep.xyz_mm, sweep.intensity, self.frame_id,
+                                           time_msg(int(sweep.stamps_ns[0])))
         response.placed_by_pose = True
         response.success = True
         outside = session.profiles - session.out_of_order - sweep.xyz_mm.shape[0]
@@ -286,6 +331,10 @@ class StreamAcquisitionNode(GlsNode):
 
     def _sweep(self, session: Session):
         """Return the assembled sweep; ValueError naming the first problem of the streams."""
+        try:
+            session.assembler.flush()       # the flange poses into the TF buffer (a bad one is a problem)
+        except ValueError as error:
+            session.problems.append(str(error))
         if session.problems:
             more = f" (and {len(session.problems) - 1} more problem(s))" if len(session.problems) > 1 else ""
             raise ValueError(f"sweep refused: {session.problems[0]}{more}")

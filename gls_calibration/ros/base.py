@@ -4,9 +4,10 @@ from __future__ import annotations
 import math
 import threading
 import time
-from typing import Any, Callable, Optional, Sequence
+from typing import Any, Callable, Iterator, Optional, Sequence
 
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -311,6 +312,37 @@ class GlsNode(Node):
             future.cancel()
             raise failure
         return future.result() if condition is None else None
+
+
+def take_waiting(subscription, limit: int) -> Iterator[Any]:
+    """Yield the messages waiting in ``subscription``'s queue, at most ``limit``, without the executor.
+
+    Called from the subscription's callback, it hands over the messages that queued meanwhile in
+    arrival order, as the executor would, but without a wake-up each: rclpy's executor rebuilds its
+    wait set and runs a task for every message (~150 us of CPU a message). ``limit`` bounds how long
+    other callbacks of the node wait. Raw subscriptions yield the serialised bytes.
+
+    Parameters
+    ----------
+    subscription : rclpy.subscription.Subscription
+        The subscription whose callback is running.
+    limit : int
+        The most messages taken.
+
+    Yields
+    ------
+    object
+        Each message (bytes for a ``raw=True`` subscription).
+    """
+    for _ in range(limit):
+        try:
+            with subscription.handle:
+                taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+        except InvalidHandle:      # destroyed meanwhile (the node stops)
+            return
+        if taken is None:
+            return
+        yield taken[0]
 
 
 def _first_answer(futures: Sequence[Future]) -> Future:

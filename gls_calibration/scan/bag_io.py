@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 import shutil
+import threading
 import tempfile
 import warnings
 from typing import Callable, Iterator, Optional, Sequence
@@ -294,12 +295,8 @@ def _stamp_ns(header) -> int:
 
 
 def _pose_mm(transform) -> np.ndarray:
-    pose = np.eye(4)
-    q = transform.rotation
-    pose[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
-    t = transform.translation
-    pose[:3, 3] = np.array([t.x, t.y, t.z]) * MM_PER_M
-    return pose
+    q, t = transform.rotation, transform.translation
+    return _pose_mm_of((q.x, q.y, q.z, q.w), (t.x, t.y, t.z))
 
 
 def profile_points(message, limits: ReplayLimits, where: str) -> np.ndarray:
@@ -318,12 +315,18 @@ def profile_points(message, limits: ReplayLimits, where: str) -> np.ndarray:
     data = np.asarray(message.data, dtype=np.uint8)
     if step < 16 or data.size < count * step:
         raise ValueError(f"{where}: the cloud's data ({data.size} bytes) is shorter than its {count} points")
-    dtype = np.dtype({"names": list(_FIELDS), "formats": ["<f4"] * 4,
-                      "offsets": [int(fields[name].offset) for name in _FIELDS], "itemsize": step})
-    points = data[:count * step].view(dtype)
-    array = np.empty((count, len(_FIELDS)))
-    for column, name in enumerate(_FIELDS):
-        array[:, column] = points[name]
+    offsets = [int(fields[name].offset) for name in _FIELDS]
+    if step % 4 == 0 and all(offset % 4 == 0 and 0 <= offset <= step - 4 for offset in offsets):
+        # the points as rows of float32 words: one converting copy of the four columns, none per column
+        words = data[:count * step].view("<f4").reshape(count, step // 4)
+        columns = [offset // 4 for offset in offsets]
+        array = (words[:, :4] if columns == [0, 1, 2, 3] else words[:, columns]).astype(np.float64)
+    else:
+        dtype = np.dtype({"names": list(_FIELDS), "formats": ["<f4"] * 4, "offsets": offsets, "itemsize": step})
+        points = data[:count * step].view(dtype)
+        array = np.empty((count, len(_FIELDS)))
+        for column, name in enumerate(_FIELDS):
+            array[:, column] = points[name]
     median_m = median_point_distance(array[:, :3])
     if median_m > limits.max_range_m:      # False for NaN: no finite point says nothing of the unit
         raise ValueError(f"{where}: median point distance {median_m:.4g} m exceeds "
@@ -453,7 +456,9 @@ class StreamAssembler:
         self.layout = layout
         self.limits = limits
         self.source = source
-        self.buffer = TfBuffer()
+        self._buffer = TfBuffer()
+        self._pending: list[tuple] = []     # dynamic transforms not yet in the buffer (see flush)
+        self._pending_lock = threading.Lock()
         self.starts: list[int] = []
         self.ends: list[int] = []
         self.profiles: list[tuple[int, np.ndarray]] = []
@@ -464,12 +469,56 @@ class StreamAssembler:
         return {layout.scan_topic: POINTCLOUD2, layout.tf_topic: TFMESSAGE, layout.tf_static_topic: TFMESSAGE,
                 layout.motion_start_topic: HEADER, layout.motion_end_topic: HEADER}
 
+    @property
+    def buffer(self):
+        """Return the TF buffer of everything added so far (:class:`~gls_calibration.scan.tf_buffer.TfBuffer`).
+
+        Reading it first adds the transforms still pending (:meth:`flush`).
+        """
+        self.flush()
+        return self._buffer
+
+    def flush(self) -> None:
+        """Add the pending dynamic transforms to the buffer, in bulk; ValueError naming the first bad one.
+
+        ``/tf`` transforms are kept as numbers when added and go into the buffer here, before any
+        lookup: each run of one edge with one vectorised quaternion conversion and one bulk insertion
+        (``TfBuffer.set_transforms``), the same poses, order and checks as one transform at a time. A
+        run holding a transform the bulk path would not take as it is (not finite, a zero quaternion)
+        is added one transform at a time, so its error is the one :meth:`add` used to raise.
+        """
+        with self._pending_lock:
+            pending, self._pending = self._pending, []
+        begin = 0
+        while begin < len(pending):
+            parent, child = pending[begin][:2]
+            end = begin + 1
+            while end < len(pending) and pending[end][0] == parent and pending[end][1] == child:
+                end += 1
+            try:
+                _add_transform_run(self._buffer, pending[begin:end])
+            except ValueError:
+                with self._pending_lock:       # what follows the bad transform stays pending, as add() left it
+                    self._pending[:0] = pending[end:]
+                raise
+            begin = end
+
     def add(self, topic: str, message) -> None:
         """Take one message of one of :meth:`topics` (others are ignored)."""
         layout = self.layout
-        if topic in (layout.tf_topic, layout.tf_static_topic):
+        if topic == layout.tf_topic:
+            rows = []
             for transform in message.transforms:
-                _add_transform(self.buffer, transform, static=topic == layout.tf_static_topic)
+                translation, rotation = transform.transform.translation, transform.transform.rotation
+                rows.append((transform.header.frame_id, transform.child_frame_id, _stamp_ns(transform.header),
+                             rotation.x, rotation.y, rotation.z, rotation.w, translation.x, translation.y,
+                             translation.z))
+            with self._pending_lock:
+                self._pending.extend(rows)
+        elif topic == layout.tf_static_topic:
+            self.flush()      # in the order they came
+            for transform in message.transforms:
+                _add_transform(self._buffer, transform, static=True)
         elif topic == layout.motion_start_topic:
             self.starts.append(_stamp_ns(message))
         elif topic == layout.motion_end_topic:
@@ -554,6 +603,29 @@ def _check_stream(where: str, stamps_ns: np.ndarray, end_ns: int, limits: Replay
     if end_ns - stamps_ns[-1] > allowed:
         raise ValueError(f"{where}: the profile stream stops {(end_ns - stamps_ns[-1]) / NS_PER_S:.4g} s "
                          "before the motion ends")
+
+
+def _add_transform_run(buffer, rows: list[tuple]) -> None:
+    """Add ``rows`` (parent, child, stamp ns, quaternion x, y, z, w, translation m) of one edge to ``buffer``."""
+    parent, child = rows[0][:2]
+    numbers = np.array([row[3:] for row in rows], dtype=float)
+    quaternions, translations = numbers[:, :4], numbers[:, 4:]
+    if not (np.isfinite(numbers).all() and (np.einsum("ij,ij->i", quaternions, quaternions) > 0.0).all()):
+        for row in rows:   # one at a time: the error is raised at the bad transform, with its own message
+            buffer.set_transform(parent, child, row[2], _pose_mm_of(row[3:7], row[7:]))
+        return
+    poses = np.zeros((len(rows), 4, 4))
+    poses[:, 3, 3] = 1.0
+    poses[:, :3, :3] = Rotation.from_quat(quaternions).as_matrix()
+    poses[:, :3, 3] = translations * MM_PER_M
+    buffer.set_transforms(parent, child, np.array([row[2] for row in rows], dtype=np.int64), poses)
+
+
+def _pose_mm_of(quaternion, translation_m) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_quat(list(quaternion)).as_matrix()
+    pose[:3, 3] = np.array(translation_m) * MM_PER_M
+    return pose
 
 
 def _add_transform(buffer, transform, static: bool) -> None:

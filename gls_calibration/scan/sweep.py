@@ -194,9 +194,17 @@ def median_point_distance(xyz: np.ndarray) -> float:
     0.35
     """
     xyz = np.asarray(xyz, dtype=float)
-    distance = np.sqrt(np.einsum("...i,...i->...", xyz, xyz))     # linalg.norm, several times faster on (N, 3)
-    distance = distance[np.isfinite(distance)]
-    return float(np.median(distance)) if distance.size else math.nan
+    squared = np.einsum("...i,...i->...", xyz, xyz)     # linalg.norm, several times faster on (N, 3)
+    squared = squared[np.isfinite(squared)].ravel()
+    if not squared.size:
+        return math.nan
+    # np.median's value without its sort of every distance: the middle one or two of the squared distances
+    # (the root keeps their order), their roots averaged as np.median averages them
+    middle = squared.size // 2
+    if squared.size % 2:
+        return float(np.sqrt(np.partition(squared, middle)[middle]))
+    low, high = np.sqrt(np.partition(squared, (middle - 1, middle))[middle - 1:middle + 1])
+    return float((low + high) / 2.0)
 
 
 def stamp_window_s(profiles: int, step_mm: float, speed_mm_s: float, rules: ProfileRules = ProfileRules()) -> float:

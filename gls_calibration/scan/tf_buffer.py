@@ -46,6 +46,16 @@ class _Track:
         return cls(np.asarray(stamps_ns, dtype=np.int64), stack, rotations, steps)
 
 
+def _check_names(parent: str, child: str) -> None:
+    if not parent or not child or parent == child:
+        raise ValueError(f"a transform needs two different frame names, got {parent!r} -> {child!r}")
+
+
+def _improper(parent: str, child: str, stamp_ns: int) -> str:
+    return (f"the transform {parent} -> {child} at {stamp_ns} ns does not hold a proper rotation "
+            "(non-normalised quaternion?)")
+
+
 class TfBuffer:
     """Transforms between frames of one tree, static or stamped.
 
@@ -68,15 +78,13 @@ class TfBuffer:
         ValueError
             A non-finite or non-rigid pose, an empty or equal frame name, or a child given a second parent.
         """
-        if not parent or not child or parent == child:
-            raise ValueError(f"a transform needs two different frame names, got {parent!r} -> {child!r}")
+        _check_names(parent, child)
         pose = np.asarray(pose, dtype=float)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
             raise ValueError(f"the transform {parent} -> {child} at {stamp_ns} ns is not a finite 4x4 pose")
         rotation = pose[:3, :3]
         if not (np.abs(rotation @ rotation.T - np.eye(3)) <= _GRAM_LIMIT).all() or np.linalg.det(rotation) < 0:
-            raise ValueError(f"the transform {parent} -> {child} at {stamp_ns} ns does not hold a proper rotation "
-                             "(non-normalised quaternion?)")
+            raise ValueError(_improper(parent, child, stamp_ns))
         with self._lock:
             known = self._parent.get(child)
             if known is not None and known != parent:
@@ -90,6 +98,51 @@ class TfBuffer:
             stamps.insert(at, int(stamp_ns))
             poses.insert(at, pose.copy())
             self._tracks.pop(child, None)
+
+    def set_transforms(self, parent: str, child: str, stamps_ns: np.ndarray, poses: np.ndarray) -> None:
+        """Add the poses of ``child`` in ``parent`` (k, 4, 4; mm) at ``stamps_ns`` (k,) in one step (dynamic).
+
+        What :meth:`set_transform` for each sample in turn does, with the checks in bulk: the same
+        samples in the same order, and on a bad sample the same ``ValueError`` (the samples before
+        it added).
+
+        Raises
+        ------
+        ValueError
+            As :meth:`set_transform`, for the first bad sample.
+        """
+        _check_names(parent, child)
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+        poses = np.asarray(poses, dtype=float)
+        if poses.shape != (stamps_ns.size, 4, 4):
+            raise ValueError(f"the transforms {parent} -> {child}: {stamps_ns.size} stamps but poses of shape "
+                             f"{poses.shape}")
+        rotations = poses[:, :3, :3]
+        bad = ~np.isfinite(poses).all(axis=(1, 2))
+        with np.errstate(invalid="ignore"):
+            gram = np.abs(rotations @ np.swapaxes(rotations, 1, 2) - np.eye(3))
+            finite_rotations = np.where(bad[:, None, None], np.eye(3), rotations)    # det refuses NaN
+            bad |= ~(gram <= _GRAM_LIMIT).all(axis=(1, 2)) | (np.linalg.det(finite_rotations) < 0)
+        first = int(np.argmax(bad)) if bad.any() else stamps_ns.size
+        with self._lock:
+            known = self._parent.get(child)
+            if known is not None and known != parent:
+                raise ValueError(f"frame {child} has two parents: {known} and {parent}")
+            if first:
+                self._parent[child] = parent
+                stamps, held = self._samples.setdefault(child, ([], []))
+                new_stamps = stamps_ns[:first].tolist()
+                if (not stamps or new_stamps[0] >= stamps[-1]) and all(np.diff(stamps_ns[:first]) >= 0):
+                    stamps.extend(new_stamps)        # in time order after what is held: as bisect_right would
+                    held.extend(poses[:first].copy())
+                else:
+                    for stamp_ns, pose in zip(new_stamps, poses[:first]):
+                        at = bisect.bisect_right(stamps, stamp_ns)
+                        stamps.insert(at, stamp_ns)
+                        held.insert(at, pose.copy())
+                self._tracks.pop(child, None)
+        if first < stamps_ns.size:
+            self.set_transform(parent, child, int(stamps_ns[first]), poses[first])    # raises its message
 
     def _track(self, child: str) -> _Track:
         track = self._tracks.get(child)
