@@ -322,6 +322,11 @@ def take_waiting(subscription, limit: int) -> Iterator[Any]:
     wait set and runs a task for every message (~150 us of CPU a message). ``limit`` bounds how long
     other callbacks of the node wait. Raw subscriptions yield the serialised bytes.
 
+    Hazard: it calls the subscription handle's ``take_message``, the internal call rclpy's executor
+    makes (rclpy 7, Jazzy); it is not public API. Where it is missing or takes other arguments the
+    generator yields nothing and the executor delivers every message itself, as before (slower, the
+    same messages in the same order).
+
     Parameters
     ----------
     subscription : rclpy.subscription.Subscription
@@ -339,6 +344,8 @@ def take_waiting(subscription, limit: int) -> Iterator[Any]:
             with subscription.handle:
                 taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
         except InvalidHandle:      # destroyed meanwhile (the node stops)
+            return
+        except (AttributeError, TypeError):     # another rclpy: leave the queue to the executor
             return
         if taken is None:
             return
