@@ -206,3 +206,39 @@ def test_the_answer_cloud_is_the_one_built_field_by_field(shape):
         xyzi_cloud_to_msg(np.zeros((2, 3, 3)), np.zeros((3, 2)), "robot_base")
     with pytest.raises(ValueError, match=r"^xyz must have shape \(W, 3\) or \(H, W, 3\), got \(3,\)$"):
         xyzi_cloud_to_msg(np.zeros(3), np.zeros(()), "robot_base")
+
+
+class _Handle:
+    """A subscription handle as another rclpy might have it: no take_message, or one of other arguments."""
+
+    def __init__(self, take=None) -> None:
+        if take is not None:
+            self.take_message = take
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+
+@pytest.mark.parametrize("take", [None, lambda message_type: None])
+def test_take_waiting_leaves_the_queue_to_the_executor_on_another_rclpy(take):
+    from types import SimpleNamespace
+
+    from gls_calibration.ros.base import take_waiting
+
+    subscription = SimpleNamespace(handle=_Handle(take), msg_type=PointCloud2, raw=True)
+    assert list(take_waiting(subscription, 10)) == []
+
+
+def test_take_waiting_stops_at_the_limit_and_at_an_empty_queue():
+    from types import SimpleNamespace
+
+    from gls_calibration.ros.base import take_waiting
+
+    queue = [(b"a", None), (b"b", None), (b"c", None)]
+    subscription = SimpleNamespace(handle=_Handle(lambda message_type, raw: queue.pop(0) if queue else None),
+                                   msg_type=PointCloud2, raw=True)
+    assert list(take_waiting(subscription, 2)) == [b"a", b"b"]
+    assert list(take_waiting(subscription, 5)) == [b"c"]
