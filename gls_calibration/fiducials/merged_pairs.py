@@ -94,12 +94,6 @@ def _window(pitch_mm: tuple[float, float], jacobian: np.ndarray, inner_mm: float
     return offsets, by_sector
 
 
-def _by_sector(values: np.ndarray, by_sector: np.ndarray, fill) -> np.ndarray:
-    """Return ``values`` (m, N) gathered per sector (m, S, L) through ``_window``'s padded index (N: ``fill``)."""
-    padded = np.concatenate([values, np.full((len(values), 1), fill, values.dtype)], 1)
-    return padded[:, by_sector]
-
-
 def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacobian: np.ndarray,
                    mid_radius_mm: np.ndarray, harmonic_mm: np.ndarray, reference: np.ndarray,
                    pitch_mm: tuple[float, float], band_mm: float
@@ -147,31 +141,22 @@ def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray
     centres, g0, g1, g2 = _profile_tables(rho[taken], values[taken], bin_mm, band_mm)
 
     # 2. Each candidate's fit, the single mark linearised about it plus the pair's signature, per sector.
-    # The pixels are gathered per sector first (through the padded index: a zero, unusable pixel at
-    # N) and the design built there, so no design-sized array is copied by the gather.
-    parameters = 14
     for start in range(0, count, CANDIDATE_BLOCK):
         block = slice(start, min(start + CANDIDATE_BLOCK, count))
-        rho_b, use_b = _by_sector(rho[block], by_sector, 0.0), _by_sector(usable[block], by_sector, False)
+        rho_b, use_b = rho[block], usable[block]
         profile, slope, bend = (np.interp(rho_b, centres, table) for table in (g0, g1, g2))
-        c1, s1, c2, s2 = (_by_sector(table[block], by_sector, 0.0) for table in (cos1, sin1, cos2, sin2))
-        design = np.empty(rho_b.shape + (parameters,))                                         # (m, S, L, P)
-        for column, (factor, other) in enumerate(((profile, None), (slope, c1), (slope, s1), (slope, None),
-                                                  (slope, c2), (slope, s2), (profile, c1), (profile, s1),
-                                                  (None, None), (bend, None), (bend, c2), (bend, s2),
-                                                  (profile, c2), (profile, s2))):
-            if factor is None:
-                design[..., column] = 1.0
-            elif other is None:
-                design[..., column] = factor
-            else:
-                np.multiply(factor, other, out=design[..., column])
-        design *= use_b[..., None]
-        target = np.where(use_b, _by_sector(values[block], by_sector, 0.0), 0.0)
+        c1, s1, c2, s2 = cos1[block], sin1[block], cos2[block], sin2[block]
+        design = np.stack([profile, slope * c1, slope * s1, slope, slope * c2, slope * s2,
+                           profile * c1, profile * s1, np.ones_like(rho_b), bend,
+                           bend * c2, bend * s2, profile * c2, profile * s2], -1) * use_b[..., None]
+        parameters = design.shape[-1]
+        # Per sector, through the padded index (a zero row at N): one batched product for all sectors.
+        design = np.concatenate([design, np.zeros((len(design), 1, parameters))], 1)[:, by_sector]   # (m, S, L, P)
+        target = np.concatenate([np.where(use_b, values[block], 0.0), np.zeros((len(design), 1))], 1)[:, by_sector]
         transposed = np.swapaxes(design, 2, 3)
         sector_normal = np.matmul(transposed, design)                                            # (m, S, P, P)
         sector_right = np.matmul(transposed, target[..., None])[..., 0]                          # (m, S, P)
-        sector_pixels = use_b.sum(axis=2)
+        sector_pixels = np.concatenate([use_b, np.zeros((len(design), 1), bool)], 1)[:, by_sector].sum(axis=2)
         normal = sector_normal.sum(axis=1)
         fit = (sector_pixels.sum(axis=1) >= MIN_PIXELS) & (np.linalg.cond(normal) < 1e12)
         normal[~fit] = np.eye(parameters)
