@@ -108,12 +108,11 @@ def _fill_missing(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
             continue
         if len(box_rows) * size * size <= valid.size:
             # Few pixels for this size: read their boxes (cheaper than any pass over the image).
-            # One flat index per box pixel, read by both gathers.
             offsets = np.arange(-half, half + 1)
-            in_box = (row_of[box_rows[:, None] + reach + offsets] * valid.shape[1])[:, :, None] \
-                + col_of[box_cols[:, None] + reach + offsets][:, None, :]
-            counts = np.count_nonzero(valid.ravel()[in_box], axis=(1, 2))
-            sums = values.ravel()[in_box].sum(axis=(1, 2), dtype=np.float64)
+            rows_in_box = row_of[box_rows[:, None] + reach + offsets][:, :, None]
+            cols_in_box = col_of[box_cols[:, None] + reach + offsets][:, None, :]
+            counts = np.count_nonzero(valid[rows_in_box, cols_in_box], axis=(1, 2))
+            sums = values[rows_in_box, cols_in_box].sum(axis=(1, 2), dtype=np.float64)
         else:
             # Many: box sums from summed-area tables of the reflected image, built once.
             if tables is None:
