@@ -1,13 +1,16 @@
 """The fiducial measurement's faster array paths against plain references (issue 33 item 3).
 
-The peak search along the rays and the detection image's binning were rewritten for CPU time; each
-must give what the obvious per-candidate loop or block mean gives.
+The peak search along the rays, the detection image's binning, the correlation map's local maxima and
+the rays' sample positions were rewritten for CPU time; each must give what the obvious
+per-candidate loop, block mean, whole-map dilation or einsum gives.
 """
+import cv2
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
-from gls_calibration.fiducials.detection import _detection_image
-from gls_calibration.fiducials.ring_fit import _peak
+from gls_calibration.fiducials.detection import _correlation_peaks, _detection_image
+from gls_calibration.fiducials.ring_fit import _peak, _ray_profiles, _sample_bicubic
 
 
 def _reference_peak(score: np.ndarray, low: np.ndarray, width: int):
@@ -59,3 +62,59 @@ def test_detection_image_at_the_detection_pitch_is_the_image_itself():
     image = np.arange(20, dtype=np.float32).reshape(4, 5)
     binned, factors = _detection_image(image, (0.2, 0.2))
     assert factors == (1, 1) and binned is image
+
+
+def _reference_correlation_peaks(score: np.ndarray, distance_px: float, threshold: float) -> np.ndarray:
+    """Local maxima through a dilation of the whole map (the code before issue 33's rewrite)."""
+    size = 2 * int(np.ceil(distance_px)) + 1
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    rows, cols = np.nonzero((score >= cv2.dilate(score, kernel)) & (score > threshold))
+    order = np.argsort(-score[rows, cols], kind="stable")
+    points = np.column_stack([cols, rows])[order].astype(float)
+    if len(points) == 0:
+        return points
+    tree = cKDTree(points)
+    taken = np.zeros(len(points), bool)
+    keep = []
+    for index in range(len(points)):
+        if not taken[index]:
+            keep.append(index)
+            taken[tree.query_ball_point(points[index], distance_px)] = True
+    return points[keep]
+
+
+@pytest.mark.parametrize("seed, distance_px, threshold", [(0, 13.5, 0.3), (1, 4.2, 0.0), (2, 2.0, 0.5), (3, 7.0, 2.0)])
+def test_correlation_peaks_match_a_dilation_of_the_whole_map(seed, distance_px, threshold):
+    rng = np.random.default_rng(seed)
+    score = cv2.GaussianBlur(rng.normal(size=(157, 203)).astype(np.float32), (0, 0), 3.0)
+    score /= score.std()
+    # Plateaus (equal maxima) and maxima on the border, where the dilation ignores what is outside.
+    score = np.round(score * 4) / 4
+    score[0, 50:53] = score[:, -1] = score.max()
+    peaks = _correlation_peaks(score, distance_px, threshold)
+    expected = _reference_correlation_peaks(score, distance_px, threshold)
+    np.testing.assert_array_equal(peaks, expected)
+    assert len(expected) > 3 or threshold >= 2.0
+
+
+def test_correlation_peaks_none_above_the_threshold():
+    score = np.zeros((40, 50), np.float32)
+    assert _correlation_peaks(score, 5.0, 0.1).shape == (0, 2)
+
+
+def test_ray_profiles_sample_where_the_einsum_of_the_maps_puts_them():
+    rng = np.random.default_rng(5)
+    image = rng.normal(size=(120, 140)).astype(np.float32)
+    count, rays = 9, 32
+    centres = rng.uniform(4.0, 12.0, (count, 2))       # some rays leave the image
+    offset = rng.uniform(-0.5, 0.5, (count, 2))
+    inverse = np.linalg.inv(np.array([[0.1, 0.004], [-0.003, 0.15]]) + rng.normal(0, 0.005, (count, 2, 2)))
+    angles = np.linspace(0.0, 2 * np.pi, rays, endpoint=False)
+    directions = np.stack([np.cos(angles), np.sin(angles)], -1)
+    radial = np.linspace(1.0, 3.0, 41).astype(np.float32)
+    start = np.einsum("mij,mj->mi", inverse, centres - offset).astype(np.float32)
+    heading = np.einsum("mij,aj->mai", inverse, directions).astype(np.float32)
+    maps = [heading[..., axis, None] * radial + start[:, None, None, axis] for axis in range(2)]
+    expected = _sample_bicubic(image, *maps)
+    np.testing.assert_array_equal(_ray_profiles(image, centres, offset, inverse, directions, radial), expected)
+    assert np.isfinite(expected).any() and np.isnan(expected).any()

@@ -114,10 +114,22 @@ def _ring_template(pitch: tuple[float, float], radii: np.ndarray, line_sigma_mm:
 
 def _correlation_peaks(score: np.ndarray, distance_px: float, threshold: float) -> np.ndarray:
     """(column, row) of local maxima of ``score`` above ``threshold``, at least ``distance_px`` apart."""
-    size = 2 * int(np.ceil(distance_px)) + 1
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-    peaks = (score >= cv2.dilate(score, kernel)) & (score > threshold)
-    rows, cols = np.nonzero(peaks)
+    half = int(np.ceil(distance_px))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * half + 1, 2 * half + 1)).astype(bool)
+    # A local maximum is no lower than any pixel of the (symmetric) elliptical neighbourhood about it:
+    # ``score >= cv2.dilate(score, kernel)``. Only pixels above the threshold are asked, and only a
+    # pixel above it can be higher than one of them, so the comparison runs over the pairs of pixels
+    # above the threshold within the kernel's reach (a few thousand), not a dilation of the whole map.
+    rows, cols = np.nonzero(score > threshold)
+    above = score[rows, cols]
+    pairs = cKDTree(np.column_stack([rows, cols])).query_pairs(half, p=np.inf, output_type="ndarray")
+    first, second = pairs[:, 0], pairs[:, 1]
+    pairs = pairs[kernel[rows[second] - rows[first] + half, cols[second] - cols[first] + half]]
+    first, second = pairs[:, 0], pairs[:, 1]
+    beaten = np.zeros(len(rows), bool)
+    beaten[first[above[second] > above[first]]] = True
+    beaten[second[above[first] > above[second]]] = True
+    rows, cols = rows[~beaten], cols[~beaten]
     # Plateaus give several equal maxima: keep one per neighbourhood, strongest first.
     order = np.argsort(-score[rows, cols], kind="stable")
     points = np.column_stack([cols, rows])[order].astype(float)

@@ -237,7 +237,9 @@ def _point_spacing(xyz: np.ndarray, keep: np.ndarray, pose: PlatePose, turn: np.
     middle = np.median(finite[::step], axis=0)
     # A square of the cloud's x-y about its middle: the plate's scale there, up to its tilt.
     half = SPACING_PATCH_POINTS / 2 * per_point / max(abs(float(pose.normal[2])), 0.1)
-    near = (np.abs(finite[:, 0] - middle[0]) < half) & (np.abs(finite[:, 1] - middle[1]) < half)
+    # The band in x first, then y among its points only: half the passes over the whole cloud.
+    near = np.flatnonzero(np.abs(finite[:, 0] - middle[0]) < half)
+    near = near[np.abs(finite[near, 1] - middle[1]) < half]
     patch = pose.to_plane(finite[near]) @ turn.T
     if len(patch) < 16:
         return per_point, per_point, per_point
@@ -357,15 +359,22 @@ def rasterised_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose,
         # out of phase; splatting keeps the marks' sub-pixel position.
         rest_column, rest_row = 1.0 - fraction_column, 1.0 - fraction_row
         size = width * height
-        sums, weights, weight = np.zeros(size), np.zeros(size), np.empty(len(base))
+        weight = np.empty(len(base))
         for step, column_weight, row_weight in ((0, rest_column, rest_row), (1, fraction_column, rest_row),
                                                 (width, rest_column, fraction_row),
                                                 (width + 1, fraction_column, fraction_row)):
-            # Binned at the corner pixel, then moved by ``step``: no index array per neighbour.
+            # Binned at the corner pixel, then moved by ``step``: no index array per neighbour. The
+            # corner's own bins start the sums (as added to zeros, without the pass over them).
             np.multiply(column_weight, row_weight, out=weight)
-            weights[step:] += np.bincount(base, weights=weight, minlength=size)[:size - step]
+            if step == 0:
+                weights = np.bincount(base, weights=weight, minlength=size)
+            else:
+                weights[step:] += np.bincount(base, weights=weight, minlength=size)[:size - step]
             weight *= values
-            sums[step:] += np.bincount(base, weights=weight, minlength=size)[:size - step]
+            if step == 0:
+                sums = np.bincount(base, weights=weight, minlength=size)
+            else:
+                sums[step:] += np.bincount(base, weights=weight, minlength=size)[:size - step]
     covered = weights > 1e-3
     mean = np.divide(sums, weights, out=sums, where=covered).reshape(height, width)   # 0 where not covered
     image = _fill_missing(mean, covered.reshape(height, width))

@@ -302,11 +302,13 @@ def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, in
     Rays map to pixels through each candidate's inverse affine map (pixel = J^-1 (uv - offset)).
     """
     start = np.einsum("mij,mj->mi", inverse, centres - offset).astype(np.float32)      # (M, 2)
-    heading = np.einsum("mij,aj->mai", inverse, directions).astype(np.float32)          # (M, A, 2)
     # Built in place (heading times radius, plus the start): the same float32 values, fewer temporaries.
     maps = []
     for axis in range(2):
-        positions = np.multiply(heading[..., axis, None], radial)                       # (M, A, S)
+        # Heading of every ray along this pixel axis (M, A), contiguous: J^-1 times the ray's direction.
+        heading = (inverse[:, axis, 0, None] * directions[:, 0] + inverse[:, axis, 1, None] * directions[:, 1]
+                   ).astype(np.float32)
+        positions = np.multiply(heading[..., None], radial)                             # (M, A, S)
         positions += start[:, None, None, axis]
         maps.append(positions)
     return _sample_bicubic(image, *maps)
