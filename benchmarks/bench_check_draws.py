@@ -29,6 +29,7 @@ import numpy as np
 
 from bench_honest_robot import calibrate_once
 from gls_calibration.calibration.stated_accuracy import stated_accuracy
+from gls_calibration.discrepancy.residual_statistics import rms
 from gls_calibration.registration.chain_map import chain_map_identity
 from gls_calibration.simulation.reference_plate import (FIELD_PLATE, calibration_plan, chain_check,
                                                         measure_chain_map, reference_plate_check)
@@ -45,11 +46,6 @@ def symmetric_shear(known_xy: np.ndarray, residuals: np.ndarray) -> tuple[float,
     about = residuals - residuals.mean(axis=0)
     s = float(np.sum(about * swapped) / np.sum(swapped * swapped))
     return s, s * swapped
-
-
-def rms_2d(values: np.ndarray) -> float:
-    """RMS of the 2-D vectors' lengths."""
-    return float(np.sqrt(np.mean(np.sum(values ** 2, axis=1))))
 
 
 def main() -> None:
@@ -78,8 +74,8 @@ def main() -> None:
             check = chain_check(result, plan, config, check_seed, FIELD_PLATE, chain_map)
             stated = stated_accuracy(run["measured_rms"], check, plan=plan.label, placement=plan.placement,
                                      chain_map=chain_map_identity(chain_map))
-            print(f"{seed:4d} {draw:4d} {math.hypot(*result.sigma_mm):8.4f} {shear:+10.2e} {rms_2d(field):8.4f} "
-                  f"{rms_2d(result.residuals_mm - field):8.4f} {stated.rms_mm / run['true_rms']:11.2f}", flush=True)
+            print(f"{seed:4d} {draw:4d} {math.hypot(*result.sigma_mm):8.4f} {shear:+10.2e} {rms(field):8.4f} "
+                  f"{rms(result.residuals_mm - field):8.4f} {stated.rms_mm / run['true_rms']:11.2f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -264,10 +264,11 @@ def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 
     stacked = np.vstack(residuals)
     dof = len(stacked) - 1.5 * len(positions)
     sigma = tuple(float(math.sqrt(np.sum(stacked[:, axis] ** 2) / dof)) for axis in range(2))
-    joint = _aligned_residuals(np.vstack(measured_all), np.vstack(known_all))
+    known_stacked = np.vstack(known_all)
+    joint = _aligned_residuals(np.vstack(measured_all), known_stacked)
     bounds = np.cumsum([0] + [len(m) for m in measured_all])
     bias = tuple(tuple(float(v) for v in joint[a:b].mean(axis=0)) for a, b in zip(bounds[:-1], bounds[1:]))
-    return ReferencePlateResult(sigma, bias, found, expected, np.vstack(known_all)[:, :2], stacked)
+    return ReferencePlateResult(sigma, bias, found, expected, known_stacked[:, :2], stacked)
 
 
 CHAIN_MAP_SEED_BASE = 7919
