@@ -8,7 +8,9 @@ error, the same chain map with ``--chain-map``), draw 0 being the one ``gls-sim-
 Per draw it prints the check's 2-D figure sqrt(sigma_x^2 + sigma_y^2), the symmetric shear s of its
 residual field (least squares delta_x = s y, delta_y = s x over the plate, with a shift; per mm),
 that shear's RMS and the figure without it; and, from one calibration of the same cell through
-``DirectCell`` (one iteration, validation plate), the STATED / TRUE ratio each draw would give.
+``DirectCell`` (one iteration, validation plate), the STATED / TRUE ratio each draw would give, and
+the same for the check pooled over draws 0..d (each known centre's residual averaged over the draws,
+the per-axis figure taken from that mean field as ``reference_plate_check`` takes it).
 
 Why the shear: a symmetric shear of the marks cannot be told from the same cross-track slope in
 every sweep of both orientations (each sweep's path yaw), so the separation leaves the marks with
@@ -60,13 +62,15 @@ def main() -> None:
     plan = calibration_plan()
     print(f"{args.preset}, plan {plan.label}, check on {FIELD_PLATE.label}, chain map "
           f"{'on' if args.chain_map else 'off'}; mm, shear per mm")
-    print(f"{'seed':>4s} {'draw':>4s} {'check':>8s} {'shear':>10s} {'its RMS':>8s} {'rest':>8s} {'STATED/TRUE':>11s}")
+    print(f"{'seed':>4s} {'draw':>4s} {'check':>8s} {'shear':>10s} {'its RMS':>8s} {'rest':>8s} {'STATED/TRUE':>11s}"
+          f" {'pooled':>8s} {'its S/T':>7s}")
     for seed in args.seeds:
         config = dataclasses.replace(load_sim_config(preset=args.preset), seed=seed)
         chain_map = measure_chain_map(config, plan, seed=seed) if args.chain_map else None
         with tempfile.TemporaryDirectory() as folder:
             run = calibrate_once(args.preset, seed, True, None, Path(folder), chain_map=chain_map)
         print(f"{seed:4d} calibration: MEASURED {run['measured_rms']:.4f}, TRUE {run['true_rms']:.4f}", flush=True)
+        residuals, knowns = [], []
         for draw in range(args.draws):
             check_seed = seed + DRAW_SEED_STEP * draw
             result = reference_plate_check(config, plan, seed=check_seed, design=FIELD_PLATE, chain_map=chain_map)
@@ -74,8 +78,22 @@ def main() -> None:
             check = chain_check(result, plan, config, check_seed, FIELD_PLATE, chain_map)
             stated = stated_accuracy(run["measured_rms"], check, plan=plan.label, placement=plan.placement,
                                      chain_map=chain_map_identity(chain_map))
+            # The check pooled over draws 0..d: each known centre's residual averaged over the draws,
+            # then the per-axis standard deviation as chain_check takes it.
+            # (Pooled only while every draw found the same known centres; reference_plate_check's dof.)
+            residuals.append(result.residuals_mm)
+            knowns.append(result.known_xy_mm)
+            pooled_text = f"{'n/a':>8s} {'n/a':>7s}"
+            if all(np.array_equal(known, knowns[0]) for known in knowns):
+                mean = np.mean(residuals, axis=0)
+                pooled_sigma = tuple(float(v) for v in np.sqrt(np.sum(mean**2, axis=0) / (len(mean) - 1.5)))
+                pooled = stated_accuracy(run["measured_rms"], dataclasses.replace(check, sigma_mm=pooled_sigma),
+                                         plan=plan.label, placement=plan.placement,
+                                         chain_map=chain_map_identity(chain_map))
+                pooled_text = f"{math.hypot(*pooled_sigma):8.4f} {pooled.rms_mm / run['true_rms']:7.2f}"
             print(f"{seed:4d} {draw:4d} {math.hypot(*result.sigma_mm):8.4f} {shear:+10.2e} {rms(field):8.4f} "
-                  f"{rms(result.residuals_mm - field):8.4f} {stated.rms_mm / run['true_rms']:11.2f}", flush=True)
+                  f"{rms(result.residuals_mm - field):8.4f} {stated.rms_mm / run['true_rms']:11.2f} {pooled_text}",
+                  flush=True)
 
 
 if __name__ == "__main__":
