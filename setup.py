@@ -32,6 +32,7 @@ TOOLS = {
     "gls-train": "train",
     "gls-discrepancy": "discrepancy",
     "gls-measure": "measure",
+    "gls-reference-check": "reference_check",
 }
 
 ROS_INSTALL = {"install": {"install_scripts": f"$base/lib/{PACKAGE}"}} if "install" in sys.argv[1:] else {}

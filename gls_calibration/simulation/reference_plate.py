@@ -27,13 +27,14 @@ state its accuracy from.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-import math
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from gls_calibration.calibration.procedure import ProcedureSettings, combined_centres_gls
+from gls_calibration.calibration.procedure import ProcedureSettings
+from gls_calibration.calibration.reference_check import (aligned_residuals, chain_sigma_mm, measure_reference_plate,
+                                                         plate_plane)
 from gls_calibration.calibration.stated_accuracy import ChainCheck
 from gls_calibration.common.config_files import config_path, read_config_file
 from gls_calibration.common.validation import as_integer_at_least, as_positive_number
@@ -42,9 +43,8 @@ from gls_calibration.fiducials.measure import measure_fiducials
 from gls_calibration.geometry.head_config import parameters_block
 from gls_calibration.registration.chain_map import (ChainMap, ChainMapFit, ReferenceSweep, chain_map_identity,
                                                     fit_chain_map)
-from gls_calibration.registration.rigid import RigidTransform, align_rigid_2d, pair_with_targets
+from gls_calibration.registration.rigid import RigidTransform, pair_with_targets
 from gls_calibration.registration.sweep_plan import SweepPass, parse_plan, plan_label
-from gls_calibration.scan.plate_pose import PlatePose, estimate_plate_pose, mean_plate_pose
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.simulation.world import SimConfig
 
@@ -208,21 +208,9 @@ def measure_plate(config: SimConfig, plate: Plate, plan: MeasurementPlan, seed: 
                                   direction=item.direction, orientation_deg=item.orientation_deg)
         return (data.placed_by_pose() if plan.placed_by_pose else data.placed_by_time()), data.intensity
 
-    def plane(xyz: np.ndarray) -> PlatePose:
-        return estimate_plate_pose(xyz, head_direction=(0.0, 0.0, -1.0))
-
-    poses = [plane(cloud(500 + repeat, plan.plain_step_mm)[0]) for repeat in range(plan.plain_sweeps)]
-    pose = mean_plate_pose(poses) if poses else None
-    measurements = []
-    for number, item in enumerate(plan.passes):
-        xyz, intensity = cloud(number, plan.marked_step_mm, item)
-        if pose is None:
-            pose = plane(xyz)
-        measurements.append(measure_fiducials(xyz, intensity, pose, ring_radii_mm=settings.ring_radii_mm,
-                                              expected_count=len(known_gls)))
-    centres_gls, _combined = combined_centres_gls(measurements, settings, known_gls, pose)
-    pairing = pair_with_targets(centres_gls, known_gls)
-    return centres_gls[pairing.measured_index], known_gls[pairing.target_index]
+    plain = (cloud(500 + repeat, plan.plain_step_mm)[0] for repeat in range(plan.plain_sweeps))
+    passes = (cloud(number, plan.marked_step_mm, item) for number, item in enumerate(plan.passes))
+    return measure_reference_plate(plain, passes, settings, known_gls)
 
 
 def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 1,
@@ -252,20 +240,17 @@ def reference_plate_check(config: SimConfig, plan: MeasurementPlan, seed: int = 
         Standard uncertainty (k = 1) and bias per axis, mm, and the centres found and expected.
     """
     positions = design.positions_mm if positions is None else positions
-    residuals, measured_all, known_all, found, expected = [], [], [], 0, 0
+    measured_all, known_all, found, expected = [], [], 0, 0
     for index, offset in enumerate(positions):
         plate, known = _reference_plate(config, offset, [seed, index], design)
         measured, truth = measure_plate(config, plate, plan, seed * 101 + index, known, chain_map)
         found += len(measured)
         expected += len(known)
-        residuals.append(_aligned_residuals(measured, truth))
         measured_all.append(measured)
         known_all.append(truth)
-    stacked = np.vstack(residuals)
-    dof = len(stacked) - 1.5 * len(positions)
-    sigma = tuple(float(math.sqrt(np.sum(stacked[:, axis] ** 2) / dof)) for axis in range(2))
+    sigma, stacked = chain_sigma_mm(measured_all, known_all)
     known_stacked = np.vstack(known_all)
-    joint = _aligned_residuals(np.vstack(measured_all), known_stacked)
+    joint = aligned_residuals(np.vstack(measured_all), known_stacked)
     bounds = np.cumsum([0] + [len(m) for m in measured_all])
     bias = tuple(tuple(float(v) for v in joint[a:b].mean(axis=0)) for a, b in zip(bounds[:-1], bounds[1:]))
     return ReferencePlateResult(sigma, bias, found, expected, known_stacked[:, :2], stacked)
@@ -333,7 +318,7 @@ def measure_chain_map(config: SimConfig, plan: MeasurementPlan, seed: int = 1, r
                                           direction=item.direction, orientation_deg=item.orientation_deg)
                 xyz = data.placed_by_pose()
                 if pose is None:
-                    pose = estimate_plate_pose(xyz, head_direction=(0.0, 0.0, -1.0))
+                    pose = plate_plane(xyz)
                 found = measure_fiducials(xyz, data.intensity, pose, ring_radii_mm=RING_RADII_MM,
                                           expected_count=len(known_gls))
                 if len(found.centres) < 3:
@@ -383,8 +368,3 @@ def chain_check(result: ReferencePlateResult, plan: MeasurementPlan, config: Sim
                       reference=(f"simulated reference plate, {design.label}; preset "
                                  f"{config.measurement_preset}, cell seed {config.seed}, check seed {seed}"),
                       centres=result.found, chain_map=chain_map_identity(chain_map))
-
-
-def _aligned_residuals(measured: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """In-plane residuals (N, 2) of measured centres after the best 2-D rigid motion onto the known ones."""
-    return align_rigid_2d(measured[:, :2], known[:, :2])[1] - known[:, :2]

@@ -1,0 +1,157 @@
+"""A reference check measured: a plate with known centres scanned as the calibration scans its plate.
+
+The stated accuracy (:mod:`gls_calibration.calibration.stated_accuracy`) rests on a check of the
+measurement chain against known centres. Here is how such a check is measured, the same steps for a
+simulated reference plate and for a certified plate scanned in a real cell:
+
+1. :func:`measure_reference_plate`: the plate plane from the plain sweeps (averaged as the
+   calibration averages them), the fiducials of every pass of the sweep plan, the passes combined by
+   the calibration's own error separation (``procedure.combined_centres_gls``, the chain map applied
+   when the settings hold one) and paired with the known centres as the calibration pairs its targets;
+2. :func:`chain_sigma_mm`: per placement of the plate, the paired centres aligned onto the known ones
+   by the best 2-D rigid motion (where a plate lies is not known to the micrometre), the residuals
+   pooled over placements, the per-axis standard deviation with each alignment's 3 degrees of
+   freedom taken out (1.5 per axis).
+
+Example
+-------
+>>> known = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [10.0, 10.0, 0.0]])
+>>> measured = known + np.array([[0.002, 0.0, 0.0], [-0.002, 0.0, 0.0], [-0.002, 0.0, 0.0], [0.002, 0.0, 0.0]])
+>>> sigma, residuals = chain_sigma_mm([measured], [known])
+>>> round(sigma[0], 4), residuals.shape
+(0.0025, (4, 2))
+"""
+from __future__ import annotations
+
+import math
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from gls_calibration.calibration.procedure import ProcedureSettings, combined_centres_gls
+from gls_calibration.fiducials.measure import measure_fiducials
+from gls_calibration.registration.rigid import align_rigid_2d, pair_with_targets
+from gls_calibration.scan.plate_pose import PlatePose, estimate_plate_pose, mean_plate_pose
+
+HEAD_DIRECTION = (0.0, 0.0, -1.0)
+"""Where the head looks from the plate in the scanner's base frame, as the calibration's cells take
+it (``core_cell``): it tells the plate's upper face from its lower one."""
+
+
+def plate_plane(xyz_mm: np.ndarray) -> PlatePose:
+    """Return the plate plane of one sweep's points (any shape (..., 3), mm) as the calibration fits it.
+
+    Parameters
+    ----------
+    xyz_mm : numpy.ndarray, shape (..., 3)
+        Points in the scanner base frame, mm; NaN for no return.
+
+    Returns
+    -------
+    PlatePose
+        The fitted plane.
+
+    Raises
+    ------
+    ValueError
+        If no plane can be fitted (too few points).
+    """
+    return estimate_plate_pose(np.asarray(xyz_mm).reshape(-1, 3), head_direction=HEAD_DIRECTION)
+
+
+def measure_reference_plate(plain_xyz_mm: Iterable[np.ndarray], passes: Iterable[tuple[np.ndarray, np.ndarray]],
+                            settings: ProcedureSettings, known_gls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Measure a plate with known centres as the calibration measures its marked plate.
+
+    Parameters
+    ----------
+    plain_xyz_mm : iterable of numpy.ndarray, shape (..., 3)
+        The points of each plain sweep (scanner base frame, mm); may be empty, then the plane comes
+        from the first pass.
+    passes : iterable of (numpy.ndarray, numpy.ndarray)
+        Points (..., 3) and intensities (...) of each pass of ``settings.sweep_plan``, in its order;
+        taken one at a time (a generator keeps one sweep in memory).
+    settings : ProcedureSettings
+        Plan, placement, separation, ring radii, chain map and ``scanner_to_gls``.
+    known_gls : numpy.ndarray, shape (N, 3)
+        The known centres, gls frame, mm, where the plate nominally lies.
+
+    Returns
+    -------
+    measured : numpy.ndarray, shape (M, 3)
+        The measured centres paired with known ones, gls frame, mm.
+    known : numpy.ndarray, shape (M, 3)
+        The known centres they pair with, in the same order.
+
+    Raises
+    ------
+    ValueError
+        If the number of passes is not the plan's, or no plane can be fitted.
+    CalibrationError
+        If the sweeps cannot be combined.
+    """
+    known_gls = np.asarray(known_gls, dtype=float)
+    poses = [plate_plane(xyz) for xyz in plain_xyz_mm]
+    pose = mean_plate_pose(poses) if poses else None
+    measurements = []
+    for xyz, intensity in passes:
+        if pose is None:
+            pose = plate_plane(xyz)
+        measurements.append(measure_fiducials(xyz, intensity, pose, ring_radii_mm=settings.ring_radii_mm,
+                                              expected_count=len(known_gls)))
+    if len(measurements) != len(settings.sweep_plan):
+        raise ValueError(f"the sweep plan has {len(settings.sweep_plan)} pass(es), {len(measurements)} "
+                         "sweep(s) were given")
+    centres_gls, _combined = combined_centres_gls(measurements, settings, known_gls, pose)
+    pairing = pair_with_targets(centres_gls, known_gls)
+    return centres_gls[pairing.measured_index], known_gls[pairing.target_index]
+
+
+def aligned_residuals(measured: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Return in-plane residuals (N, 2) of measured centres after the best 2-D rigid motion onto the known ones.
+
+    Parameters
+    ----------
+    measured, known : numpy.ndarray, shape (N, 2 or 3)
+        Paired centres, mm (only x and y are used).
+
+    Returns
+    -------
+    numpy.ndarray, shape (N, 2)
+        Aligned measured minus known, mm.
+    """
+    return align_rigid_2d(measured[:, :2], known[:, :2])[1] - known[:, :2]
+
+
+def chain_sigma_mm(measured: Sequence[np.ndarray], known: Sequence[np.ndarray]
+                   ) -> tuple[tuple[float, float], np.ndarray]:
+    """Return the chain's per-axis standard deviation (k = 1, mm) from paired centres of placements.
+
+    Parameters
+    ----------
+    measured, known : sequence of numpy.ndarray, shape (N_i, 2 or 3)
+        Per placement of the plate, the measured centres and the known ones they pair with, mm.
+
+    Returns
+    -------
+    sigma_mm : tuple of 2 float
+        Per-axis standard deviation of the residuals, each placement's rigid motion taken out (its 3
+        degrees of freedom, 1.5 per axis).
+    residuals_mm : numpy.ndarray, shape (sum N_i, 2)
+        The aligned residuals, placements stacked in order.
+
+    Raises
+    ------
+    ValueError
+        If the placements do not pair up or leave no degree of freedom.
+    """
+    if len(measured) != len(known) or not len(measured):
+        raise ValueError(f"measured and known centres must come in the same number of placements (at least "
+                         f"one), got {len(measured)} and {len(known)}")
+    if any(len(m) != len(k) or len(m) < 3 for m, k in zip(measured, known)):
+        raise ValueError("every placement needs at least 3 paired centres, measured and known of the same count")
+    stacked = np.vstack([aligned_residuals(np.asarray(m, float), np.asarray(k, float))
+                         for m, k in zip(measured, known)])
+    dof = len(stacked) - 1.5 * len(measured)
+    sigma = tuple(float(math.sqrt(np.sum(stacked[:, axis] ** 2) / dof)) for axis in range(2))
+    return sigma, stacked

@@ -1,0 +1,189 @@
+"""``gls-reference-check``: a real cell's reference check from a bag of a plate with certified centres.
+
+Usage: ``gls-reference-check --bag BAG --certified CENTRES.csv --reference TEXT --out check.yaml``.
+
+The stated accuracy of a calibration (``calibration/stated_accuracy.py``) adds a check of the
+measurement chain against a plate with known centres. This tool measures that check from a rosbag2
+recording of such a plate, scanned exactly as the calibration scans its marked plate: the plain
+sweeps (``--plain-sweeps``), then one sweep per pass of the sweep plan (``--sweep-plan``), in that
+order; stand-stills in the bag are skipped. The sweeps are assembled as ``gls-measure --bag`` and
+``gls-train --bag`` assemble them (profiles placed by the robot's reported pose, the galvo frame from
+the bag's ``/tf_static``), measured and combined by the calibration's own code
+(``calibration/reference_check.py``), paired with the certified centres, aligned by the best 2-D
+rigid motion, and the per-axis standard deviation (k = 1) is written as a reference check file
+(``reference_check_file`` of the calibration manager).
+
+``--certified``: a CSV with a header naming ``x`` and ``y`` (and optionally ``z``), mm, one row per
+certified centre, in the galvo frame where the plate nominally lies (the plate's own certified
+coordinates turned and shifted to its nominal place: pairing searches rotations up to 15 deg and any
+shift, the exact rigid motion is removed anyway). The plate must carry the calibration's double rings
+(``fiducials.targets.RING_RADII_MM``): e.g. a plate marked once and measured on a coordinate measuring
+machine. ``--chain-map FILE``: the chain map the calibrations will run with, removed from every sweep
+as they remove it (its identity is written into the check).
+
+Exit 0 with the file written; 2 on bad input, nothing written.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+from dataclasses import replace
+import io
+import math
+from pathlib import Path
+import sys
+
+import numpy as np
+
+from gls_calibration.calibration.procedure import CalibrationError
+from gls_calibration.calibration.reference_check import chain_sigma_mm, measure_reference_plate
+from gls_calibration.calibration.stated_accuracy import ChainCheck, save_chain_check
+from gls_calibration.common.files import require_regular_output
+from gls_calibration.registration.chain_map import chain_map_identity, load_chain_map
+from gls_calibration.registration.rigid import RigidTransform
+from gls_calibration.registration.sweep_plan import plan_label
+from gls_calibration.cli.train_bag import recording_settings
+from gls_calibration.scan.bag_io import BagLayout, read_recording
+
+MIN_CERTIFIED = 3
+"""Centres a rigid alignment needs, and then some: fewer certified centres are refused."""
+
+LOW_PAIRED_FRACTION = 0.9
+"""Below this share of the certified centres paired, the tool warns (the figure still stands for
+the centres it has)."""
+
+
+def read_certified(path: Path) -> np.ndarray:
+    """Return the certified centres (N, 3), mm, of a CSV with columns ``x``, ``y`` and optionally ``z``.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The CSV file.
+
+    Returns
+    -------
+    numpy.ndarray, shape (N, 3)
+        The centres; z is 0 where the file has no ``z`` column.
+
+    Raises
+    ------
+    ValueError
+        If the file cannot be read, lacks a column, holds a value that is not a finite number, holds
+        the same centre twice or fewer than ``MIN_CERTIFIED`` rows.
+    """
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path}: cannot be read: {getattr(error, 'strerror', None) or error}") from None
+    reader = csv.DictReader(io.StringIO(text))
+    columns = [name.strip() for name in (reader.fieldnames or [])]
+    missing = [name for name in ("x", "y") if name not in columns]
+    if missing:
+        raise ValueError(f"{path}: the header names no column {', '.join(missing)} "
+                         f"(found: {', '.join(columns) or 'none'})")
+    reader.fieldnames = columns
+    rows = []
+    for line, row in enumerate(reader, start=2):
+        values = []
+        for name in ("x", "y", "z"):
+            if name == "z" and "z" not in columns:
+                values.append(0.0)
+                continue
+            try:
+                value = float(row[name])
+            except (TypeError, ValueError):
+                raise ValueError(f"{path}, line {line}: {name} is not a number: {row[name]!r}") from None
+            if not math.isfinite(value):
+                raise ValueError(f"{path}, line {line}: {name} is not finite: {row[name]!r}")
+            values.append(value)
+        rows.append(values)
+    if len(rows) < MIN_CERTIFIED:
+        raise ValueError(f"{path}: {len(rows)} certified centre(s); at least {MIN_CERTIFIED} are needed")
+    centres = np.array(rows)
+    if len(np.unique(centres[:, :2], axis=0)) != len(centres):
+        raise ValueError(f"{path}: a certified centre (x, y) is listed twice")
+    return centres
+
+
+def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int]:
+    """Measure the reference check the arguments describe; return it and the number of certified centres.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed command line.
+
+    Returns
+    -------
+    check : ChainCheck
+        The validated check.
+    certified : int
+        Certified centres in the CSV.
+
+    Raises
+    ------
+    ValueError
+        On bad input (names the problem).
+    """
+    require_regular_output(args.out)
+    if not args.reference.strip():
+        raise ValueError("--reference must name the plate and its certificate")
+    known = read_certified(args.certified)
+    recording = recording_settings(None, None, args.sweep_plan, args.plain_sweeps)
+    plan, plain_sweeps = recording.sweep_plan, recording.plain_sweeps
+    chain_map = load_chain_map(args.chain_map) if args.chain_map is not None else None
+    given = {"scan_topic": args.scan_topic, "base_frame": args.base_frame, "sensor_frame": args.sensor_frame}
+    layout = BagLayout(**{name: value for name, value in given.items() if value is not None})
+    motions, gls_in_base = read_recording(args.bag, layout)
+    sweeps = [sweep for sweep in motions if not sweep.standstill]
+    wanted = plain_sweeps + len(plan)
+    if len(sweeps) != wanted:
+        raise ValueError(f"{args.bag}: {len(sweeps)} sweep(s) (stand-stills skipped); the check takes {wanted} "
+                         f"({plain_sweeps} plain, then the {len(plan)} pass(es) of {plan_label(plan)})")
+    scanner_to_gls = np.linalg.inv(gls_in_base)
+    settings = replace(recording, profiles_placed_by_pose=True, chain_map=chain_map,
+                       scanner_to_gls=RigidTransform(scanner_to_gls[:3, :3], scanner_to_gls[:3, 3]))
+    plain = (sweep.xyz_mm for sweep in sweeps[:plain_sweeps])
+    passes = ((sweep.xyz_mm, sweep.intensity) for sweep in sweeps[plain_sweeps:])
+    try:
+        measured, paired = measure_reference_plate(plain, passes, settings, known)
+    except CalibrationError as error:
+        raise ValueError(str(error)) from None
+    sigma, _residuals = chain_sigma_mm([measured], [paired])
+    check = ChainCheck(sigma_mm=sigma, plan=plan_label(plan), placement="pose", reference=args.reference.strip(),
+                       centres=len(measured), chain_map=chain_map_identity(chain_map))
+    return check, len(known)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Exit 0 with the check written, 2 on bad input (nothing written then)."""
+    parser = argparse.ArgumentParser(prog="gls-reference-check", description=__doc__.splitlines()[0])
+    parser.add_argument("--bag", type=Path, required=True, help="rosbag2 folder: plain sweeps, then the plan's passes")
+    parser.add_argument("--certified", type=Path, required=True, help="CSV of the certified centres (x, y[, z], mm)")
+    parser.add_argument("--reference", required=True, help="names the plate and its certificate")
+    parser.add_argument("--out", type=Path, required=True, help="the reference check file to write (YAML)")
+    parser.add_argument("--sweep-plan", default=None, help="the calibration's sweep.plan (default: config/gls.yaml's)")
+    parser.add_argument("--plain-sweeps", type=int, default=None,
+                        help="plain sweeps at the start of the bag (default: sweep.plain_repeats of config/gls.yaml)")
+    parser.add_argument("--chain-map", type=Path, default=None, help="the chain map file the calibrations use")
+    defaults = BagLayout()
+    parser.add_argument("--scan-topic", help=f"the profiles' topic (default {defaults.scan_topic})")
+    parser.add_argument("--base-frame", help=f"the frame the sweeps are placed in (default {defaults.base_frame})")
+    parser.add_argument("--sensor-frame", help=f"the profiles' frame (default {defaults.sensor_frame})")
+    args = parser.parse_args(argv)
+    if args.plain_sweeps is not None and args.plain_sweeps < 0:
+        parser.error(f"--plain-sweeps must be 0 or more, got {args.plain_sweeps}")
+    try:
+        check, certified = measure_check(args)
+        save_chain_check(args.out, check)
+    except (ValueError, OSError) as error:
+        print(f"gls-reference-check: {getattr(error, 'strerror', None) or error}", file=sys.stderr)
+        return 2
+    print(f"reference check: sigma x {check.sigma_mm[0]:.4f} mm, y {check.sigma_mm[1]:.4f} mm (k = 1, 2-D "
+          f"{math.hypot(*check.sigma_mm):.4f} mm) from {check.centres} of {certified} certified centres; "
+          f"plan {check.plan}, chain map {check.chain_map}; written to {args.out}")
+    if check.centres < LOW_PAIRED_FRACTION * certified:
+        print(f"gls-reference-check: only {check.centres} of {certified} certified centres were measured and "
+              "paired: check the plate's placement and the scan", file=sys.stderr)
+    return 0
