@@ -94,6 +94,11 @@ def _window(pitch_mm: tuple[float, float], jacobian: np.ndarray, inner_mm: float
     return offsets, by_sector
 
 
+def _by_sector(values: np.ndarray, by_sector: np.ndarray) -> np.ndarray:
+    """Gather each candidate's pixels (m, N) by sector (m, S, L); the padding index N reads pixel N - 1."""
+    return np.take(values, by_sector, axis=1, mode="clip")
+
+
 def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacobian: np.ndarray,
                    mid_radius_mm: np.ndarray, harmonic_mm: np.ndarray, reference: np.ndarray,
                    pitch_mm: tuple[float, float], band_mm: float
@@ -141,22 +146,26 @@ def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray
     centres, g0, g1, g2 = _profile_tables(rho[taken], values[taken], bin_mm, band_mm)
 
     # 2. Each candidate's fit, the single mark linearised about it plus the pair's signature, per sector.
+    # The pixels are gathered by sector first (the padded index N reads the last pixel, unused) and
+    # the design is built in that layout, a row per parameter: one gather of five arrays instead of
+    # one of the fourteen columns, no copy of the design to transpose.
+    padding = by_sector >= offsets.shape[0]
     for start in range(0, count, CANDIDATE_BLOCK):
         block = slice(start, min(start + CANDIDATE_BLOCK, count))
-        rho_b, use_b = rho[block], usable[block]
-        profile, slope, bend = (np.interp(rho_b, centres, table) for table in (g0, g1, g2))
-        c1, s1, c2, s2 = cos1[block], sin1[block], cos2[block], sin2[block]
+        use_s = _by_sector(usable[block], by_sector) & ~padding                              # (m, S, L)
+        rho_s = _by_sector(rho[block], by_sector)
+        c1, s1 = _by_sector(cos1[block], by_sector), _by_sector(sin1[block], by_sector)
+        c2, s2 = c1 * c1 - s1 * s1, 2 * c1 * s1
+        target = np.where(use_s, _by_sector(values[block], by_sector), 0.0)
+        # Every column has one of these four factors: zeroed there, a pixel left out weighs nothing.
+        profile, slope, bend = (np.interp(rho_s, centres, table) * use_s for table in (g0, g1, g2))
         design = np.stack([profile, slope * c1, slope * s1, slope, slope * c2, slope * s2,
-                           profile * c1, profile * s1, np.ones_like(rho_b), bend,
-                           bend * c2, bend * s2, profile * c2, profile * s2], -1) * use_b[..., None]
-        parameters = design.shape[-1]
-        # Per sector, through the padded index (a zero row at N): one batched product for all sectors.
-        design = np.concatenate([design, np.zeros((len(design), 1, parameters))], 1)[:, by_sector]   # (m, S, L, P)
-        target = np.concatenate([np.where(use_b, values[block], 0.0), np.zeros((len(design), 1))], 1)[:, by_sector]
-        transposed = np.swapaxes(design, 2, 3)
-        sector_normal = np.matmul(transposed, design)                                            # (m, S, P, P)
-        sector_right = np.matmul(transposed, target[..., None])[..., 0]                          # (m, S, P)
-        sector_pixels = np.concatenate([use_b, np.zeros((len(design), 1), bool)], 1)[:, by_sector].sum(axis=2)
+                           profile * c1, profile * s1, use_s.astype(float), bend,
+                           bend * c2, bend * s2, profile * c2, profile * s2], 2)               # (m, S, P, L)
+        parameters = design.shape[2]
+        sector_normal = np.matmul(design, np.swapaxes(design, 2, 3))                           # (m, S, P, P)
+        sector_right = np.matmul(design, target[..., None])[..., 0]                            # (m, S, P)
+        sector_pixels = use_s.sum(axis=2)
         normal = sector_normal.sum(axis=1)
         fit = (sector_pixels.sum(axis=1) >= MIN_PIXELS) & (np.linalg.cond(normal) < 1e12)
         normal[~fit] = np.eye(parameters)

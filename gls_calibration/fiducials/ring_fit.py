@@ -60,8 +60,9 @@ def _sample_bicubic(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> 
     samples = np.empty(map_x.shape, np.float32)
     for start in range(0, count, block):
         rows = slice(start, start + block)
-        samples[rows] = cv2.remap(image, map_x[rows], map_y[rows], interpolation=cv2.INTER_CUBIC,
-                                  borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+        # Written in place (``dst``): no copy of each block's samples into the result.
+        cv2.remap(image, map_x[rows], map_y[rows], dst=samples[rows], interpolation=cv2.INTER_CUBIC,
+                  borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
     return samples.reshape(shape)
 
 
