@@ -6,7 +6,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gls_calibration.fiducials.targets import grid_targets
-from gls_calibration.registration.rigid import RigidTransform, deviations, fit_rigid, pair_with_targets
+from gls_calibration.registration.rigid import (RigidTransform, _TranslationVote, deviations, fit_rigid,
+                                                pair_with_targets)
 
 PITCH = 190.0 / 18
 
@@ -167,3 +168,38 @@ def test_deviations_are_target_minus_measured():
     np.testing.assert_allclose(deviations(targets, measured), np.tile([-0.1, 0.2, 0.0], (9, 1)))
     with pytest.raises(ValueError, match="targets and measured_in_gls must have the same shape"):
         deviations(targets, measured[:5])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_translation_vote_counts_the_cells_of_every_difference(seed):
+    """votes() bins the cells _cells() gives (the differences it keeps for shift()), one box at a time."""
+    rng = np.random.default_rng(seed)
+    targets = rng.uniform(-150.0, 150.0, (int(rng.integers(3, 80)), 2))
+    measured = rng.uniform(-100.0, 100.0, (int(rng.integers(3, 80)), 2))
+    vote = _TranslationVote(targets, float(np.max(np.linalg.norm(measured, axis=1))), float(rng.uniform(2.0, 10.0)))
+    cells_x, cells_y = vote._cells(measured, 0)[1], vote._cells(measured, 1)[1]
+    counts = np.zeros(vote.shape, dtype=np.int64)
+    np.add.at(counts, (cells_x.ravel(), cells_y.ravel()), 1)
+    boxes = counts[:-1, :-1] + counts[1:, :-1] + counts[:-1, 1:] + counts[1:, 1:]
+    best = np.unravel_index(int(np.argmax(boxes)), boxes.shape)
+    assert vote.votes(measured) == (int(boxes[best]), (int(best[0]), int(best[1])))
+
+
+def test_a_pairing_of_every_point_is_not_tried_on_the_other_side(monkeypatch):
+    """The other side of the plane is registered only when the first leaves a point unpaired."""
+    from gls_calibration.registration import rigid
+
+    targets = np.column_stack([grid_targets(5, 40.0), np.zeros(25)])
+    calls = []
+    original = rigid._register
+
+    def counting(*args):
+        calls.append(args[4].axes[2].copy())
+        return original(*args)
+    monkeypatch.setattr(rigid, "_register", counting)
+    complete = pair_with_targets(targets[:-2] + [1.0, 2.0, 0.0], targets)
+    assert len(calls) == 1 and len(complete.target_index) == 23
+    calls.clear()
+    stray = np.vstack([targets[:-2], [[500.0, 500.0, 0.0]]])      # a point no target is near
+    pair_with_targets(stray, targets)
+    assert len(calls) == 2 and calls[0] @ calls[1] < 0.0
