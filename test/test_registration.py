@@ -6,8 +6,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gls_calibration.fiducials.targets import grid_targets
-from gls_calibration.registration.rigid import (RigidTransform, _TranslationVote, deviations, fit_rigid,
-                                                pair_with_targets)
+from gls_calibration.registration.rigid import RigidTransform, deviations, fit_rigid, pair_with_targets
 
 PITCH = 190.0 / 18
 
@@ -168,21 +167,6 @@ def test_deviations_are_target_minus_measured():
     np.testing.assert_allclose(deviations(targets, measured), np.tile([-0.1, 0.2, 0.0], (9, 1)))
     with pytest.raises(ValueError, match="targets and measured_in_gls must have the same shape"):
         deviations(targets, measured[:5])
-
-
-@pytest.mark.parametrize("seed", range(4))
-def test_the_translation_vote_counts_the_cells_of_every_difference(seed):
-    """votes() bins the cells _cells() gives (the differences it keeps for shift()), one box at a time."""
-    rng = np.random.default_rng(seed)
-    targets = rng.uniform(-150.0, 150.0, (int(rng.integers(3, 80)), 2))
-    measured = rng.uniform(-100.0, 100.0, (int(rng.integers(3, 80)), 2))
-    vote = _TranslationVote(targets, float(np.max(np.linalg.norm(measured, axis=1))), float(rng.uniform(2.0, 10.0)))
-    cells_x, cells_y = vote._cells(measured, 0)[1], vote._cells(measured, 1)[1]
-    counts = np.zeros(vote.shape, dtype=np.int64)
-    np.add.at(counts, (cells_x.ravel(), cells_y.ravel()), 1)
-    boxes = counts[:-1, :-1] + counts[1:, :-1] + counts[:-1, 1:] + counts[1:, 1:]
-    best = np.unravel_index(int(np.argmax(boxes)), boxes.shape)
-    assert vote.votes(measured) == (int(boxes[best]), (int(best[0]), int(best[1])))
 
 
 def test_a_pairing_of_every_point_is_not_tried_on_the_other_side(monkeypatch):

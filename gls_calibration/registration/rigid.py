@@ -249,23 +249,15 @@ class _TranslationVote:
         differences = np.subtract.outer(self.target_2d[:, axis], measured_2d[:, axis])
         # one axis at a time and in place: 62 votes per pairing, and interleaved (N*K, 2) arrays
         # with their temporaries took 9x as long
-        return differences, self._scaled_cells(differences - self.low[axis])
-
-    def _scaled_cells(self, shifted: np.ndarray) -> np.ndarray:
-        """Cells of differences already less ``low`` (scaled in place)."""
-        shifted *= 1.0 / self.gate
-        return shifted.astype(np.int64)
+        scaled = differences - self.low[axis]
+        scaled *= 1.0 / self.gate
+        return differences, scaled.astype(np.int64)
 
     def votes(self, measured_2d: np.ndarray) -> tuple[int, tuple[int, int]]:
         """Most differences in any 2x2-cell box (a cluster split by a cell edge still counts whole)."""
-        # the cells of :meth:`_cells`, the same arithmetic in one buffer (the differences are not kept)
-        shifted = np.subtract.outer(self.target_2d[:, 0], measured_2d[:, 0])
-        shifted -= self.low[0]
-        index = self._scaled_cells(shifted)
+        index = self._cells(measured_2d, 0)[1]
         index *= self.shape[1]
-        np.subtract.outer(self.target_2d[:, 1], measured_2d[:, 1], out=shifted)
-        shifted -= self.low[1]
-        index += self._scaled_cells(shifted)
+        index += self._cells(measured_2d, 1)[1]
         counts = np.bincount(index.ravel(), minlength=self.shape[0] * self.shape[1]).reshape(self.shape)
         boxes = counts[:-1, :-1] + counts[1:, :-1] + counts[:-1, 1:] + counts[1:, 1:]
         best = np.unravel_index(int(np.argmax(boxes)), boxes.shape)
