@@ -236,3 +236,19 @@ def test_plate_coordinates_round_trip():
     points = head.from_plate(uv)
     assert np.abs((points - head.plate_origin) @ head.plate_normal).max() < 1e-9
     assert np.allclose(head.to_plate(points), uv, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_rotation_of_a_mirror_normal_is_rodrigues_with_numpys_cross_product(seed):
+    """_rotate's written-out cross product gives np.cross's numbers, bit for bit."""
+    from gls_calibration.geometry.optics import _rotate
+
+    rng = np.random.default_rng(seed)
+    for _ in range(50):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        vector, angle = rng.normal(size=3), rng.uniform(-0.5, 0.5, 7)
+        cos, sin = np.cos(angle), np.sin(angle)
+        expected = (vector[:, None] * cos + np.cross(axis, vector)[:, None] * sin
+                    + (axis * np.dot(axis, vector))[:, None] * (1.0 - cos))
+        assert _rotate(vector, axis, angle).tobytes() == expected.tobytes()

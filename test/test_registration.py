@@ -167,3 +167,23 @@ def test_deviations_are_target_minus_measured():
     np.testing.assert_allclose(deviations(targets, measured), np.tile([-0.1, 0.2, 0.0], (9, 1)))
     with pytest.raises(ValueError, match="targets and measured_in_gls must have the same shape"):
         deviations(targets, measured[:5])
+
+
+def test_a_pairing_of_every_point_is_not_tried_on_the_other_side(monkeypatch):
+    """The other side of the plane is registered only when the first leaves a point unpaired."""
+    from gls_calibration.registration import rigid
+
+    targets = np.column_stack([grid_targets(5, 40.0), np.zeros(25)])
+    calls = []
+    original = rigid._register
+
+    def counting(*args):
+        calls.append(args[4].axes[2].copy())
+        return original(*args)
+    monkeypatch.setattr(rigid, "_register", counting)
+    complete = pair_with_targets(targets[:-2] + [1.0, 2.0, 0.0], targets)
+    assert len(calls) == 1 and len(complete.target_index) == 23
+    calls.clear()
+    stray = np.vstack([targets[:-2], [[500.0, 500.0, 0.0]]])      # a point no target is near
+    pair_with_targets(stray, targets)
+    assert len(calls) == 2 and calls[0] @ calls[1] < 0.0

@@ -3,8 +3,9 @@ import math
 
 import numpy as np
 import pytest
+from scipy import sparse
 
-from gls_calibration.registration.separation import TIME_PLACED, SeparationSettings, separate
+from gls_calibration.registration.separation import TIME_PLACED, SeparationSettings, _weighted_design, separate
 
 LINE_HALF_MM = 105.0
 
@@ -197,3 +198,25 @@ def test_bad_settings_are_refused():
         SeparationSettings(lateral_knot_spacing_mm=0.0)
     with pytest.raises(ValueError, match="scale_from must be one of travel, line"):
         SeparationSettings(scale_from="robot")
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_weighted_design_is_the_sparse_matrix_of_the_dense_one(seed):
+    """The same entries, order and index type as ``csr_matrix`` of the dense design, so the same normal matrix."""
+    rng = np.random.default_rng(seed)
+    rows, n_marks, n_rest = 2 * int(rng.integers(3, 200)), 2 * int(rng.integers(2, 60)), int(rng.integers(0, 30))
+    mark_column = rng.integers(0, n_marks, rows)
+    rest = rng.normal(size=(rows, n_rest))
+    rest[rng.uniform(size=rest.shape) < 0.6] = 0.0
+    rest[rng.uniform(size=rest.shape) < 0.05] = -0.0
+    row_weight = rng.uniform(0.1, 1e3, rows)
+    dense = np.zeros((rows, n_marks + n_rest))
+    dense[np.arange(rows), mark_column] = 1.0
+    dense[:, n_marks:] = rest
+    expected = sparse.csr_matrix(dense * row_weight[:, None])
+    got = _weighted_design(mark_column, rest, row_weight, n_marks + n_rest)
+    assert got.shape == expected.shape
+    for name in ("data", "indices", "indptr"):
+        assert getattr(got, name).dtype == getattr(expected, name).dtype, name
+        assert getattr(got, name).tobytes() == getattr(expected, name).tobytes(), name
+    assert ((got.T @ got).toarray().tobytes() == (expected.T @ expected).toarray().tobytes())

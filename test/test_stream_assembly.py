@@ -17,7 +17,7 @@ from tf2_msgs.msg import TFMessage
 from gls_calibration.ros import cdr, conversions
 from gls_calibration.ros.stream_topics import time_msg, transform_msg
 from gls_calibration.scan.bag_io import BagLayout, StreamAssembler, _add_transform
-from gls_calibration.scan.sweep import median_point_distance
+from gls_calibration.scan.sweep import UNIT_CHECK_POINTS, median_point_distance, unit_check_distance
 from gls_calibration.scan.tf_buffer import TfBuffer
 
 LAYOUT = BagLayout()
@@ -145,6 +145,39 @@ def test_the_median_distance_is_numpys_median(seed):
         assert got == expected or (math.isnan(got) and math.isnan(expected)), (size, got, expected)
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_the_unit_check_gives_the_verdict_of_every_point(seed):
+    """The subsampled unit check passes and fails the profiles every point's median passes and fails.
+
+    Where it fails a profile, it returns every point's median (the number its message names).
+    """
+    rng = np.random.default_rng(seed)
+    limits = [(0.0, 10.0), (10.0, 10000.0)]
+    for size in [0, 1, 5, UNIT_CHECK_POINTS, UNIT_CHECK_POINTS + 1, 300, 2101, 4096]:
+        for scale in (1e-4, 1e-3, 0.3, 2.0, 5.0, 30.0, 300.0, 3000.0, 5e4):
+            xyz = rng.normal(0.0, 0.2, (size, 3)) * scale
+            xyz[:, 2] += scale * rng.uniform(0.5, 1.5)
+            xyz[rng.uniform(size=size) < rng.choice([0.0, 0.3, 0.9]), int(rng.integers(0, 3))] = np.nan
+            exact = median_point_distance(xyz)
+            for low, high in limits:
+                got = unit_check_distance(xyz, low, high)
+                passes = math.isnan(exact) or low <= exact <= high
+                assert (math.isnan(got) or low <= got <= high) == passes, (size, scale, low, high, got, exact)
+                if not passes or size <= UNIT_CHECK_POINTS:
+                    assert got == exact or (math.isnan(got) and math.isnan(exact)), (size, scale, got, exact)
+
+
+def test_the_unit_check_samples_points_well_inside_the_limits_only():
+    """A profile's sampled median decides only well inside the limits; near one every point decides."""
+    xyz = np.column_stack([np.zeros(2101), np.zeros(2101), np.linspace(0.2, 0.4, 2101)])
+    assert unit_check_distance(xyz, 0.0, 10.0) != median_point_distance(xyz)     # sampled: (0.3 - half a step)
+    assert abs(unit_check_distance(xyz, 0.0, 10.0) - 0.3) < 1e-3
+    assert unit_check_distance(xyz, 0.0, 1.0) == median_point_distance(xyz)       # within 4x of the limit
+    assert unit_check_distance(xyz, 0.1, 10.0) == median_point_distance(xyz)
+    xyz[::17] = np.nan                   # every sampled point: the whole profile decides
+    assert unit_check_distance(xyz, 0.0, 10.0) == median_point_distance(xyz)
+
+
 @pytest.fixture
 def acquisition_node():
     from gls_calibration.nodes.stream_acquisition import Session, StreamAcquisitionNode
@@ -192,12 +225,18 @@ def reference_cloud_msg(xyz_mm: np.ndarray, intensity: np.ndarray, frame_id: str
 
 
 @pytest.mark.parametrize("shape", [(7,), (3, 5), (0,), (2, 0), (1, 1), (40, 33)])
-def test_the_answer_cloud_is_the_one_built_field_by_field(shape):
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+@pytest.mark.parametrize("dtype, nan", [("float64", True), ("float64", False), ("float32", True),
+                                        ("float32", False), ("int64", False)])
+def test_the_answer_cloud_is_the_one_built_field_by_field(shape, dtype, nan):
     from gls_calibration.ros.pointcloud import xyzi_cloud_to_msg
 
     rng = np.random.default_rng(len(shape) * 100 + shape[0])
     xyz = rng.normal(0.0, 300.0, shape + (3,))
-    xyz.reshape(-1)[::7] = np.nan
+    if nan:
+        xyz.reshape(-1)[::7] = np.nan
+    xyz.reshape(-1)[3::11] *= 1e40 if dtype == "float64" else 1.0      # beyond float32: inf, not NaN
+    xyz = xyz.astype(dtype)
     intensity = rng.uniform(size=shape)
     expected = reference_cloud_msg(xyz, intensity, "robot_base", time_msg(12345))
     assert xyzi_cloud_to_msg(xyz, intensity, "robot_base", time_msg(12345)) == expected

@@ -31,8 +31,8 @@ from gls_calibration.ros.base import GlsNode
 from gls_calibration.ros.request_ids import RESEND_WITH_ID_AFTER_S, new_request_id
 from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import ServiceCallError
-from gls_calibration.scan.sweep import (PoseTrack, ProfileRules, SweepCollector, SweepMotion, median_point_distance,
-                                        nominal_start_pose)
+from gls_calibration.scan.sweep import (PoseTrack, ProfileRules, SweepCollector, SweepMotion, nominal_start_pose,
+                                        unit_check_distance)
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import AcquireSweep, StartSweep
 
@@ -389,8 +389,8 @@ class ScanAcquisitionNode(GlsNode):
         True (the first such profile's problem kept for the answer) when the profile's median point
         distance from the sensor lies outside ``RANGE_WINDOW_MM``: not in ``profile_unit``.
         """
-        median = median_point_distance(np.stack([points["x"], points["y"], points["z"]], axis=-1))
         low, high = RANGE_WINDOW_MM
+        median = unit_check_distance(np.stack([points["x"], points["y"], points["z"]], axis=-1), low, high)
         if math.isnan(median) or low <= median <= high:     # no finite point says nothing of the unit
             return False
         self.wrong_unit += 1

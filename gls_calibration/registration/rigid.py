@@ -421,7 +421,10 @@ def pair_with_targets(measured, targets, *, max_rotation_deg: float = 15.0, gate
 
     tree = cKDTree(targets)
     best = None
+    most_pairs = min(measured.shape[0], targets.shape[0])
     for side in sides:
+        if best is not None and best[0].size == most_pairs:
+            break       # every point paired: the other side cannot pair more, and a tie keeps the first
         result = _register(measured, targets, tree, target_frame, _plane_frame(measured_centre, side),
                            max_rotation, gate, step, max_iterations)
         if best is None or result[0].size > best[0].size:

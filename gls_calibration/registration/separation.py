@@ -280,13 +280,12 @@ def separate(centres: Sequence, sigmas: Optional[Sequence] = None,
         aligned = np.einsum("nij,nj->ni", back, observed - placements[sweep_of, 1:])
         if reference is None:
             reference = _weighted_mean(aligned, weight, mark_of, count)
-        design = np.zeros((2 * rows, unknowns))
+        # the design's columns after the marks' (placements, shapes); a row's one mark column is built
+        # straight into the sparse matrix below
+        design = np.zeros((2 * rows, unknowns - n_marks))
         x_rows, y_rows = np.arange(0, 2 * rows, 2), np.arange(1, 2 * rows, 2)
-        mark_column = 2 * column_of_mark[mark_of]
-        design[x_rows, mark_column] = 1.0
-        design[y_rows, mark_column + 1] = 1.0
         moving = sweep_of > 0
-        base = n_marks + 3 * (sweep_of[moving] - 1)
+        base = 3 * (sweep_of[moving] - 1)
         start = reference[mark_of[moving]]
         # R(d) m ~ m + d J m: J m = (-m_y, m_x)
         design[x_rows[moving], base] = -start[:, 1]
@@ -294,7 +293,7 @@ def separate(centres: Sequence, sigmas: Optional[Sequence] = None,
         design[x_rows[moving], base + 1] = 1.0
         design[y_rows[moving], base + 2] = 1.0
         # an error along sweep axis a shows in the reference frame as column a of R_k^T
-        column = n_marks + n_place
+        column = n_place
         design[x_rows, column:column + n_lateral] = back[:, 0, 0, None] * lateral_basis
         design[y_rows, column:column + n_lateral] = back[:, 1, 0, None] * lateral_basis
         column += n_lateral
@@ -307,7 +306,10 @@ def separate(centres: Sequence, sigmas: Optional[Sequence] = None,
             design[y_rows[where], column:column + n_along] = back[mine, 1, 1, None] * along
             column += n_along
         row_weight = np.repeat(weight, 2)
-        weighted = sparse.csr_matrix(design * row_weight[:, None])
+        mark_column = np.empty(2 * rows, dtype=np.int64)
+        mark_column[x_rows] = 2 * column_of_mark[mark_of]
+        mark_column[y_rows] = 2 * column_of_mark[mark_of] + 1
+        weighted = _weighted_design(mark_column, design, row_weight, unknowns)
         normal = (weighted.T @ weighted).toarray()
         shapes_at = np.arange(n_marks + n_place, unknowns)
         normal[shapes_at, shapes_at] += ridge
@@ -348,6 +350,30 @@ def separate(centres: Sequence, sigmas: Optional[Sequence] = None,
         sweeps_seen=seen, placements=placements, lateral=lateral, motion_across=tuple(across_shapes),
         motion_along=tuple(along_shapes), scanner_rms_mm=_rms(scanner_error), motion_rms_mm=_rms(motion_error),
         residual_rms_mm=_rms(residual))
+
+
+def _weighted_design(mark_column: np.ndarray, rest: np.ndarray, row_weight: np.ndarray,
+                     unknowns: int) -> sparse.csr_matrix:
+    """Return the row-weighted design as a CSR matrix, the one ``csr_matrix`` makes of the dense design.
+
+    Each row holds a 1 in its mark's column (``mark_column``, all before the others) and ``rest`` in
+    the columns after the marks. The same entries, in the same order, without the dense design of
+    every mark's column (99 % zeros) and the search of it for its nonzeros.
+    """
+    rows, n_marks = rest.shape[0], unknowns - rest.shape[1]
+    rest = rest * row_weight[:, None]
+    rest_rows, rest_columns = np.nonzero(rest)         # row-major: within a row, by column
+    indptr = np.zeros(rows + 1, dtype=np.int64)
+    indptr[1:] = np.cumsum(np.bincount(rest_rows, minlength=rows) + 1)
+    data = np.empty(indptr[-1])
+    indices = np.empty(indptr[-1], dtype=np.int64)
+    first = indptr[:-1]                                # a row's mark entry, then its other entries
+    data[first] = row_weight                           # 1.0 * weight, as the dense design's product
+    indices[first] = mark_column
+    others = np.arange(rest_rows.size) + rest_rows + 1
+    data[others] = rest[rest_rows, rest_columns]
+    indices[others] = rest_columns + n_marks
+    return sparse.csr_matrix((data, indices, indptr), shape=(rows, unknowns))
 
 
 def _rms(vectors: np.ndarray) -> float:

@@ -326,8 +326,8 @@ def xyzi_cloud_to_msg(xyz_mm: np.ndarray, intensity: np.ndarray, frame_id: str, 
     point = xyzi_dtype()
     data = array.array("B", bytes(point.itemsize)) * int(np.prod(xyz_mm.shape[:-1]))
     words = np.frombuffer(data, dtype=np.float32).reshape(xyz_mm.shape[:-1] + (4,))
-    words[..., :3] = xyz_mm         # as xyzi_array casts, then divided as cloud_to_msg divides
-    np.divide(words[..., :3], np.float32(MM_PER_M), out=words[..., :3], dtype=np.float32)
+    # cast to float32 as xyzi_array casts, then divided in float32 as cloud_to_msg divides: one pass
+    np.divide(xyz_mm, np.float32(MM_PER_M), out=words[..., :3], dtype=np.float32, casting="unsafe")
     words[..., 3] = intensity
     height, width = (1, xyz_mm.shape[0]) if xyz_mm.ndim == 2 else xyz_mm.shape[:2]
     msg = PointCloud2(check_fields=True)
@@ -340,7 +340,8 @@ def xyzi_cloud_to_msg(xyz_mm: np.ndarray, intensity: np.ndarray, frame_id: str, 
     msg.point_step = int(point.itemsize)
     msg.row_step = int(point.itemsize * width)
     msg.data = data
-    msg.is_dense = not bool(np.isnan(words[..., :3]).any())
+    # a float is NaN in float32 metres exactly when it is NaN in xyz_mm (read contiguous, not strided)
+    msg.is_dense = not bool(np.isnan(xyz_mm if xyz_mm.dtype.kind == "f" else words[..., :3]).any())
     return msg
 
 

@@ -33,7 +33,7 @@ from scipy.spatial.transform import Rotation
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from gls_calibration.scan.sweep import median_point_distance
+from gls_calibration.scan.sweep import unit_check_distance
 
 MM_PER_M = 1000.0
 NS_PER_S = 1_000_000_000
@@ -327,7 +327,7 @@ def profile_points(message, limits: ReplayLimits, where: str) -> np.ndarray:
         array = np.empty((count, len(_FIELDS)))
         for column, name in enumerate(_FIELDS):
             array[:, column] = points[name]
-    median_m = median_point_distance(array[:, :3])
+    median_m = unit_check_distance(array[:, :3], 0.0, limits.max_range_m)
     if median_m > limits.max_range_m:      # False for NaN: no finite point says nothing of the unit
         raise ValueError(f"{where}: median point distance {median_m:.4g} m exceeds "
                          f"{limits.max_range_m:g} m: the cloud is not in metres (millimetres?)")

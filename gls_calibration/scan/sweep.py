@@ -207,6 +207,55 @@ def median_point_distance(xyz: np.ndarray) -> float:
     return float((low + high) / 2.0)
 
 
+# The unit check of a profile: at most this many of its points, evenly spaced, decide it when their median
+# distance lies well inside the limits (by UNIT_CHECK_MARGIN); otherwise every point decides.
+UNIT_CHECK_POINTS = 128
+UNIT_CHECK_MARGIN = 4.0
+
+
+def unit_check_distance(xyz: np.ndarray, low: float, high: float) -> float:
+    """Return the median point distance that decides whether a profile lies within ``[low, high]``.
+
+    A unit check only tells metres from millimetres (a factor of 1000), so a bounded, evenly spaced
+    subsample gives the same verdict as every point: every k-th point, at most ``UNIT_CHECK_POINTS``
+    of them, its finite points' median (:func:`median_point_distance`) returned when it lies within
+    ``[low * UNIT_CHECK_MARGIN, high / UNIT_CHECK_MARGIN]``. Otherwise (near or beyond a limit, or no
+    finite point sampled) every point's median is returned, the exact value a message names. Only a
+    profile whose sampled points' median lies that well inside while the median of all its points
+    lies outside could be judged otherwise than by every point: more than half of its points beyond a
+    limit and more than half of the sampled ones a factor of ``UNIT_CHECK_MARGIN`` inside it.
+
+    Parameters
+    ----------
+    xyz : numpy.ndarray, shape (N, 3)
+        Points in the sensor frame, any unit.
+    low : float
+        Lowest median distance that passes, in the points' unit (0 for none).
+    high : float
+        Highest median distance that passes, in the points' unit.
+
+    Returns
+    -------
+    float
+        A median distance on the same side of the limits as every point's (that median itself unless
+        the subsample's lies well inside); NaN when no point is finite.
+
+    Examples
+    --------
+    >>> xyz = np.column_stack([np.linspace(-0.1, 0.1, 1000), np.zeros(1000), np.full(1000, 0.3)])
+    >>> 0.3 <= unit_check_distance(xyz, 0.0, 10.0) <= 0.32
+    True
+    >>> round(unit_check_distance(xyz * 1000.0, 0.0, 10.0), 4) == round(median_point_distance(xyz * 1000.0), 4)
+    True
+    """
+    xyz = np.asarray(xyz)
+    if xyz.ndim == 2 and xyz.shape[0] > UNIT_CHECK_POINTS:
+        sampled = median_point_distance(xyz[::-(-xyz.shape[0] // UNIT_CHECK_POINTS)])
+        if low * UNIT_CHECK_MARGIN <= sampled <= high / UNIT_CHECK_MARGIN:     # False for NaN
+            return sampled
+    return median_point_distance(xyz)
+
+
 def stamp_window_s(profiles: int, step_mm: float, speed_mm_s: float, rules: ProfileRules = ProfileRules()) -> float:
     """Length (s) of the time window that holds every profile of a sweep (see :class:`ProfileRules`)."""
     return rules.stamp_window_s(profiles, step_mm, speed_mm_s)
