@@ -143,3 +143,18 @@ def test_the_check_sees_the_chains_error(ideal, tmp_path):
     assert _run(ideal_bag, tmp_path / "ideal.csv", tmp_path / "ideal.yaml") == 0
     chain = np.hypot(*load_chain_check(tmp_path / "check.yaml").sigma_mm)
     assert chain > 5 * np.hypot(*load_chain_check(tmp_path / "ideal.yaml").sigma_mm)
+
+
+def test_the_residuals_file_holds_what_the_check_is_made_of(ideal, tmp_path, capsys):
+    bag, known = ideal
+    _certified(tmp_path / "certified.csv", known)
+    assert _run(bag, tmp_path / "certified.csv", tmp_path / "check.yaml", "--residuals", str(tmp_path / "r.csv")) == 0
+    table = np.loadtxt(tmp_path / "r.csv", delimiter=",", skiprows=1)
+    assert (tmp_path / "r.csv").read_text().splitlines()[0] == "x_mm,y_mm,dx_mm,dy_mm"
+    assert table.shape == (PER_SIDE ** 2, 4)
+    sigma = np.sqrt(np.sum(table[:, 2:] ** 2, axis=0) / (len(table) - 1.5))
+    np.testing.assert_allclose(sigma, load_chain_check(tmp_path / "check.yaml").sigma_mm, rtol=1e-3, atol=1e-6)
+    same = str(tmp_path / "same.yaml")
+    assert _run(bag, tmp_path / "certified.csv", tmp_path / "same.yaml", "--residuals", same) == 2
+    assert "--residuals and --out name the same file" in capsys.readouterr().err
+    assert not (tmp_path / "same.yaml").exists()

@@ -19,7 +19,8 @@ coordinates turned and shifted to its nominal place: pairing searches rotations 
 shift, the exact rigid motion is removed anyway). The plate must carry the calibration's double rings
 (``fiducials.targets.RING_RADII_MM``): e.g. a plate marked once and measured on a coordinate measuring
 machine. ``--chain-map FILE``: the chain map the calibrations will run with, removed from every sweep
-as they remove it (its identity is written into the check).
+as they remove it (its identity is written into the check). ``--residuals FILE.csv``: each paired
+centre's residual after the best rigid motion (``x_mm,y_mm,dx_mm,dy_mm``), where the chain errs.
 
 Exit 0 with the file written; 2 on bad input, nothing written.
 """
@@ -38,7 +39,7 @@ import numpy as np
 from gls_calibration.calibration.procedure import CalibrationError
 from gls_calibration.calibration.reference_check import chain_sigma_mm, measure_reference_plate
 from gls_calibration.calibration.stated_accuracy import ChainCheck, save_chain_check
-from gls_calibration.common.files import require_regular_output
+from gls_calibration.common.files import atomic_write_text, require_regular_output
 from gls_calibration.registration.chain_map import chain_map_identity, load_chain_map
 from gls_calibration.registration.rigid import RigidTransform
 from gls_calibration.registration.sweep_plan import plan_label
@@ -106,8 +107,29 @@ def read_certified(path: Path) -> np.ndarray:
     return centres
 
 
-def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int]:
-    """Measure the reference check the arguments describe; return it and the number of certified centres.
+def residuals_csv(known_mm: np.ndarray, residuals_mm: np.ndarray) -> str:
+    """Return the CSV text of each paired certified centre and its residual after the best rigid motion.
+
+    Parameters
+    ----------
+    known_mm : numpy.ndarray, shape (N, 2 or 3)
+        The certified centres that were paired, mm.
+    residuals_mm : numpy.ndarray, shape (N, 2)
+        Measured minus certified after the alignment, mm.
+
+    Returns
+    -------
+    str
+        Header ``x_mm,y_mm,dx_mm,dy_mm`` and one row per centre.
+    """
+    rows = (f"{x:.6f},{y:.6f},{dx:.6f},{dy:.6f}\n" for (x, y), (dx, dy) in zip(known_mm[:, :2], residuals_mm))
+    return "x_mm,y_mm,dx_mm,dy_mm\n" + "".join(rows)
+
+
+def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int, str]:
+    """Measure the reference check the arguments describe.
+
+    Return it, the number of certified centres and the residuals' CSV text.
 
     Parameters
     ----------
@@ -120,6 +142,8 @@ def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int]:
         The validated check.
     certified : int
         Certified centres in the CSV.
+    residuals : str
+        The paired centres and their residuals (:func:`residuals_csv`).
 
     Raises
     ------
@@ -127,6 +151,10 @@ def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int]:
         On bad input (names the problem).
     """
     require_regular_output(args.out)
+    if args.residuals is not None:
+        require_regular_output(args.residuals)
+        if args.residuals.resolve() == args.out.resolve():
+            raise ValueError("--residuals and --out name the same file")
     if not args.reference.strip():
         raise ValueError("--reference must name the plate and its certificate")
     known = read_certified(args.certified)
@@ -150,10 +178,10 @@ def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int]:
         measured, paired = measure_reference_plate(plain, passes, settings, known)
     except CalibrationError as error:
         raise ValueError(str(error)) from None
-    sigma, _residuals = chain_sigma_mm([measured], [paired])
+    sigma, residuals = chain_sigma_mm([measured], [paired])
     check = ChainCheck(sigma_mm=sigma, plan=plan_label(plan), placement="pose", reference=args.reference.strip(),
                        centres=len(measured), chain_map=chain_map_identity(chain_map))
-    return check, len(known)
+    return check, len(known), residuals_csv(paired, residuals)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -167,6 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--plain-sweeps", type=int, default=None,
                         help="plain sweeps at the start of the bag (default: sweep.plain_repeats of config/gls.yaml)")
     parser.add_argument("--chain-map", type=Path, default=None, help="the chain map file the calibrations use")
+    parser.add_argument("--residuals", type=Path, default=None,
+                        help="also write each paired centre's residual after the best rigid motion (CSV, mm)")
     defaults = BagLayout()
     parser.add_argument("--scan-topic", help=f"the profiles' topic (default {defaults.scan_topic})")
     parser.add_argument("--base-frame", help=f"the frame the sweeps are placed in (default {defaults.base_frame})")
@@ -175,7 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.plain_sweeps is not None and args.plain_sweeps < 0:
         parser.error(f"--plain-sweeps must be 0 or more, got {args.plain_sweeps}")
     try:
-        check, certified = measure_check(args)
+        check, certified, residuals = measure_check(args)
+        if args.residuals is not None:
+            atomic_write_text(args.residuals, residuals)
         save_chain_check(args.out, check)
     except (ValueError, OSError) as error:
         print(f"gls-reference-check: {getattr(error, 'strerror', None) or error}", file=sys.stderr)
