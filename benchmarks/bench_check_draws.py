@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from bench_honest_robot import calibrate_once
+from gls_calibration.calibration.reference_check import residual_sigma_mm
 from gls_calibration.calibration.stated_accuracy import stated_accuracy
 from gls_calibration.discrepancy.residual_statistics import rms
 from gls_calibration.registration.chain_map import chain_map_identity
@@ -79,14 +80,14 @@ def main() -> None:
             stated = stated_accuracy(run["measured_rms"], check, plan=plan.label, placement=plan.placement,
                                      chain_map=chain_map_identity(chain_map))
             # The check pooled over draws 0..d: each known centre's residual averaged over the draws,
-            # then the per-axis standard deviation as chain_check takes it.
-            # (Pooled only while every draw found the same known centres; reference_plate_check's dof.)
+            # then the per-axis standard deviation as chain_check takes it (pooled only while every
+            # draw found the same known centres).
             residuals.append(result.residuals_mm)
             knowns.append(result.known_xy_mm)
             pooled_text = f"{'n/a':>8s} {'n/a':>7s}"
             if all(np.array_equal(known, knowns[0]) for known in knowns):
                 mean = np.mean(residuals, axis=0)
-                pooled_sigma = tuple(float(v) for v in np.sqrt(np.sum(mean**2, axis=0) / (len(mean) - 1.5)))
+                pooled_sigma = residual_sigma_mm(mean)
                 pooled = stated_accuracy(run["measured_rms"], dataclasses.replace(check, sigma_mm=pooled_sigma),
                                          plan=plan.label, placement=plan.placement,
                                          chain_map=chain_map_identity(chain_map))

@@ -17,12 +17,13 @@ from gls_calibration.calibration.outcome import Candidate
 from gls_calibration.calibration.procedure import CalibrationError
 from gls_calibration.calibration.record import correction_from_record
 from gls_calibration.calibration.record_file import CalibrationFileError
+from gls_calibration.calibration.reference_check import plate_plane
 from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.correction.setpoints import CorrectedSetpoints, Correction
 from gls_calibration.fiducials.measure import FiducialMeasurement, measure_fiducials
 from gls_calibration.geometry.kinematics import HeadGeometry
 from gls_calibration.models.training import TrainedModel, TrainingOptions, train_correction
-from gls_calibration.scan.plate_pose import PlatePose, estimate_plate_pose
+from gls_calibration.scan.plate_pose import PlatePose
 
 Cloud = tuple[np.ndarray, np.ndarray]   # xyz (H, W, 3) or (N, 3) and intensity, scanner base frame, mm
 
@@ -66,7 +67,7 @@ class CoreCell:
 
     async def estimate_plate_pose(self, cloud: Cloud) -> PlatePose:
         """Plate pose fitted in process (see ``Cell.estimate_plate_pose``)."""
-        return refusing(estimate_plate_pose, cloud[0].reshape(-1, 3), head_direction=(0.0, 0.0, -1.0))
+        return refusing(plate_plane, cloud[0])
 
     async def measure_fiducials(self, cloud: Cloud, pose: PlatePose, expected_count: int,
                                 ring_radii_mm: Sequence[float]) -> FiducialMeasurement:

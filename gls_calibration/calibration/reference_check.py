@@ -11,7 +11,7 @@ simulated reference plate and for a certified plate scanned in a real cell:
 2. :func:`chain_sigma_mm`: per placement of the plate, the paired centres aligned onto the known ones
    by the best 2-D rigid motion (where a plate lies is not known to the micrometre), the residuals
    pooled over placements, the per-axis standard deviation with each alignment's 3 degrees of
-   freedom taken out (1.5 per axis).
+   freedom taken out (1.5 per axis; :func:`residual_sigma_mm`).
 
 Example
 -------
@@ -152,6 +152,23 @@ def chain_sigma_mm(measured: Sequence[np.ndarray], known: Sequence[np.ndarray]
         raise ValueError("every placement needs at least 3 paired centres, measured and known of the same count")
     stacked = np.vstack([aligned_residuals(np.asarray(m, float), np.asarray(k, float))
                          for m, k in zip(measured, known)])
-    dof = len(stacked) - 1.5 * len(measured)
-    sigma = tuple(float(math.sqrt(np.sum(stacked[:, axis] ** 2) / dof)) for axis in range(2))
-    return sigma, stacked
+    return residual_sigma_mm(stacked, len(measured)), stacked
+
+
+def residual_sigma_mm(residuals_mm: np.ndarray, placements: int = 1) -> tuple[float, float]:
+    """Return the per-axis standard deviation (k = 1, mm) of rigidly aligned residuals.
+
+    Parameters
+    ----------
+    residuals_mm : numpy.ndarray, shape (N, 2)
+        Residuals after each placement's best 2-D rigid motion, placements stacked.
+    placements : int, default 1
+        Placements aligned apart: each took 3 degrees of freedom (1.5 per axis).
+
+    Returns
+    -------
+    tuple of 2 float
+        sqrt(sum of squares / (N - 1.5 placements)) per axis.
+    """
+    dof = len(residuals_mm) - 1.5 * placements
+    return tuple(float(math.sqrt(np.sum(residuals_mm[:, axis] ** 2) / dof)) for axis in range(2))

@@ -39,11 +39,11 @@ import numpy as np
 from gls_calibration.calibration.procedure import CalibrationError
 from gls_calibration.calibration.reference_check import chain_sigma_mm, measure_reference_plate
 from gls_calibration.calibration.stated_accuracy import ChainCheck, save_chain_check
+from gls_calibration.cli.train_bag import recording_settings
 from gls_calibration.common.files import atomic_write_text, require_regular_output
 from gls_calibration.registration.chain_map import chain_map_identity, load_chain_map
 from gls_calibration.registration.rigid import RigidTransform
 from gls_calibration.registration.sweep_plan import plan_label
-from gls_calibration.cli.train_bag import recording_settings
 from gls_calibration.scan.bag_io import BagLayout, read_recording
 
 MIN_CERTIFIED = 3
