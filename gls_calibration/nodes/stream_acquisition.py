@@ -18,6 +18,10 @@ so a requested step sets the speed: step x rate; without a step the request's sp
 ``default_speed_mm_s``) is used. A stand-still is a line of no length at the marking pose (the middle
 of a ``default_length_mm`` sweep), lasting as many profile periods as the request's length has steps.
 
+Before commanding the line it waits (at most 5 s) for the hand-eye, flange -> sensor, on ``/tf_static``:
+a new subscriber gets the fixed frames only after discovery, which may lag a service call; without it
+the line is not commanded and the request is refused naming the fixed frames received.
+
 Refused (``success`` false, the message naming the problem; the sweep is not used): a profile in
 another frame or not in metres, a profile within the motion without a pose of the flange within
 ``max_pose_age_s`` (counted), a missing frame, a stream that stops mid-sweep, a robot that does not
@@ -270,6 +274,22 @@ class StreamAcquisitionNode(GlsNode):
         to_flange = np.linalg.inv(self.frames.flange_to_sensor)
         return start @ to_flange, end @ to_flange, duration
 
+    def _hand_eye_known(self) -> bool:
+        """Tell whether the fixed frames received link the sensor frame to the flange (child -> parent)."""
+        frame, seen = self.frames.sensor, set()
+        while frame != self.frames.flange:
+            if frame in seen or frame not in self.statics:
+                return False
+            seen.add(frame)
+            frame = self.statics[frame].transforms[0].header.frame_id
+        return True
+
+    def _no_hand_eye_message(self) -> str:
+        known = ", ".join(f"{message.transforms[0].header.frame_id} -> {child}"
+                          for child, message in sorted(self.statics.items())) or "none"
+        return (f"no fixed transform from {self.frames.flange} to {self.frames.sensor} on {LAYOUT.tf_static_topic} "
+                f"within {ROBOT_WAIT_S:g} s (fixed frames received: {known}); line not commanded")
+
     def _complete(self) -> bool:
         """Tell whether the motion's streams are complete or quiet for ``end_grace_s``.
 
@@ -300,6 +320,13 @@ class StreamAcquisitionNode(GlsNode):
             response.success, response.message = False, str(error)
             return response
         timeout_s = request.timeout_s or self.default_timeout_s
+        try:
+            # /tf_static reaches a new subscriber after discovery, which may lag a service call on a loaded
+            # host (seen in CI: a sweep refused for a hand-eye that came a moment later): the line waits for it
+            await self.wait_for(self._hand_eye_known, ROBOT_WAIT_S, self._no_hand_eye_message)
+        except ServiceCallError as error:
+            response.success, response.message = False, str(error)
+            return response
         session = Session(StreamAssembler(self.layout, self.limits, "stream"))
         for message in list(self.statics.values()):    # a copy: the static subscription may add meanwhile
             self._add(session, LAYOUT.tf_static_topic, message)
