@@ -331,34 +331,49 @@ def test_centre_uncertainty_holds_for_edge_noise_correlated_along_the_ring(corre
     assert 0.85 <= np.mean(np.diagonal(stated, axis1=1, axis2=2)) / true_variance <= 1.4
 
 
-@pytest.mark.parametrize("offset_px, scale, shear, turn_rad, size_px", [
-    (0.0, 1.0, 0.0, 0.0, 400), (0.5, 1.0, 0.0, 0.0, 400), (0.3, 1.0, 0.0, 0.0, 400),
-    (0.3, 1.0008, 0.0015, 0.0, 400), (0.2, 1.0, 0.00024, 0.00135, 2000), (0.3, 1.0, 0.0, 0.35, 400),
-    (0.2, 1.0008, 0.0015, -0.61, 400)])
+@pytest.mark.parametrize("offset_px, scale, shear, turn_rad, size_px, wobble_px", [
+    (0.0, 1.0, 0.0, 0.0, 400, 0.0), (0.5, 1.0, 0.0, 0.0, 400, 0.0), (0.3, 1.0, 0.0, 0.0, 400, 0.0),
+    (0.3, 1.0008, 0.0015, 0.0, 400, 0.0), (0.2, 1.0, 0.00024, 0.00135, 2000, 0.0), (0.3, 1.0, 0.0, 0.35, 400, 0.0),
+    (0.2, 1.0008, 0.0015, -0.61, 400, 0.0), (0.0, 1.0, 0.0, 0.0, 600, 0.3), (0.3, 1.0008, 0.0015, 0.35, 600, 0.4)])
 def test_rasterising_a_regular_scan_puts_pixel_centres_on_its_points(offset_px, scale, shear, turn_rad,
-                                                                     size_px):
+                                                                     size_px, wobble_px):
     # A flat scan near the raster's pitch, shifted by a fraction of a pixel, slightly stretched,
     # sheared (as a tilted plate shears it) or turned: each point must land on one pixel, not be
     # averaged over four (which blurs thin lines under speckle and shifts them by the local phase).
     # The fifth case is a 200 mm plate (every 20th point kept), where a coarse lattice search could
-    # mistake the drift for another; the last two are clouds turned by 20° and -35° (a robot's frame).
+    # mistake the drift for another; the next two are clouds turned by 20° and -35° (a robot's frame);
+    # the last two wobble smoothly by a third of a pixel (a robot's uneven travel in a flattened sweep),
+    # which no affine lattice follows.
     from gls_calibration.fiducials.raster import rasterised_image
     from gls_calibration.scan.plate_pose import PlatePose
     pitch = 0.1
     col, row = np.meshgrid(np.arange(size_px) + offset_px, np.arange(size_px * 3 // 4) + offset_px)
+    col, row = (col + wobble_px * np.sin(2 * np.pi * row * pitch / 60.0),
+                row + wobble_px * np.cos(2 * np.pi * col * pitch / 45.0))
     u, v = (col * scale + row * shear) * pitch, row * pitch
     u, v = u * np.cos(turn_rad) - v * np.sin(turn_rad), u * np.sin(turn_rad) + v * np.cos(turn_rad)
-    kept = np.arange(u.size) % (1 if size_px <= 400 else 20) == 0
+    kept = np.arange(u.size) % (20 if size_px >= 2000 else 1) == 0
     u, v = u.ravel()[kept], v.ravel()[kept]
     intensity = np.where((np.arange(u.size) % 7) == 0, 100.0, 10.0)
     xyz = np.column_stack([u, v, np.zeros(u.size)])
     pose = PlatePose(normal=np.array([0.0, 0.0, 1.0]), centre=np.zeros(3), rotation=np.eye(3),
                      flatness_rms_mm=0.0, inlier_count=u.size, inlier_fraction=1.0)
     plate = rasterised_image(xyz, intensity, pose, pitch)
-    pixel = np.linalg.solve(plate.raster_matrix, (xyz[:, :2] - plate.raster_origin).T)
-    assert np.abs(pixel - np.round(pixel)).max() < 0.01
-    column, row = np.round(pixel).astype(int)
-    np.testing.assert_allclose(plate.intensity[row, column], intensity, atol=1e-3)
+    cloud = plate.cloud_xyz.dense()
+    # Each point is one pixel's sample and the pixel keeps its coordinates: as many pixels hold a
+    # point as there are points, each the intensity of the point at its coordinates.
+    held = np.isfinite(cloud[..., 0])
+    assert held.sum() == len(xyz)
+    distance, index = cKDTree(xyz).query(cloud[held])
+    assert distance.max() < 1e-9 and len(np.unique(index)) == len(xyz)
+    np.testing.assert_allclose(plate.intensity[held], intensity[index], atol=1e-3)
+    # Neighbouring pixels hold neighbouring points of the scan (no seam where a raster line would
+    # jump to the next scan line): one step of the scan apart.
+    steps = np.concatenate([np.linalg.norm(cloud[1:] - cloud[:-1], axis=-1).ravel(),
+                            np.linalg.norm(cloud[:, 1:] - cloud[:, :-1], axis=-1).ravel()])
+    steps = steps[np.isfinite(steps)]
+    assert steps.size > len(xyz) // 2
+    assert np.abs(steps / pitch - 1.0).max() < 0.05     # a seam: 1.4 or 2 steps
 
 
 @pytest.mark.parametrize("shape, missing_share, far_hole", [
