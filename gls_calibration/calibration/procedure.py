@@ -503,6 +503,56 @@ def fiducials_needed(settings: ProcedureSettings, expected_count: int) -> int:
     return math.ceil(settings.min_found_fraction * expected_count)
 
 
+async def scan_plate_pose(cell: Cell, settings: ProcedureSettings, report: Progress, *,
+                          check_clean: bool, plate: str = "plain plate") -> PlatePose:
+    """Scan the plate before marking and return its pose (scanner base frame), as every plate is scanned.
+
+    ``settings.plain_sweeps`` sweeps at ``settings.plain_sweep_step_mm``, their poses averaged, then,
+    with ``settings.standstill_height``, the height measured standing still at the marking pose
+    (:func:`plate_height_at_marking`). ``report`` takes the plate's share of the progress (0 to 0.15).
+
+    Parameters
+    ----------
+    cell : Cell
+        The cell's steps.
+    settings : ProcedureSettings
+        The calibration's settings.
+    report : callable
+        ``report(stage, part, text)``, ``part`` the share of this plate's progress.
+    check_clean : bool
+        Refuse a plate whose first sweep shows marks (``check_clean_plate``); off where the plate
+        carries rings on purpose (a reference plate) or marking over old marks is forced.
+    plate : str, default "plain plate"
+        What the progress messages call the plate.
+
+    Returns
+    -------
+    PlatePose
+        The plate plane in the scanner base frame.
+
+    Raises
+    ------
+    CalibrationError
+        When a cell step fails, the plate is not clean or the stand-still height cannot be measured.
+    """
+    poses = []
+    for repeat in range(settings.plain_sweeps):
+        report("sweep_plain", 0.1 * repeat / settings.plain_sweeps,
+               f"scanning the {plate} ({repeat + 1} of {settings.plain_sweeps})")
+        cloud = await cell.acquire_sweep(settings.plain_sweep_step_mm)
+        if repeat == 0 and check_clean:
+            check_clean_plate(*cell.points_and_intensities(cloud), settings)
+        poses.append(await cell.estimate_plate_pose(cloud))
+    pose_scanner = mean_plate_pose(poses)
+    if settings.standstill_height:
+        # part of scanning the plain plate: "plate_pose" follows once the pose is final
+        report("sweep_plain", 0.1, f"profiling the {plate} standing at the marking pose "
+               f"({settings.standstill_profiles} profiles)")
+        pose_scanner = await plate_height_at_marking(cell, settings, pose_scanner)
+    report("plate_pose", 0.15, f"plate flatness {pose_scanner.flatness_rms_mm:.4f} mm RMS")
+    return pose_scanner
+
+
 async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray, progress: Progress,
                     span: tuple[float, float], want_truth: bool, allow_marked: bool = False) -> PlateRun:
     """Scan the plain plate, mark ``grid_xy`` through the active correction, scan, measure, pair.
@@ -515,22 +565,8 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
     def report(stage: str, part: float, text: str) -> None:
         progress(stage, start + width * part, text)
 
-    poses = []
-    for repeat in range(settings.plain_sweeps):
-        report("sweep_plain", 0.1 * repeat / settings.plain_sweeps,
-               f"scanning the plain plate ({repeat + 1} of {settings.plain_sweeps})")
-        cloud = await cell.acquire_sweep(settings.plain_sweep_step_mm)
-        if repeat == 0 and not allow_marked:
-            check_clean_plate(*cell.points_and_intensities(cloud), settings)
-        poses.append(await cell.estimate_plate_pose(cloud))
-    pose_scanner = mean_plate_pose(poses)
-    if settings.standstill_height:
-        # part of scanning the plain plate: "plate_pose" follows once the pose is final
-        report("sweep_plain", 0.1, f"profiling the plain plate standing at the marking pose "
-               f"({settings.standstill_profiles} profiles)")
-        pose_scanner = await plate_height_at_marking(cell, settings, pose_scanner)
+    pose_scanner = await scan_plate_pose(cell, settings, report, check_clean=not allow_marked)
     pose_gls = pose_in_frame(pose_scanner, settings.scanner_to_gls)
-    report("plate_pose", 0.15, f"plate flatness {pose_scanner.flatness_rms_mm:.4f} mm RMS")
 
     targets = np.column_stack([grid_xy, plane_height(pose_gls, grid_xy[:, 0], grid_xy[:, 1])])
     rings = grid.rings_polylines(grid_xy, settings.ring_radii_mm)

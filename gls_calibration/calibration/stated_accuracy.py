@@ -64,6 +64,22 @@ REFERENCE_BASIS = "reference check"
 SELF_CONSISTENCY = "self-consistency"
 
 
+def placement_name(placed_by_pose: bool) -> str:
+    """Return how profiles were placed as a check and a calibration name it.
+
+    Parameters
+    ----------
+    placed_by_pose : bool
+        Profiles placed by the robot's reported pose (else by time).
+
+    Returns
+    -------
+    str
+        ``"pose"`` or ``"time"`` (one of ``PLACEMENTS``).
+    """
+    return PLACEMENTS[0] if placed_by_pose else PLACEMENTS[1]
+
+
 @dataclass(frozen=True)
 class ChainCheck:
     """An independent check of the measurement chain against known centres (mm, k = 1).

@@ -27,9 +27,7 @@ Exit 0 with the file written; 2 on bad input, nothing written.
 from __future__ import annotations
 
 import argparse
-import csv
 from dataclasses import replace
-import io
 import math
 from pathlib import Path
 import sys
@@ -37,74 +35,18 @@ import sys
 import numpy as np
 
 from gls_calibration.calibration.procedure import CalibrationError
-from gls_calibration.calibration.reference_check import chain_sigma_mm, measure_reference_plate
+from gls_calibration.calibration.reference_check import chain_check, measure_reference_plate, read_certified_centres
 from gls_calibration.calibration.stated_accuracy import ChainCheck, save_chain_check
 from gls_calibration.cli.train_bag import recording_settings
 from gls_calibration.common.files import atomic_write_text, require_regular_output
-from gls_calibration.registration.chain_map import chain_map_identity, load_chain_map
+from gls_calibration.registration.chain_map import load_chain_map
 from gls_calibration.registration.rigid import RigidTransform
 from gls_calibration.registration.sweep_plan import plan_label
 from gls_calibration.scan.bag_io import BagLayout, read_recording
 
-MIN_CERTIFIED = 3
-"""Centres a rigid alignment needs, and then some: fewer certified centres are refused."""
-
 LOW_PAIRED_FRACTION = 0.9
 """Below this share of the certified centres paired, the tool warns (the figure still stands for
 the centres it has)."""
-
-
-def read_certified(path: Path) -> np.ndarray:
-    """Return the certified centres (N, 3), mm, of a CSV with columns ``x``, ``y`` and optionally ``z``.
-
-    Parameters
-    ----------
-    path : pathlib.Path
-        The CSV file.
-
-    Returns
-    -------
-    numpy.ndarray, shape (N, 3)
-        The centres; z is 0 where the file has no ``z`` column.
-
-    Raises
-    ------
-    ValueError
-        If the file cannot be read, lacks a column, holds a value that is not a finite number, holds
-        the same centre twice or fewer than ``MIN_CERTIFIED`` rows.
-    """
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        raise ValueError(f"{path}: cannot be read: {getattr(error, 'strerror', None) or error}") from None
-    reader = csv.DictReader(io.StringIO(text))
-    columns = [name.strip() for name in (reader.fieldnames or [])]
-    missing = [name for name in ("x", "y") if name not in columns]
-    if missing:
-        raise ValueError(f"{path}: the header names no column {', '.join(missing)} "
-                         f"(found: {', '.join(columns) or 'none'})")
-    reader.fieldnames = columns
-    rows = []
-    for line, row in enumerate(reader, start=2):
-        values = []
-        for name in ("x", "y", "z"):
-            if name == "z" and "z" not in columns:
-                values.append(0.0)
-                continue
-            try:
-                value = float(row[name])
-            except (TypeError, ValueError):
-                raise ValueError(f"{path}, line {line}: {name} is not a number: {row[name]!r}") from None
-            if not math.isfinite(value):
-                raise ValueError(f"{path}, line {line}: {name} is not finite: {row[name]!r}")
-            values.append(value)
-        rows.append(values)
-    if len(rows) < MIN_CERTIFIED:
-        raise ValueError(f"{path}: {len(rows)} certified centre(s); at least {MIN_CERTIFIED} are needed")
-    centres = np.array(rows)
-    if len(np.unique(centres[:, :2], axis=0)) != len(centres):
-        raise ValueError(f"{path}: a certified centre (x, y) is listed twice")
-    return centres
 
 
 def residuals_csv(known_mm: np.ndarray, residuals_mm: np.ndarray) -> str:
@@ -157,7 +99,7 @@ def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int, str]:
             raise ValueError("--residuals and --out name the same file")
     if not args.reference.strip():
         raise ValueError("--reference must name the plate and its certificate")
-    known = read_certified(args.certified)
+    known = read_certified_centres(args.certified)
     recording = recording_settings(None, None, args.sweep_plan, args.plain_sweeps)
     plan, plain_sweeps = recording.sweep_plan, recording.plain_sweeps
     chain_map = load_chain_map(args.chain_map) if args.chain_map is not None else None
@@ -178,9 +120,7 @@ def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int, str]:
         measured, paired = measure_reference_plate(plain, passes, settings, known)
     except CalibrationError as error:
         raise ValueError(str(error)) from None
-    sigma, residuals = chain_sigma_mm([measured], [paired])
-    check = ChainCheck(sigma_mm=sigma, plan=plan_label(plan), placement="pose", reference=args.reference.strip(),
-                       centres=len(measured), chain_map=chain_map_identity(chain_map))
+    check, residuals = chain_check(measured, paired, settings, args.reference)
     return check, len(known), residuals_csv(paired, residuals)
 
 

@@ -1,7 +1,8 @@
-"""calibration_manager: serves ``calibrate`` and ``explain_deviations``, publishes progress.
+"""calibration_manager: serves ``calibrate``, ``reference_check`` and ``explain_deviations``, publishes progress.
 
 calibration_manager: serves ``calibrate`` (an action with feedback and cancel, and a service for
-simple clients) and ``explain_deviations``, publishes progress.
+simple clients), ``reference_check`` (scans the reference plate and writes the check the calibrations
+state their accuracy from) and ``explain_deviations``, publishes progress.
 
 It implements the procedure's ``Cell`` with service calls to the scanner, the galvo and the
 processing nodes; the flow itself is ``gls_calibration.calibration.procedure``. A run's candidate calibration
@@ -29,8 +30,11 @@ from gls_calibration.calibration import procedure
 from gls_calibration.calibration.outcome import RunSummary, summarise
 from gls_calibration.calibration.record import build_record, record_fiducials, record_models, save_candidate
 from gls_calibration.calibration.record_file import CalibrationFileError
-from gls_calibration.calibration.stated_accuracy import SELF_CONSISTENCY, load_chain_check
+from gls_calibration.calibration.reference_check import read_certified_centres, scan_reference_check
+from gls_calibration.calibration.stated_accuracy import (SELF_CONSISTENCY, load_chain_check, placement_name,
+                                                         save_chain_check)
 from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.common.files import require_regular_output
 from gls_calibration.correction.setpoints import Correction
 from gls_calibration.geometry import kinematics
 from gls_calibration.registration.chain_map import load_chain_map
@@ -227,6 +231,7 @@ class CalibrationManager(GlsNode):
         self.ground_truth_service = self.config.ground_truth_service
         self.geometry = self.config.geometry
         self._running = False
+        self._job = "a calibration"     # what runs while _running: "a calibration" or "a reference check"
         self.apply_parameter_changes(SETTABLE, self._apply_settable)
         self.plate_pose_publisher = self.create_publisher(PoseStamped, "calibration/plate_pose", rviz.LATCHED)
         self.markers_publisher = self.create_publisher(MarkerArray, "calibration/markers", rviz.LATCHED)
@@ -237,6 +242,7 @@ class CalibrationManager(GlsNode):
             self, CalibrateAction, "calibrate", execute_callback=self.execute_calibrate,
             goal_callback=self.on_goal, cancel_callback=lambda goal_handle: CancelResponse.ACCEPT,
             callback_group=self.reentrant_group)
+        self.create_service(Trigger, "reference_check", self.on_reference_check, callback_group=self.reentrant_group)
         self.create_service(ExplainDeviations, "explain_deviations", self.on_explain,
                             callback_group=self.reentrant_group)
         self.last_failed, self.last_message, self.last_rms_mm = False, "no calibration run yet", math.nan
@@ -256,6 +262,8 @@ class CalibrationManager(GlsNode):
         self.service_timeout_s, self.resend_after_s = config.service_timeout_s, config.resend_after_s
         self.report_root, self.report_per_run = config.report_root, config.report_per_run
         self.reference_check_file = config.reference_check_file
+        self.reference_plate_certificate = config.reference_plate_certificate
+        self.reference_plate_name = config.reference_plate_name
         self.chain_map_file = config.chain_map_file
         self.simulated_chain = config.simulated_chain
         self.arrow_scale, self.colour_full_scale_mm = config.arrow_scale, config.colour_full_scale_mm
@@ -304,7 +312,7 @@ class CalibrationManager(GlsNode):
         self.get_logger().info(f"[{fraction:4.0%}] {stage}: {text}")
 
     def busy(self) -> bool:
-        """Tell whether a calibration is running (stopping: it ends at its next step, canceled)."""
+        """Tell whether a calibration or a reference check runs (stopping: it ends at its next step, canceled)."""
         return self._running
 
     def on_goal(self, goal_request) -> GoalResponse:
@@ -313,9 +321,10 @@ class CalibrationManager(GlsNode):
             self.get_logger().warning("the node is stopping; goal refused")
             return GoalResponse.REJECT
         if self._running:
-            self.get_logger().warning("a calibration is already running; goal refused")
+            self.get_logger().warning(f"{self._job} is already running; goal refused")
             return GoalResponse.REJECT
-        self._running = True   # claimed now: a service request between acceptance and execution is refused
+        # claimed now: a service request between acceptance and execution is refused
+        self._running, self._job = True, "a calibration"
         return GoalResponse.ACCEPT
 
     async def execute_calibrate(self, goal_handle):
@@ -337,13 +346,13 @@ class CalibrationManager(GlsNode):
             return response
         if self._running:
             response.success = False
-            response.message = "a calibration is already running; request refused"
+            response.message = f"{self._job} is already running; request refused"
             return response
         problem = self.settings.iterations_problem(request.iterations)
         if problem:
             response.success, response.message = False, f"request refused: {problem}"
             return response
-        self._running = True
+        self._running, self._job = True, "a calibration"
         await self._run(request, response, None, lambda: self.stopping)
         return response
 
@@ -418,7 +427,7 @@ class CalibrationManager(GlsNode):
         self.plate_pose_publisher.publish(rviz.plate_pose_msg(outcome.runs[-1].plate_pose_gls, stamp))
         self.markers_publisher.publish(rviz.calibration_markers(outcome.runs[0], outcome.validation, stamp,
                                                                 self.arrow_scale, self.colour_full_scale_mm))
-        summary = summarise(outcome, chain_check, "pose" if settings.profiles_placed_by_pose else "time",
+        summary = summarise(outcome, chain_check, placement_name(settings.profiles_placed_by_pose),
                             measurement_preset=self.simulated_chain)
         message = summary.message
         # Every file first, activation last: a failure before it leaves the old calibration in force.
@@ -441,6 +450,78 @@ class CalibrationManager(GlsNode):
         _fill_response(response, summary)
         response.message = message
         response.success = not outcome.rejection
+
+    def _reference_check_inputs(self):
+        """Return what a reference check needs (file, settings, certified centres, plate name); ValueError why not.
+
+        Everything the check reads is read here, before anything moves: a refusal writes nothing.
+        """
+        if not self.reference_check_file:
+            raise ValueError("reference_check_file is empty: the check would be lost; set it to the file the "
+                             "calibrations read the check from")
+        require_regular_output(self.reference_check_file)
+        if not self.reference_plate_certificate:
+            raise ValueError("reference_plate_certificate is empty: set it to the CSV of the plate's certified "
+                             "centres (x,y[,z], mm, gls frame)")
+        if not self.reference_plate_name.strip():
+            raise ValueError("reference_plate_name is empty: set it to name the plate and its certificate")
+        known = read_certified_centres(self.reference_plate_certificate)
+        settings = self.settings
+        if self.chain_map_file:     # the calibrations remove it from every sweep: so does their check
+            settings = replace(settings, chain_map=load_chain_map(self.chain_map_file))
+        return Path(self.reference_check_file), settings, known, self.reference_plate_name.strip()
+
+    async def on_reference_check(self, request: Trigger.Request, response: Trigger.Response):
+        """Serve ``reference_check``: scan the reference plate as a calibration scans, write the check.
+
+        The plate with certified centres (``reference_plate_certificate``) lies on the bed; it is
+        scanned through the cell with the calibration's own sweep plan, placement and chain map
+        (``reference_check.scan_reference_check``) and the check is written atomically to
+        ``reference_check_file``, which the following calibrations state their accuracy from. Refused
+        (nothing written, the old file untouched) while a calibration runs, when stopping, on bad
+        parameters or certificate; a failed scan writes nothing either.
+        """
+        response.success = False
+        if self.stopping:
+            response.message = "the calibration manager is stopping; request refused"
+            return response
+        if self._running:
+            response.message = f"{self._job} is already running; request refused"
+            return response
+        try:
+            path, settings, known, name = self._reference_check_inputs()
+        except ValueError as error:
+            response.message = f"request refused: {error}"
+            self.get_logger().error(response.message)
+            return response
+        self._running, self._job = True, "a reference check"
+
+        def progress(stage: str, fraction: float, text: str) -> None:
+            if self.stopping:
+                raise CalibrationCanceled(stage)
+            self.publish_progress(stage, fraction, text)
+        try:
+            check = await scan_reference_check(self.cell, settings, known, name, progress)
+            save_chain_check(path, check)
+            response.success = True
+            response.message = (f"reference check written to {path}: sigma x {check.sigma_mm[0]:.4f} mm, "
+                                f"y {check.sigma_mm[1]:.4f} mm (k = 1) from {check.centres} of {len(known)} "
+                                f"certified centres; plan {check.plan}, placed by {check.placement}, chain map "
+                                f"{check.chain_map}")
+            self.get_logger().info(response.message)
+        except CalibrationCanceled as stop:
+            response.message = f"reference check canceled before stage {stop}; {path} not written"
+            self.get_logger().warning(response.message)
+        except (procedure.CalibrationError, ServiceCallError, ValueError, CalibrationFileError, OSError) as error:
+            response.message = f"reference check failed: {error}; {path} not written"
+            self.get_logger().error(response.message)
+        except Exception as error:  # a bug must not kill the node
+            response.message = (f"reference check failed on an internal error: {type(error).__name__}: {error}; "
+                                f"{path} not written")
+            self.get_logger().error(f"{response.message}\n{traceback.format_exc()}")
+        finally:
+            self._running = False
+        return response
 
     @answers_errors(CalibrationFileError, ValueError)
     def on_explain(self, request, response):

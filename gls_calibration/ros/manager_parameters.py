@@ -150,9 +150,16 @@ MANAGER_PARAMETERS: tuple[ManagerParameter, ...] = (
                      "read at every calibrate; a reference check must have been measured with the same map; "
                      "empty: none", "text"),
     ManagerParameter("reference_check_file", "", "reference check of the measurement chain (stated_accuracy's "
-                     "YAML: a plate with known centres measured with this plan); read at every calibrate; empty: "
-                     "none, the cell then states no accuracy and labels its measured figures self-consistency",
+                     "YAML: a plate with known centres measured with this plan); read at every calibrate, written by "
+                     "the reference_check service; empty: none, the cell then states no accuracy and labels its "
+                     "measured figures self-consistency",
                      "text"),
+    ManagerParameter("reference_plate_certificate", "", "certified centres of the reference plate the "
+                     "reference_check service scans (CSV with a header x,y[,z], mm, in the gls frame where the "
+                     "plate nominally lies, as gls-reference-check --certified); read at every check; empty: "
+                     "no check", "text"),
+    ManagerParameter("reference_plate_name", "", "names the reference plate and its certificate: recorded as "
+                     "the check's reference (e.g. plate serial and certificate number); empty: no check", "text"),
     ManagerParameter("report.simulated_chain", "", "the simulated cell's measurement chain preset the figures come "
                      "from, said in the report and summary.json (gls-sim-cell sets it); empty: a real cell", "text"),
     ManagerParameter("rviz.arrow_scale", 50.0, "RViz deviation arrows are this many times longer than the "
@@ -178,6 +185,8 @@ class ManagerConfig:
     report_root: Path
     report_per_run: bool
     reference_check_file: str
+    reference_plate_certificate: str
+    reference_plate_name: str
     chain_map_file: str
     simulated_chain: str
     arrow_scale: float
@@ -269,5 +278,7 @@ def manager_config(values: Mapping[str, Any]) -> ManagerConfig:
         ground_truth_service=str(values["ground_truth_service"]),
         calibration_dir=Path(values["calibration_dir"]), report_root=Path(values["report_dir"]),
         report_per_run=bool(values["report_per_run"]), reference_check_file=str(values["reference_check_file"]),
+        reference_plate_certificate=str(values["reference_plate_certificate"]),
+        reference_plate_name=str(values["reference_plate_name"]),
         chain_map_file=str(values["chain_map_file"]), simulated_chain=str(values["report.simulated_chain"]),
         arrow_scale=number("rviz.arrow_scale"), colour_full_scale_mm=number("rviz.colour_full_scale_mm"))
