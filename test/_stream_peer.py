@@ -9,10 +9,12 @@ behave, in plain rclpy. It imports NOTHING of gls_calibration (checked at start)
   metres, frame scanner_optical) every 1/--rate s of a flat plate with a ridge (PLATE_*), then
   ``/motion/end``. It also streams BEFORE profiles before the start and AFTER after the end, as a
   running sensor does.
-- ``--modes a,b,...``: the n-th command is run in the n-th mode: ``normal``; ``no_hand_eye`` (the
-  hand-eye never published: a frame is missing); ``stale`` (the flange pose only every 0.2 s);
-  ``stops`` (the profiles stop halfway through the line); ``mm`` (profiles in millimetres);
-  ``out_of_order`` (two profiles swapped); ``late`` (one profile of the line sent LATE_S after the end).
+- ``--modes a,b,...``: the n-th command is run in the n-th mode: ``normal``; ``stale`` (the flange
+  pose only every 0.2 s); ``stops`` (the profiles stop halfway through the line); ``mm`` (profiles in
+  millimetres); ``out_of_order`` (two profiles swapped); ``late`` (one profile of the line sent LATE_S
+  after the end).
+- ``--hand-eye-on-request``: flange -> scanner_optical is published only when a message comes on
+  ``/peer/hand_eye`` (std_msgs/Empty): until then a frame is missing.
 
     python test/_stream_peer.py --rate 50 --modes normal,stale [--lifetime 60]
 """
@@ -31,7 +33,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2, PointField
-from std_msgs.msg import Header
+from std_msgs.msg import Empty, Header
 from tf2_msgs.msg import TFMessage
 
 HAND_EYE_T_M = (0.04, 0.0, 0.18)                 # scanner_optical in flange (the shipped cell file's)
@@ -44,7 +46,7 @@ TF_RATE_HZ = 250.0
 BEFORE, AFTER = 3, 5
 RELIABLE = QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-MODES = ("normal", "no_hand_eye", "stale", "stops", "mm", "out_of_order", "late")
+MODES = ("normal", "stale", "stops", "mm", "out_of_order", "late")
 # "late": one profile of the line held back this long after the motion's end. It must come after the
 # sweep was taken: at 1.5 s it once came before, on a 2-core host at load 6 (then it is dropped as out
 # of order and never counted late).
@@ -96,7 +98,7 @@ def cloud(points_m: np.ndarray, ns: int) -> PointCloud2:
 
 
 class Peer(Node):
-    def __init__(self, rate_hz: float, modes: list[str]) -> None:
+    def __init__(self, rate_hz: float, modes: list[str], hand_eye_on_request: bool = False) -> None:
         super().__init__("stream_peer")
         self.rate_hz, self.modes = rate_hz, modes
         self.tf = self.create_publisher(TFMessage, "/tf", RELIABLE)
@@ -106,7 +108,10 @@ class Peer(Node):
         self.ends = self.create_publisher(Header, "/motion/end", RELIABLE)
         self.create_subscription(Path, "/motion/line", self.on_line, RELIABLE)
         self.commands = 0
-        self.publish_static(with_hand_eye=modes[0] != "no_hand_eye")
+        self.publish_static(with_hand_eye=not hand_eye_on_request)
+        if hand_eye_on_request:     # a driver that starts late: the hand-eye comes when the test says
+            self.create_subscription(Empty, "/peer/hand_eye", lambda _: self.publish_static(with_hand_eye=True),
+                                     RELIABLE)
 
     def publish_static(self, with_hand_eye: bool) -> None:
         transforms = [transform("robot_base", "gls", pose((0.0, 0.1, 0.325), Rotation.from_euler("x", np.pi)), 0)]
@@ -123,8 +128,6 @@ class Peer(Node):
     def on_line(self, message: Path) -> None:
         mode = self.modes[min(self.commands, len(self.modes) - 1)]
         self.commands += 1
-        if self.commands > 1 and mode != "no_hand_eye":
-            self.publish_static(with_hand_eye=True)
         first, last = (pose([p.pose.position.x, p.pose.position.y, p.pose.position.z],
                             Rotation.from_quat([p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z,
                                                 p.pose.orientation.w])) for p in message.poses)
@@ -187,12 +190,14 @@ def main() -> int:
     parser.add_argument("--rate", type=float, required=True)
     parser.add_argument("--modes", default="normal")
     parser.add_argument("--lifetime", type=float, default=120.0)
+    parser.add_argument("--hand-eye-on-request", action="store_true",
+                        help="publish flange -> scanner_optical only when a message comes on /peer/hand_eye")
     args = parser.parse_args()
     modes = args.modes.split(",")
     assert all(mode in MODES for mode in modes), modes
     assert not any(name.startswith("gls_calibration") for name in sys.modules), "the peer imported gls_calibration"
     rclpy.init()
-    node = Peer(args.rate, modes)
+    node = Peer(args.rate, modes, args.hand_eye_on_request)
     return serve(node, args.lifetime)
 
 

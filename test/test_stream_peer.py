@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
+from std_msgs.msg import Empty
 
 from gls_calibration.nodes.stream_acquisition import StreamAcquisitionNode
 from gls_calibration.ros import conversions
@@ -56,11 +57,11 @@ def peer_session(ros_context, add_node, tmp_path):
     """The acquisition node in-process, the peer in its own process running ``modes`` in turn."""
     processes = []
 
-    def start(modes: list[str]):
+    def start(modes: list[str], *options: str):
         log = tmp_path / "peer.log"
         with log.open("w") as handle:
             process = subprocess.Popen([sys.executable, str(PEER), "--rate", str(RATE_HZ), "--modes", ",".join(modes),
-                                        "--lifetime", "120"], stdout=handle, stderr=subprocess.STDOUT,
+                                        "--lifetime", "120", *options], stdout=handle, stderr=subprocess.STDOUT,
                                        preexec_fn=default_sigint)
         processes.append(process)
         node = add_node(StreamAcquisitionNode(context=ros_context, parameter_overrides=[
@@ -99,11 +100,17 @@ def _check_closed_form(response, rows: int, direction: int, orientation_deg: flo
 
 
 def test_sweeps_from_a_peer_process_match_closed_form_and_bad_streams_are_refused(peer_session):
-    node, acquire, log = peer_session(["no_hand_eye", "normal", "out_of_order", "late", "stale", "stops", "mm"])
-    missing = acquire()
+    node, acquire, log = peer_session(["normal", "out_of_order", "late", "stale", "stops", "mm"],
+                                      "--hand-eye-on-request")
+    missing = acquire()     # the peer withholds the hand-eye: no line is commanded
     assert not missing.success
-    assert "frame scanner_optical is not in the transform tree" in missing.message, missing.message
-    assert "21 of 21 profiles within the motion have no pose" in missing.message
+    # (robot_base -> gls is named among the frames received unless the peer took over 5 s to start)
+    assert missing.message.startswith("no fixed transform from flange to scanner_optical on /tf_static within 5 s "
+                                      "(fixed frames received: "), missing.message
+    assert missing.message.endswith("; line not commanded"), missing.message
+    hand_eye = node.create_publisher(Empty, "/peer/hand_eye", 10)
+    wait_for(lambda: hand_eye.get_subscription_count() > 0, 20.0, what="the peer's /peer/hand_eye subscription")
+    hand_eye.publish(Empty())
 
     good = acquire()
     assert good.success, f"{good.message}\npeer log:\n{log.read_text()}"

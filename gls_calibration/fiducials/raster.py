@@ -50,6 +50,13 @@ SEAM_FREE_PHASE_PX = 0.25
 """A lattice cloud whose tiles all lie within this phase (px) of the raster is rounded as it is: a
 point then moves to another pixel only if the scan's own jitter exceeds a quarter pixel."""
 
+PHASE_MIN_TILE_POINTS = 16
+"""A tile whose sampled points are fewer gives no phase of its own (``_local_phase``)."""
+
+PHASE_MIN_COHERENCE = 0.5
+"""A tile whose phasors' mean length is below this has no clear phase (the lattice test's
+concentration, ``_scan_lattice``)."""
+
 PHASE_SAMPLE_STRIDE = 4
 """Every this-many-th point of a lattice cloud gives the tiles' phases (``_local_phase``): a quarter of
 a tile's thousand points still holds its phase to about 0.01 px; the trigonometry of every point
@@ -266,32 +273,37 @@ def _local_phase(column: np.ndarray, row: np.ndarray) -> list[np.ndarray | None]
     tiles, so that a drift of whole pixels stays continuous. Subtracted before rounding, each point's
     tile's phase keeps each scan line on one raster line where the lattice is regular only locally
     (neighbouring tiles differ by hundredths of a pixel, far from the half pixel at which a point would
-    change its pixel). Where every tile lies within ``SEAM_FREE_PHASE_PX`` of the raster (an affine
-    lattice followed the scan), plain rounding is already seam-free: None, and no work per point.
+    change its pixel). A tile with few points or no clear phase (the plate's edge, a hole, noise) takes
+    its nearest clear tile's, so that it cannot unwrap its row by a whole pixel. Where every tile lies
+    within ``SEAM_FREE_PHASE_PX`` of the raster (an affine lattice followed the scan), plain rounding is
+    already seam-free: None, and no work per point.
     """
     first_column, first_row = np.floor(column.min() / PHASE_TILE_PX), np.floor(row.min() / PHASE_TILE_PX)
     sample = slice(None, None, PHASE_SAMPLE_STRIDE)
 
-    def tiles_of(select) -> np.ndarray:
+    def tiles_of(select) -> tuple[np.ndarray, np.ndarray]:
         tile_column = (column[select] // PHASE_TILE_PX - first_column).astype(np.int64)
         tile_row = (row[select] // PHASE_TILE_PX - first_row).astype(np.int64)
         return tile_row, tile_column
 
     sampled_row, sampled_column = tiles_of(sample)
-    shape = (int((row.max() // PHASE_TILE_PX) - first_row) + 1, int((column.max() // PHASE_TILE_PX) - first_column) + 1)
+    shape = (int(row.max() // PHASE_TILE_PX - first_row) + 1, int(column.max() // PHASE_TILE_PX - first_column) + 1)
     sampled_tile = sampled_row * shape[1] + sampled_column
-    empty = np.bincount(sampled_tile, minlength=shape[0] * shape[1]).reshape(shape) == 0
-    # the nearest tile holding points stands in for an empty one
-    nearest = tuple(distance_transform_edt(empty, return_distances=False, return_indices=True))
+    counts = np.bincount(sampled_tile, minlength=shape[0] * shape[1]).reshape(shape)
     phases, tile = [], None
     for coordinate in (column, row):
         angle = 2 * np.pi * coordinate[sample]
-        phasor = (np.bincount(sampled_tile, weights=np.cos(angle), minlength=empty.size)
-                  + 1j * np.bincount(sampled_tile, weights=np.sin(angle), minlength=empty.size)).reshape(shape)
+        phasor = (np.bincount(sampled_tile, weights=np.cos(angle), minlength=counts.size)
+                  + 1j * np.bincount(sampled_tile, weights=np.sin(angle), minlength=counts.size)).reshape(shape)
+        clear = (counts >= PHASE_MIN_TILE_POINTS) & (np.abs(phasor) >= PHASE_MIN_COHERENCE * counts)
+        if not clear.any():
+            phases.append(None)
+            continue
+        nearest = tuple(distance_transform_edt(~clear, return_distances=False, return_indices=True))
         turns = np.angle(phasor[nearest])
         turns[:, 0] = np.unwrap(turns[:, 0])
         turns = np.unwrap(turns, axis=1) / (2 * np.pi)
-        turns -= np.round(np.median(turns))
+        turns -= np.round(np.median(turns[clear]))
         if np.abs(turns).max() < SEAM_FREE_PHASE_PX:
             phases.append(None)
             continue
