@@ -9,7 +9,9 @@ Issue 33 asks for at most 0.1 ms of CPU to place a profile. Measured here, in on
   poses at the sweep's stamps looked up at once, the sweep placed; and three of its phases alone:
   the profile decoding (with its metres check), the TF messages added (kept as numbers: they go into
   the TF buffer in bulk at the first lookup, so that work counts in the next phase), the lookup and
-  placement of a fed sweep.
+  placement of a fed sweep. And the live node's own steps (``stream_acquisition``): the profiles
+  read from their serialised bytes (``ros/cdr``), decoded and kept, and a fed sweep's answer: the TF
+  lookup, the placement and the ``PointCloud2`` it answers with.
 
 Run: .venv/bin/python benchmarks/bench_profile_assembly.py [--profiles 2000] [--points 2000]
 Prints microseconds of CPU (process time) per profile, medians of 3 repeats.
@@ -25,6 +27,11 @@ from types import SimpleNamespace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from builtin_interfaces.msg import Time
+from rclpy.serialization import serialize_message
+
+from gls_calibration.ros import cdr
+from gls_calibration.ros.conversions import array_to_pointcloud2
 from gls_calibration.scan.bag_io import BagLayout, ReplayLimits, StreamAssembler, profile_points
 from gls_calibration.scan.sweep import XYZI_FIELDS, PoseTrack, SweepCollector, SweepMotion
 
@@ -114,6 +121,35 @@ def streaming(data: list[np.ndarray], profile_rate_hz: float = 150.0, tf_rate_hz
     return feed
 
 
+def profile_m(profile: np.ndarray) -> np.ndarray:
+    """The profile as a driver sends it: float32 x, y, z in metres, intensity."""
+    out = profile.copy()
+    for name in "xyz":
+        out[name] = profile[name] / 1000.0
+    return out
+
+
+def live_profiles(raws: list[bytes]) -> StreamAssembler:
+    """Each serialised profile read (``ros/cdr``) and added to an assembler, which keeps it (as the node does)."""
+    assembler = StreamAssembler(BagLayout())
+    for raw in raws:
+        assembler.add(assembler.layout.scan_topic, cdr.read_pointcloud2(raw))
+    return assembler
+
+
+def live_answer(assembler: StreamAssembler):
+    """The node's answer of a fed sweep: placed row by row into the message (before: the sweep, then the message)."""
+    if hasattr(assembler, "take_last_placement"):
+        from gls_calibration.ros.pointcloud import xyzi_rows_to_msg
+
+        placement = assembler.take_last_placement()
+        return xyzi_rows_to_msg(*placement.shape, placement.place_row, "robot_base", Time())
+    from gls_calibration.ros.pointcloud import xyzi_cloud_to_msg
+
+    sweep = assembler.take_last_sweep()
+    return xyzi_cloud_to_msg(sweep.xyz_mm, sweep.intensity, "robot_base", Time())
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--profiles", type=int, default=2000)
@@ -134,6 +170,14 @@ def main() -> int:
                                     profile_points(message, ReplayLimits(), "") for message in messages]),
                                 ("streaming: TF messages into the buffer only", lambda: feed(tf_topics)),
                                 ("streaming: TF lookup and place only", fed.take_last_sweep)):
+            times.setdefault(label, []).append(cpu_s(function)[0])
+    # the live node's own steps (stream_acquisition): the profiles read from their CDR bytes, and the answer
+    raws = [serialize_message(array_to_pointcloud2(profile_m(profile), "scanner_optical", Time(sec=1)))
+            for profile in data]
+    for _ in range(3):
+        fed = feed()
+        for label, function in (("live: CDR read, decode, keep (assembler)", lambda: live_profiles(raws)),
+                                ("live: TF lookup, place, answer PointCloud2", lambda: live_answer(fed))):
             times.setdefault(label, []).append(cpu_s(function)[0])
     print(f"{args.profiles} profiles of {args.points} points; CPU per profile (median of 3), target 100 us:")
     for label, values in times.items():

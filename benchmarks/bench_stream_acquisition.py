@@ -143,13 +143,25 @@ def main() -> int:
         session.assembler.add(LAYOUT.motion_end_topic, Header(stamp=time_msg(end_ns)))
         session.end_ns = end_ns
         began = time.thread_time()
-        sweep = node._sweep(session)
-        assembly_s = time.thread_time() - began
-        if sweep.xyz_mm.shape != (args.profiles, args.points, 3) or not np.isfinite(sweep.xyz_mm).all():
-            raise SystemExit(f"unexpected sweep {sweep.xyz_mm.shape}")
-        began = time.thread_time()
-        answer = answer_msg(sweep.xyz_mm, sweep.intensity, node.frame_id, time_msg(int(sweep.stamps_ns[0])))
-        answer_s = time.thread_time() - began
+        if hasattr(node, "_placement"):     # the profiles placed row by row into the answer (placing is its part)
+            from gls_calibration.ros.pointcloud import xyzi_rows_to_msg
+
+            placement = node._placement(session)
+            assembly_s = time.thread_time() - began
+            began = time.thread_time()
+            answer = xyzi_rows_to_msg(*placement.shape, placement.place_row, node.frame_id,
+                                      time_msg(int(placement.stamps_ns[0])))
+            answer_s = time.thread_time() - began
+            if placement.shape != (args.profiles, args.points) or not answer.is_dense:
+                raise SystemExit(f"unexpected sweep {placement.shape}")
+        else:
+            sweep = node._sweep(session)
+            assembly_s = time.thread_time() - began
+            if sweep.xyz_mm.shape != (args.profiles, args.points, 3) or not np.isfinite(sweep.xyz_mm).all():
+                raise SystemExit(f"unexpected sweep {sweep.xyz_mm.shape}")
+            began = time.thread_time()
+            answer = answer_msg(sweep.xyz_mm, sweep.intensity, node.frame_id, time_msg(int(sweep.stamps_ns[0])))
+            answer_s = time.thread_time() - began
         began = time.thread_time()
         serialize_message(answer)
         answer_wire_s = time.thread_time() - began

@@ -133,3 +133,79 @@ def test_exact_messages_of_malformed_strings_and_sequences():
         cdr.read_tf_message(tf[:4] + (1000000).to_bytes(4, "little"))
     with pytest.raises(ValueError, match=r"^Header: 3 bytes are too few for a serialised message$"):
         cdr.read_header(b"\x00\x01\x00")
+
+
+def test_clouds_of_one_layout_read_as_rclpy_deserialises_each():
+    """The second and later clouds of a layout (read from the stamp, data and is_dense only) read as the first."""
+    rng = np.random.default_rng(7)
+    base = random_cloud(rng)
+    base.data = rng.integers(0, 256, 64).astype(np.uint8).tolist()
+    variants = []
+    for sec, nanosec, dense, fill in ((5, 6, True, 1), (-7, 2**32 - 1, False, 2), (5, 6, True, 3)):
+        cloud = deserialize_message(serialize_message(base), PointCloud2)
+        cloud.header.stamp = Time(sec=sec, nanosec=nanosec)
+        cloud.is_dense, cloud.data = dense, [fill] * 64
+        variants.append(cloud)
+    other = deserialize_message(serialize_message(base), PointCloud2)
+    other.header.frame_id = base.header.frame_id + "z"         # another layout between two of the first
+    variants.insert(2, other)
+    raws = [serialize_message(cloud) for cloud in variants]
+    raws.append(bytearray(raws[0]))
+    raws.append(memoryview(raws[1]))
+    for raw in raws + raws:
+        expected = deserialize_message(bytes(raw), PointCloud2)
+        read = cdr.read_pointcloud2(raw)
+        assert same_header(read.header, expected.header)
+        assert (read.height, read.width, read.is_bigendian, read.point_step, read.row_step, read.is_dense) == (
+            expected.height, expected.width, expected.is_bigendian, expected.point_step, expected.row_step,
+            expected.is_dense)
+        assert [tuple(field) for field in read.fields] == [(f.name, f.offset, f.datatype, f.count)
+                                                           for f in expected.fields]
+        assert read.data.tobytes() == bytes(expected.data)
+        assert cdr.header_stamp_ns(raw) == expected.header.stamp.sec * 10**9 + expected.header.stamp.nanosec
+    # damaged clouds of the layout just read are refused as after a cloud of another layout (read in full)
+    raw = raws[0]
+    for damaged in (raw[:len(raw) - 5], raw[:len(raw) - 9], raw + bytes(4), b"\x00\x07" + raw[2:],
+                    raw[:12] + b"\xff\xff\xff\x00" + raw[16:]):
+        messages = []
+        for first in (raws[2], raw):
+            cdr.read_pointcloud2(first)
+            with pytest.raises(ValueError) as error:
+                cdr.read_pointcloud2(damaged)
+            messages.append(str(error.value))
+        assert messages[0] == messages[1]
+
+
+def test_flange_poses_of_one_layout_read_as_rclpy_deserialises_each():
+    """One-transform TF messages after the first of their frames (read from the stamp and numbers only)."""
+    rng = np.random.default_rng(11)
+    messages = []
+    for parent, child in (("robot_base", "flange"), ("robot_base", "flange"), ("robot_base", "flange2"),
+                          ("robot_base", "flange"), ("", "x"), ("", "x")):
+        message = random_tf(rng)
+        while len(message.transforms) != 1:
+            message = random_tf(rng)
+        message.transforms[0].header.frame_id, message.transforms[0].child_frame_id = parent, child
+        messages.append(message)
+    raws = [serialize_message(message) for message in messages]
+    raws += [bytearray(raws[0]), memoryview(raws[1]), serialize_message(random_tf(np.random.default_rng(3)))]
+    for raw in raws + raws:
+        expected = deserialize_message(bytes(raw), TFMessage)
+        read = cdr.read_tf_message(raw)
+        assert len(read.transforms) == len(expected.transforms)
+        for mine, theirs in zip(read.transforms, expected.transforms):
+            assert same_header(mine.header, theirs.header) and mine.child_frame_id == theirs.child_frame_id
+            t, q = theirs.transform.translation, theirs.transform.rotation
+            assert tuple(mine.transform.translation) + tuple(mine.transform.rotation) == (t.x, t.y, t.z, q.x, q.y,
+                                                                                          q.z, q.w)
+    # damaged messages of the layout just read are refused as after a message of another layout (read in full)
+    raw = raws[0]
+    for damaged in (raw[:len(raw) - 1], raw[:len(raw) - 8], raw + bytes(4), b"\x00\x07" + raw[2:],
+                    raw[:16] + b"\xff\xff\xff\x00" + raw[20:]):
+        messages = []
+        for first in (raws[2], raw):
+            cdr.read_tf_message(first)
+            with pytest.raises(ValueError) as error:
+                cdr.read_tf_message(damaged)
+            messages.append(str(error.value))
+        assert messages[0] == messages[1]

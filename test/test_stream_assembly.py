@@ -281,3 +281,84 @@ def test_take_waiting_stops_at_the_limit_and_at_an_empty_queue():
                                    msg_type=PointCloud2, raw=True)
     assert list(take_waiting(subscription, 2)) == [b"a", b"b"]
     assert list(take_waiting(subscription, 5)) == [b"c"]
+
+
+def placed_as_before(assembler: StreamAssembler, start: int, end: int):
+    """The sweep's points as the assembly placed them before the row-by-row placement: one array, then one sum."""
+    inside = [(stamp, points) for stamp, points in assembler.profiles if start <= stamp <= end]
+    stamps = np.array([stamp for stamp, _ in inside], dtype=np.int64)
+    poses = assembler.buffer.lookup_many(LAYOUT.base_frame, LAYOUT.sensor_frame, stamps, max_age_ns=50_000_000)
+    to_base_mm = np.swapaxes(poses[:, :3, :3], 1, 2) * 1000.0
+    xyz = np.empty((len(inside), inside[0][1].shape[0], 3))
+    intensity = np.empty(xyz.shape[:2])
+    for row, (_, points_m) in enumerate(inside):
+        points_m = np.asarray(points_m, dtype=np.float64)     # as profile_points gave every profile on arrival
+        np.matmul(points_m[:, :3], to_base_mm[row], out=xyz[row])
+        intensity[row] = points_m[:, 3]
+    xyz += poses[:, None, :3, 3]
+    return xyz, intensity, stamps
+
+
+@pytest.mark.parametrize("seed, nan, raw", [(20, True, True), (21, False, True), (22, True, False)])
+def test_the_answer_placed_row_by_row_is_the_sweep_placed_whole(seed, nan, raw):
+    """``take_last_placement`` rows into the message: the sweep's points bit for bit, the message byte for byte.
+
+    From CDR records (the profiles kept as float32 views of the bytes) and from rclpy's messages (float64 copies).
+    """
+    from gls_calibration.ros.pointcloud import xyzi_cloud_to_msg, xyzi_rows_to_msg
+
+    messages = stream(np.random.default_rng(seed), profiles=40, points=30)
+    assembler = StreamAssembler(LAYOUT)
+    for topic, raw, kind in messages:
+        message = deserialize_message(raw, kind)
+        if topic == LAYOUT.scan_topic and not nan:
+            cloud = conversions.pointcloud2_to_array(message)
+            for name in ("x", "y", "z"):
+                cloud[name] = np.nan_to_num(cloud[name], nan=0.25)
+            message = conversions.array_to_pointcloud2(cloud, LAYOUT.sensor_frame, message.header.stamp)
+        assembler.add(topic, read_raw(topic, serialize_message(message)) if raw else message)
+    kinds = {points.dtype for _, points in assembler.profiles}
+    assert kinds == {np.dtype(np.float32) if raw else np.dtype(np.float64)}
+    start, end = assembler.starts[-1], assembler.ends[-1]
+    xyz, intensity, stamps = placed_as_before(assembler, start, end)
+    later = [stamp for stamp, _ in assembler.profiles if stamp > end]
+    placement = assembler.take_last_placement()
+    assert [stamp for stamp, _ in assembler.profiles] == later      # dropped up to the end, as take_last_sweep
+    sweep = placement.sweep()
+    assert placement.shape == (40, 30) and np.array_equal(placement.stamps_ns, stamps)
+    assert np.array_equal(sweep.xyz_mm, xyz, equal_nan=True) and np.array_equal(sweep.intensity, intensity)
+    assert bool(np.isnan(xyz).any()) == nan
+    expected = xyzi_cloud_to_msg(xyz, intensity, "robot_base", time_msg(int(stamps[0])))
+    answer = xyzi_rows_to_msg(*placement.shape, placement.place_row, "robot_base", time_msg(int(stamps[0])))
+    assert answer == expected and answer.is_dense == (not nan)
+    assert xyzi_rows_to_msg(0, 30, placement.place_row, "robot_base") == xyzi_cloud_to_msg(
+        np.zeros((0, 30, 3)), np.zeros((0, 30)), "robot_base")
+    with pytest.raises(ValueError, match=r"^height and width must not be negative, got -1 x 30$"):
+        xyzi_rows_to_msg(-1, 30, placement.place_row, "robot_base")
+
+
+@pytest.mark.parametrize("session, queued, sleeps", [(True, 2, 1), (False, 2, 0), (True, 3, 0)])
+def test_a_stream_callback_takes_again_after_the_coalescing_wait_only_during_a_sweep(
+        monkeypatch, session, queued, sleeps):
+    """The queue emptied during a sweep: one wait of ``COALESCE_S``, then what came meanwhile; else no wait."""
+    from types import SimpleNamespace
+
+    from gls_calibration.nodes import stream_acquisition
+
+    queue = [(f"m{index}".encode(), None) for index in range(queued)]
+    waits = []
+
+    def sleep(seconds):
+        waits.append(seconds)
+        queue.append((b"meanwhile", None))
+
+    monkeypatch.setattr(stream_acquisition, "TAKE_AT_ONCE", 3)
+    monkeypatch.setattr(stream_acquisition.time, "sleep", sleep)
+    subscription = SimpleNamespace(handle=_Handle(lambda message_type, raw: queue.pop(0) if queue else None),
+                                   msg_type=PointCloud2, raw=True)
+    node = SimpleNamespace(session=object() if session else None)
+    handled = []
+    stream_acquisition.StreamAcquisitionNode._take(node, subscription, handled.append)
+    assert waits == [stream_acquisition.COALESCE_S] * sleeps
+    assert handled == [f"m{index}".encode() for index in range(queued)] + [b"meanwhile"] * sleeps
+    assert queue == []

@@ -184,8 +184,43 @@ class _Reader:
         return message
 
 
-_STRUCTS = {order: {layout: struct.Struct(order + layout) for layout in ("I", "iII", "IBxxxI", "?xxxII", "7d")}
+_STRUCTS = {order: {layout: struct.Struct(order + layout) for layout in ("I", "iI", "iII", "IBxxxI", "?xxxII", "7d")}
             for order in "<>"}
+_STAMP_AT = _HEADER_BYTES       # header.stamp: sec, nanosec, then the frame's name from byte 12
+_FRAME_AT = _STAMP_AT + 8
+_BYTES = (bytes, bytearray, memoryview)
+
+
+class _CloudLayout(NamedTuple):
+    """What a cloud's bytes from the frame's name to the point data said, to read the next cloud of that layout."""
+
+    encapsulation: bytes
+    prefix: bytes            # the bytes from _FRAME_AT to data_at
+    data_at: int
+    stamp: struct.Struct
+    cloud: PointCloud2       # the cloud read; its stamp, data and is_dense are the next cloud's own
+
+
+class _TfLayout(NamedTuple):
+    """What a one-transform TFMessage's bytes but its stamp and numbers said, to read the next of that layout."""
+
+    encapsulation: bytes     # the encapsulation and the transforms' count (one)
+    prefix: bytes            # the bytes from _TF_FRAME_AT to data_at: the frames' names and padding
+    data_at: int             # where the translation and rotation begin
+    stamp: struct.Struct
+    numbers: struct.Struct
+    frame_id: str
+    child_frame_id: str
+
+
+_TF_FRAME_AT = _FRAME_AT + 4    # a TFMessage: its count, then the first transform's header
+# The layout of the last cloud read in full (a stream's profiles share it): a cloud whose bytes from the
+# encapsulation to its data are the same but for the stamp reads as that one, so only the stamp, the data and
+# is_dense are read (the full read is a function of exactly those bytes). Replaced whole (one assignment), so
+# threads reading clouds side by side at worst read in full.
+_last_cloud_layout: "_CloudLayout | None" = None
+# The same for the last one-transform TFMessage read in full (a robot's flange poses share it).
+_last_tf_layout: "_TfLayout | None" = None
 
 
 def read_pointcloud2(raw) -> PointCloud2:
@@ -206,6 +241,18 @@ def read_pointcloud2(raw) -> PointCloud2:
     ValueError
         Naming the problem and its byte offset when ``raw`` is not a serialised PointCloud2.
     """
+    global _last_cloud_layout
+    layout = _last_cloud_layout
+    if layout is not None and isinstance(raw, _BYTES):
+        cloud, data_at = layout.cloud, layout.data_at
+        size = cloud.data.size
+        end = data_at + size
+        if (0 <= len(raw) - end - 1 <= 3 and raw[:2] == layout.encapsulation
+                and raw[_FRAME_AT:data_at] == layout.prefix):
+            sec, nanosec = layout.stamp.unpack_from(raw, _STAMP_AT)
+            return PointCloud2(Header(Time(sec, nanosec), cloud.header.frame_id), cloud.height, cloud.width,
+                               cloud.fields, cloud.is_bigendian, cloud.point_step, cloud.row_step,
+                               np.frombuffer(raw, dtype=np.uint8, count=size, offset=data_at), bool(raw[end]))
     reader = _Reader(raw, "PointCloud2")
     header = reader.header()
     height, width = reader.u32(), reader.u32()
@@ -215,11 +262,15 @@ def read_pointcloud2(raw) -> PointCloud2:
         fields.append(PointField(name, *reader.unpack(reader._field, 4)))
     is_bigendian, point_step, row_step = reader.unpack(reader._steps, 4)    # the flag is 4-aligned: after a u32
     size = reader.count(1)
-    data = np.frombuffer(raw, dtype=np.uint8, count=size, offset=reader.at)
+    data_at = reader.at
+    data = np.frombuffer(raw, dtype=np.uint8, count=size, offset=data_at)
     reader.at += size
     is_dense = bool(reader.u8())
-    return reader.end(PointCloud2(header, height, width, tuple(fields), is_bigendian, point_step, row_step, data,
-                                  is_dense))
+    cloud = reader.end(PointCloud2(header, height, width, tuple(fields), is_bigendian, point_step, row_step, data,
+                                   is_dense))
+    _last_cloud_layout = _CloudLayout(bytes(raw[:2]), bytes(raw[_FRAME_AT:data_at]), data_at,
+                                      _STRUCTS[reader.order]["iI"], cloud)
+    return cloud
 
 
 def read_tf_message(raw) -> TFMessage:
@@ -240,6 +291,16 @@ def read_tf_message(raw) -> TFMessage:
     ValueError
         Naming the problem and its byte offset when ``raw`` is not a serialised TFMessage.
     """
+    global _last_tf_layout
+    layout = _last_tf_layout
+    if layout is not None and isinstance(raw, _BYTES):
+        numbers_at = layout.data_at
+        if (0 <= len(raw) - numbers_at - 56 <= 3 and raw[:_STAMP_AT + 4] == layout.encapsulation
+                and raw[_TF_FRAME_AT:numbers_at] == layout.prefix):
+            sec, nanosec = layout.stamp.unpack_from(raw, _TF_FRAME_AT - 8)
+            tx, ty, tz, qx, qy, qz, qw = layout.numbers.unpack_from(raw, numbers_at)
+            return TFMessage((TransformStamped(Header(Time(sec, nanosec), layout.frame_id), layout.child_frame_id,
+                                               Transform(Vector3(tx, ty, tz), Quaternion(qx, qy, qz, qw))),))
     reader = _Reader(raw, "TFMessage")
     transforms = []
     for _ in range(reader.count(74)):
@@ -247,7 +308,12 @@ def read_tf_message(raw) -> TFMessage:
         child = reader.string()
         tx, ty, tz, qx, qy, qz, qw = reader.unpack(reader._seven_f64, 8)
         transforms.append(TransformStamped(header, child, Transform(Vector3(tx, ty, tz), Quaternion(qx, qy, qz, qw))))
-    return reader.end(TFMessage(tuple(transforms)))
+    message = reader.end(TFMessage(tuple(transforms)))
+    if len(transforms) == 1:
+        numbers_at = reader.at - 56
+        _last_tf_layout = _TfLayout(bytes(raw[:_STAMP_AT + 4]), bytes(raw[_TF_FRAME_AT:numbers_at]), numbers_at,
+                                    _STRUCTS[reader.order]["iI"], reader._seven_f64, header.frame_id, child)
+    return message
 
 
 def read_header(raw) -> Header:
@@ -290,6 +356,11 @@ def header_stamp_ns(raw) -> int:
     ValueError
         When ``raw`` is too short or not plain CDR.
     """
+    if isinstance(raw, _BYTES) and len(raw) >= _FRAME_AT + 4:     # what the reader below needs: read at once
+        order = _ENCAPSULATION.get(bytes(raw[:2]))
+        if order is not None:
+            sec, nanosec = _STRUCTS[order]["iI"].unpack_from(raw, _STAMP_AT)
+            return sec * NS_PER_S + nanosec
     reader = _Reader(raw, "message")
     sec, nanosec, _ = reader.unpack(reader._header, 4)
     return sec * NS_PER_S + nanosec

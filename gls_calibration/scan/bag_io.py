@@ -19,6 +19,7 @@ Every problem of the input is a ``ValueError`` naming it; nothing is guessed.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 import shutil
@@ -301,6 +302,15 @@ def _pose_mm(transform) -> np.ndarray:
 
 def profile_points(message, limits: ReplayLimits, where: str) -> np.ndarray:
     """(W, 4) float64 x, y, z (m), intensity of one PointCloud2 profile; ValueError naming a problem."""
+    return np.asarray(_profile_array(message, limits, where), dtype=np.float64)
+
+
+def _profile_array(message, limits: ReplayLimits, where: str) -> np.ndarray:
+    """Return :func:`profile_points`' points, float32 when they can stay a view of the message's read-only bytes.
+
+    A float64 copy of every profile on arrival (new memory each: its page faults were most of the cost) is
+    left to the placement, which converts one row at a time into the same float64 values.
+    """
     fields = {field.name: field for field in message.fields}
     missing = [name for name in _FIELDS if name not in fields]
     if missing:
@@ -317,10 +327,13 @@ def profile_points(message, limits: ReplayLimits, where: str) -> np.ndarray:
         raise ValueError(f"{where}: the cloud's data ({data.size} bytes) is shorter than its {count} points")
     offsets = [int(fields[name].offset) for name in _FIELDS]
     if step % 4 == 0 and all(offset % 4 == 0 and 0 <= offset <= step - 4 for offset in offsets):
-        # the points as rows of float32 words: one converting copy of the four columns, none per column
+        # the points as rows of float32 words: a view of read-only bytes (those a raw subscription hands over)
+        # is kept as it is; otherwise (bytes the sender may reuse, columns reordered) one float64 copy
         words = data[:count * step].view("<f4").reshape(count, step // 4)
         columns = [offset // 4 for offset in offsets]
-        array = (words[:, :4] if columns == [0, 1, 2, 3] else words[:, columns]).astype(np.float64)
+        array = words[:, :4] if columns == [0, 1, 2, 3] else words[:, columns]
+        if array.flags.writeable:
+            array = array.astype(np.float64)
     else:
         dtype = np.dtype({"names": list(_FIELDS), "formats": ["<f4"] * 4, "offsets": offsets, "itemsize": step})
         points = data[:count * step].view(dtype)
@@ -528,7 +541,8 @@ class StreamAssembler:
                 raise ValueError(f"{self.source}: a profile on {topic} is in frame {message.header.frame_id!r}, "
                                  f"not {layout.sensor_frame!r}")
             stamp = _stamp_ns(message.header)
-            self.profiles.append((stamp, profile_points(message, self.limits, f"{self.source}: profile at {stamp} ns")))
+            self.profiles.append((stamp, _profile_array(message, self.limits,
+                                                        f"{self.source}: profile at {stamp} ns")))
 
     def sweeps(self) -> list[ReplayedSweep]:
         """Every complete motion's sweep, in order; ValueError naming the first problem."""
@@ -538,16 +552,38 @@ class StreamAssembler:
 
     def take_last_sweep(self) -> ReplayedSweep:
         """Return the latest motion's sweep; the profiles up to its end are dropped afterwards (live use)."""
+        return self.take_last_placement().sweep()
+
+    def take_last_placement(self) -> "SweepPlacement":
+        """Return the latest motion's profiles with their poses, not yet placed; then drop the profiles up to its end.
+
+        What :meth:`take_last_sweep` places (its ``sweep()`` is that sweep): for a caller that writes the
+        placed points elsewhere row by row (the live answer's message) without the sweep's arrays.
+
+        Returns
+        -------
+        SweepPlacement
+            The motion's profiles, stamps and sensor poses in the base frame.
+
+        Raises
+        ------
+        ValueError
+            Naming the problem: no complete motion, too few profiles, a stream that stops, profiles of
+            different widths, a profile without a pose.
+        """
         number = len(self.starts)
         if number == 0 or len(self.ends) != number:
             raise ValueError(f"{self.source}: no complete motion to assemble")
         start, end = self.starts[-1], self.ends[-1]
         stamps = np.array([stamp for stamp, _ in self.profiles], dtype=np.int64)
-        sweep = self._sweep(number, start, end, stamps)
+        placement = self._placement(number, start, end, stamps)
         self.profiles = [item for item in self.profiles if item[0] > end]
-        return sweep
+        return placement
 
     def _sweep(self, number: int, start: int, end: int, stamps: np.ndarray) -> ReplayedSweep:
+        return self._placement(number, start, end, stamps).sweep()
+
+    def _placement(self, number: int, start: int, end: int, stamps: np.ndarray) -> "SweepPlacement":
         where = f"{self.source}: sweep {number} ({start} to {end} ns)"
         inside = np.flatnonzero((stamps >= start) & (stamps <= end))
         if inside.size < 2:
@@ -559,17 +595,93 @@ class StreamAssembler:
             raise ValueError(f"{where}: profiles of different widths {sorted(widths)}")
         poses = self.buffer.lookup_many(self.layout.base_frame, self.layout.sensor_frame, stamps[inside],
                                         max_age_ns=max_pose_age_ns(self.limits), where=where)
-        # each profile turned straight into the sweep's array (metres to mm folded into the rotation): a
-        # stacked copy of the profiles and one batched product cost four times as much
+        # metres to mm folded into the rotation (transposed: the profile's rows multiply it)
         to_base_mm = np.swapaxes(poses[:, :3, :3], 1, 2) * MM_PER_M
-        xyz = np.empty((inside.size, widths.pop(), 3))
+        return SweepPlacement(tuple(self.profiles[index][1] for index in inside), stamps[inside], to_base_mm,
+                              poses[:, :3, 3], start, end)
+
+
+@dataclass(frozen=True)
+class SweepPlacement:
+    """One motion's profiles and the sensor's poses at their stamps: a sweep before its points are placed.
+
+    Placing is done row by row (:meth:`place_row`), each profile straight from its own array, the metres
+    to mm folded into the rotation (a stacked copy of the profiles and one batched product cost four
+    times as much); :meth:`sweep` places every row into a :class:`ReplayedSweep`, and a caller that
+    writes the points elsewhere (the live answer's message) places each row into a small buffer
+    instead of the sweep's arrays, with the same arithmetic.
+
+    Parameters
+    ----------
+    profiles_m : tuple of numpy.ndarray, each shape (W, 4)
+        The profiles in time order: x, y, z (m) in the sensor frame, intensity; float64, or float32 (a
+        view of a message's bytes) that placing turns into the same float64 values first.
+    stamps_ns : numpy.ndarray, shape (H,)
+        Their stamps, ns, int64.
+    to_base_mm : numpy.ndarray, shape (H, 3, 3)
+        Each stamp's rotation of the sensor frame into the base frame, transposed and times 1000: a
+        point's row in metres times it is the point in mm, rotated.
+    origins_mm : numpy.ndarray, shape (H, 3)
+        The sensor's origin in the base frame at each stamp, mm.
+    start_ns, end_ns : int
+        Stamps of the motion's start and end, ns.
+    """
+
+    profiles_m: tuple
+    stamps_ns: np.ndarray
+    to_base_mm: np.ndarray
+    origins_mm: np.ndarray
+    start_ns: int
+    end_ns: int
+    _points_m: np.ndarray = dataclasses.field(init=False, repr=False, compare=False)   # a float32 row as float64
+
+    def __post_init__(self) -> None:
+        """Make the row buffer of float32 profiles (one placement is used by one thread)."""
+        object.__setattr__(self, "_points_m", np.empty((self.profiles_m[0].shape[0] if self.profiles_m else 0, 4)))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Return the sweep's rows and points per row, (H, W)."""
+        return len(self.profiles_m), self.profiles_m[0].shape[0]
+
+    def place_row(self, row: int, out: np.ndarray) -> np.ndarray:
+        """Place profile ``row`` in the base frame into ``out`` and return its intensity.
+
+        Parameters
+        ----------
+        row : int
+            The profile's index in the sweep.
+        out : numpy.ndarray, shape (W, 3)
+            float64, receives its points in the base frame, mm.
+
+        Returns
+        -------
+        numpy.ndarray, shape (W,)
+            The profile's intensity, float64 (a view, valid until the next call).
+        """
+        points_m = self.profiles_m[row]
+        if points_m.dtype != np.float64:      # the float64 array the profile's decoding made before
+            np.copyto(self._points_m, points_m)
+            points_m = self._points_m
+        np.matmul(points_m[:, :3], self.to_base_mm[row], out=out)
+        for axis, origin in enumerate(self.origins_mm[row]):    # column by column: a (W, 3) += (3,) is 3x slower
+            column = out[:, axis]
+            column += origin
+        return points_m[:, 3]
+
+    def sweep(self) -> ReplayedSweep:
+        """Return the sweep placed: every row in the base frame (mm).
+
+        Returns
+        -------
+        ReplayedSweep
+            The organized cloud, its intensity and stamps.
+        """
+        xyz = np.empty(self.shape + (3,))
         intensity = np.empty(xyz.shape[:2])
-        for row, index in enumerate(inside):
-            points_m = self.profiles[index][1]
-            np.matmul(points_m[:, :3], to_base_mm[row], out=xyz[row])
-            intensity[row] = points_m[:, 3]
-        xyz += poses[:, None, :3, 3]
-        return ReplayedSweep(xyz, intensity, stamps[inside], start, end)
+        for row in range(xyz.shape[0]):
+            intensity[row] = self.place_row(row, xyz[row])
+        return ReplayedSweep(xyz, intensity, self.stamps_ns, self.start_ns, self.end_ns)
 
 
 def _windows(path: str, starts: list[int], ends: list[int]) -> list[tuple[int, int]]:
