@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from gls_calibration.common.time_budget import StageClock, thread_cpu_s
+from gls_calibration.common.time_budget import StageClock, ValidationCpuMark, thread_cpu_s
 
 
 def stamped(stages_and_times):
@@ -36,6 +36,33 @@ def test_without_a_finished_marked_sweep_there_is_no_last_sweep_time():
     assert math.isnan(stamped([("sweep_plain", 0.0), ("sweep_marked", 1.0)])[0].last_sweep_to_result_s)
     empty = StageClock().times()
     assert empty.wall_s == {} and math.isnan(empty.last_sweep_to_result_s)
+
+
+PLATE = ("sweep_plain", "sweep_plain", "plate_pose", "marking", "sweep_marked", "measurement", "sweep_marked",
+         "measurement", "deviations")
+
+
+@pytest.mark.parametrize("stages, reading", [
+    # one training plate, then the validation plate: read as the validation plate begins
+    (PLATE + ("training",) + PLATE + ("done",), 2),
+    # two training plates: the reading at the second plate is replaced by the validation plate's
+    (PLATE + ("training",) + PLATE + ("training",) + PLATE + ("done",), 3),
+    # the active calibration's plate after the validation plate follows "deviations", not "training"
+    (PLATE + ("training",) + PLATE + PLATE + ("done",), 2),
+    # nothing follows the training: no reading
+    (PLATE + ("training", "done"), None),
+])
+def test_the_cpu_is_read_when_the_validation_plate_begins(stages, reading):
+    calls = []
+
+    def read_cpu_s():
+        calls.append(len(calls) + 2)
+        return {"fiducial_measurement": float(calls[-1])}
+    mark = ValidationCpuMark(read_cpu_s)
+    for stage in stages:
+        mark.observe(stage)
+    expected = None if reading is None else {"fiducial_measurement": float(reading)}
+    assert mark.at_validation_s == expected
 
 
 def test_thread_cpu_counts_a_busy_thread_and_not_an_idle_one():
@@ -79,5 +106,7 @@ def test_gls_sim_cell_writes_and_prints_the_time_budget(tmp_path):
     pipeline = sum(value for name, value in cpu.items() if not name.startswith("sim_"))
     assert budget["compute_cpu_s"] == pytest.approx(pipeline)
     assert budget["process_cpu_s"] >= budget["compute_cpu_s"] + budget["simulation_cpu_s"]
+    # no validation plate: no split of the pipeline's CPU (it would be a second training plate's)
+    assert budget["compute_cpu_s_before_validation"] is None and budget["compute_cpu_s_from_validation"] is None
     assert "time budget: cell time" in done.stdout and "CPU of the pipeline" in done.stdout
     assert "time budget (wall, this run): sweep_plain" in (out / "report.md").read_text()

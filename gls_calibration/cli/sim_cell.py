@@ -38,6 +38,7 @@ from gls_calibration.calibration.stated_accuracy import load_chain_check, save_c
 from gls_calibration.cli import timeout_seconds
 from gls_calibration.common.config_files import config_path, read_config_file
 from gls_calibration.common.files import atomic_write_text
+from gls_calibration.common.time_budget import ValidationCpuMark
 from gls_calibration.nodes.calibration_manager import CalibrationManager
 from gls_calibration.nodes.correction import CorrectionNode
 from gls_calibration.nodes.fiducial_measurement import FiducialMeasurementNode
@@ -452,7 +453,12 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager, threa
     """
     client_node = rclpy.create_node("sim_cell_client", namespace=manager.get_namespace(), context=manager.context)
     bar = ProgressBar(sys.stderr)
-    client_node.create_subscription(CalibrationProgress, "calibration/progress", bar.update, 10)
+    validation_mark = ValidationCpuMark(threads.cpu_s)
+
+    def on_progress(message) -> None:
+        validation_mark.observe(message.stage)
+        bar.update(message)
+    client_node.create_subscription(CalibrationProgress, "calibration/progress", on_progress, 10)
     client = client_node.create_client(Calibrate, "calibrate")
     executor = SingleThreadedExecutor(context=manager.context)
     executor.add_node(client_node)
@@ -472,7 +478,8 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager, threa
         if truth.get("true_post_rms_mm") is not None:
             print(f"true error after (simulation ground truth): RMS {truth['true_post_rms_mm']:.4f} mm, "
                   f"max {truth['true_post_max_mm']:.4f} mm")
-        print(write_time_budget(Path(response.report_dir), truth, threads.cpu_s()))
+        at_validation = validation_mark.at_validation_s if request.validate else None
+        print(write_time_budget(Path(response.report_dir), truth, threads.cpu_s(), at_validation))
     if not response.success:
         print(f"calibration failed: {response.message}", file=sys.stderr)
         return 1
@@ -480,18 +487,31 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager, threa
     return 0
 
 
-def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, float]) -> str:
+def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, float],
+                      cpu_at_validation: Optional[dict[str, float]] = None) -> str:
     """Write ``report_dir/time_budget.json`` and return the table printed from it.
 
     ``report_dir/time_budget.json`` (the run's cell time, wall time per stage, CPU per node; see
     ``time_budget``) and the table printed from it. The simulated nodes' CPU (``sim_*``) is the
     simulation's, not the pipeline's; CPU in threads a node does not own is not attributed.
+    ``cpu_at_validation`` (CPU per node as the validation plate began, ``ValidationCpuMark``) splits
+    ``compute_cpu_s`` into ``compute_cpu_s_before_validation`` (the training plates and their
+    training) and ``compute_cpu_s_from_validation`` (the validation plate, the report, the
+    activation); both null without it.
     """
-    pipeline = {name: cpu for name, cpu in cpu_by_node.items() if not name.startswith("sim_")}
-    simulation = {name: cpu for name, cpu in cpu_by_node.items() if name.startswith("sim_")}
+    def pipeline_of(cpu: dict[str, float]) -> dict[str, float]:
+        return {name: value for name, value in cpu.items() if not name.startswith("sim_")}
+    pipeline = pipeline_of(cpu_by_node)
+    simulation = {name: cpu for name, cpu in cpu_by_node.items() if name not in pipeline}
+    total_s = sum(pipeline.values())
+    before_s = sum(pipeline_of(cpu_at_validation).values()) if cpu_at_validation else None
+    if before_s is not None and not math.isfinite(before_s):
+        before_s = None     # a thread that ended has no clock: no split rather than a wrong one
     budget = {"cell_time_s": summary.get("cell_time_s"), "stage_wall_s": summary.get("stage_wall_s", {}),
               "last_sweep_to_result_s": summary.get("last_sweep_to_result_s"),
-              "cpu_s_by_node": cpu_by_node, "compute_cpu_s": sum(pipeline.values()),
+              "cpu_s_by_node": cpu_by_node, "compute_cpu_s": total_s,
+              "compute_cpu_s_before_validation": before_s,
+              "compute_cpu_s_from_validation": None if before_s is None else total_s - before_s,
               "simulation_cpu_s": sum(simulation.values()), "process_cpu_s": time.process_time()}
     atomic_write_text(report_dir / "time_budget.json", json.dumps(budget, indent=2) + "\n")
 
@@ -500,11 +520,13 @@ def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, fl
 
     stages = ", ".join(f"{stage} {seconds(value)}" for stage, value in budget["stage_wall_s"].items())
     nodes = ", ".join(f"{name} {seconds(value)}" for name, value in sorted(pipeline.items(), key=lambda i: -i[1]))
+    split = ("" if before_s is None else f" (training plate and training {seconds(before_s)}, validation plate, "
+             f"report and activation {seconds(budget['compute_cpu_s_from_validation'])})")
     return "\n".join([
         f"time budget: cell time {seconds(budget['cell_time_s'])} (simulated robot, sweeps, marking)",
         f"  wall by stage: {stages}",
         f"  last sweep to result: {seconds(budget['last_sweep_to_result_s'])}",
-        f"  CPU of the pipeline {seconds(budget['compute_cpu_s'])}: {nodes}",
+        f"  CPU of the pipeline {seconds(budget['compute_cpu_s'])}{split}: {nodes}",
         f"  CPU of the simulation {seconds(budget['simulation_cpu_s'])}; whole process "
         f"{seconds(budget['process_cpu_s'])} (imports, reference check, DDS and library threads included)"])
 

@@ -77,6 +77,43 @@ class StageClock:
         return StageTimes(wall, last)
 
 
+class ValidationCpuMark:
+    """Reads the nodes' CPU when the calibrate flow turns from training to its validation plate.
+
+    Fed the stage of every progress message in order (:meth:`observe`); each turn from ``training``
+    to ``sweep_plain`` (the next plate's first sweep) reads ``read_cpu_s()``, so with a validation
+    plate the last reading is taken as that plate begins: the CPU of the training plates and their
+    training is that reading, the rest (the validation plate, the report, the activation) is the
+    total minus it. Without a validation plate the readings mean nothing (a second training plate
+    also follows ``training``): use :attr:`at_validation_s` only when the run validates.
+
+    Parameters
+    ----------
+    read_cpu_s : callable
+        ``read_cpu_s() -> dict[str, float]``: CPU (s) per node so far.
+
+    Examples
+    --------
+    >>> readings = iter([{"fiducial": 4.0}])
+    >>> mark = ValidationCpuMark(lambda: next(readings))
+    >>> for stage in ("sweep_plain", "sweep_marked", "training", "sweep_plain", "sweep_marked", "done"):
+    ...     mark.observe(stage)
+    >>> mark.at_validation_s
+    {'fiducial': 4.0}
+    """
+
+    def __init__(self, read_cpu_s: Callable[[], Mapping[str, float]]) -> None:
+        self._read_cpu_s = read_cpu_s
+        self._last_stage = ""
+        self.at_validation_s: Mapping[str, float] | None = None
+
+    def observe(self, stage: str) -> None:
+        """Take the stage of the next progress message (a repeated stage is one message more of it)."""
+        if self._last_stage == "training" and stage == "sweep_plain":
+            self.at_validation_s = dict(self._read_cpu_s())
+        self._last_stage = stage
+
+
 def thread_cpu_s(thread: threading.Thread) -> float:
     """Return the CPU time (s) a running thread has used so far; NaN when it cannot be told.
 
