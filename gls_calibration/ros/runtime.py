@@ -43,7 +43,9 @@ class NodeThreads:
     One executor for many nodes rebuilds the wait set of every entity of every node for each
     callback; a full sweep (2001 profile messages) then took 15 s instead of 1.5 s. Coroutine
     callbacks (services that await other services) interleave on a single thread, so no node
-    needs more than one.
+    needs more than one. rclpy's ``experimental.EventsExecutor`` (whose C++ loop would cut the
+    executors' share of the nodes' CPU) was tried in its place on 2026-11-28: the main job hung,
+    one thread at 100 % CPU, in its reference check; not used.
     """
 
     def __init__(self, nodes: list[Node]) -> None:
