@@ -23,12 +23,12 @@ What we know is used throughout: every fiducial is two concentric rings of known
    profile of the double ring; the parabolic peak is an edge point. A ring model fitted to these
    radii (mean radius, centre offset and an elliptical second harmonic; least squares weighted by
    each ray's darkness contrast relative to the fiducial's other rays, ``_edge_weights``, one robust
-   trimming round) moves the centre; the rays follow it (a coarse pass, then fine passes). The
-   symmetric profile template makes each edge point unbiased by background level, linear shading
-   and the rings' blur. These passes run on the high-passed log image; the
-   last fit, which gives the centre, runs on the log image prewhitened by the noise spectrum of the
-   plate's bare steel (``prewhitening_kernel``), so that correlated speckle weighs less at the
-   spatial frequencies where it is strong.
+   trimming round) moves the centre; the rays follow it (a coarse pass on every second ray at 0.3 px
+   steps, then fine passes on all 256 at 0.2 px). The symmetric profile template makes each edge
+   point unbiased by background level, linear shading and the rings' blur. These passes run on the
+   high-passed log image; the last fit, which gives the centre, runs on the log image prewhitened by
+   the noise spectrum of the plate's bare steel (``prewhitening_kernel``), so that correlated speckle
+   weighs less at the spatial frequencies where it is strong.
 4. Quality per centre: the ring amplitude is measured on 24 angular sectors at the fitted circle;
    ``coverage`` is the share of sectors where the rings are seen, and rays of unseen sectors are
    left out of the final fit. The standard uncertainty per axis comes from the fit: the larger of a

@@ -16,6 +16,7 @@ RAY_COUNT = 256
 """Rays per fiducial: about 1.5 rays per pixel of outer-ring circumference at 0.1 mm pixels."""
 
 RADIAL_STEP_PX = 0.2
+"""Radial sample step of the fine passes and the fit pass, pixels."""
 
 COARSE_MARGIN_PX = 4.0
 """How far (pixels) the first pass looks for the rings: the detection may be this far off."""
@@ -24,7 +25,18 @@ FINE_MARGIN_PX = 1.5
 """How far later passes look for the rings around the current circle."""
 
 PASSES = 3
-"""Coarse pass, fine pass on all rays, fine pass on the rays of sectors where the rings are seen."""
+"""Coarse pass (every ``COARSE_RAY_STRIDE``-th ray), fine pass on all rays, fine pass on the rays of
+sectors where the rings are seen."""
+
+COARSE_RAY_STRIDE = 2
+"""The coarse pass follows every second ray (128) at ``COARSE_RADIAL_STEP_PX``: it only brings each
+candidate within about a pixel of its rings for the fine passes, which follow all rays at
+``RADIAL_STEP_PX`` and decide coverage, radii and centre (issue 33 item 3: a third of the coarse
+pass's samples; 64 rays lost a fiducial of the independent renderer's 0.3 speckle plate)."""
+
+COARSE_RADIAL_STEP_PX = 0.3
+"""Radial sample step of the coarse pass, pixels (0.4 px in all three tracking passes lost 27 of
+the 172 fiducials of the 85 % marks + 0.1 speckle plate, most as ``fit``)."""
 
 SECTOR_SEEN_FRACTION = 0.4
 """A sector sees the rings when its amplitude reaches this share of the fiducial's typical one."""
@@ -189,9 +201,9 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
     mid = float(np.mean(radii_nominal))
     offsets = radii_nominal - mid
     line_sigma = max(0.9 * pitch_mm, 0.05)
-    step = RADIAL_STEP_PX * pitch_mm
-    pair_template = _profile_template(step, offsets, line_sigma)
-    half = (len(pair_template) - 1) / 2 * step
+    # Radial step and ring template of the coarse pass [0] and of the fine passes [1].
+    steps = (COARSE_RADIAL_STEP_PX * pitch_mm, RADIAL_STEP_PX * pitch_mm)
+    templates = tuple(_profile_template(value, offsets, line_sigma) for value in steps)
     angles = np.linspace(0.0, 2 * np.pi, RAY_COUNT, endpoint=False)
     directions = np.stack([np.cos(angles), np.sin(angles)], axis=-1)         # (A, 2)
     design = harmonic_design(angles)                                        # (A, 5)
@@ -209,11 +221,14 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
             # What the rings' tracking found is kept: radii and coverage are measured on the
             # high-passed image, whose line shape the templates describe.
             tracked = dict(profiles=profiles, used=used, at=at,  # noqa: F821 (set by the previous pass)
-                           sampled_at=sampled_at, radial=radial)  # noqa: F821 (set by the previous pass)
+                           sampled_at=sampled_at, radial=radial, step=step, half=half)  # noqa: F821
+        rays = slice(None, None, COARSE_RAY_STRIDE if refinement == 0 else 1)
+        step, pair_template = steps[int(refinement != 0)], templates[int(refinement != 0)]
+        half = (len(pair_template) - 1) / 2 * step
         margin = (COARSE_MARGIN_PX if refinement == 0 else FINE_MARGIN_PX) * pitch_mm
         reach = half + (margin if refinement == 0 else 2 * margin) + step
         radial = (mid + np.arange(-np.ceil(reach / step), np.ceil(reach / step) + 1) * step).astype(np.float32)
-        profiles = _ray_profiles(pass_image, centres, offset, inverse, directions, radial)
+        profiles = _ray_profiles(pass_image, centres, offset, inverse, directions[rays], radial)
         finite = np.isfinite(profiles)
         inside = finite.all(axis=2)
         np.copyto(profiles, np.float32(0.0), where=~finite)      # in place: a fresh array of this pass
@@ -226,13 +241,14 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
         low = np.clip(np.ceil((centre_radius - margin - radial[0]) / step).astype(int), 1, len(radial) - width - 1)
         index, peak_ok = _peak(score, low, width)
         edge = radial[0] + index * step
-        ray_ok = inside & peak_ok & (visible if refinement >= 2 else True)
+        ray_ok = inside & peak_ok & (visible[:, rays] if refinement >= 2 else True)
         strength = _edge_weights(np.take_along_axis(score, np.rint(index).astype(int)[..., None], -1)[..., 0],
                                  ray_ok)
-        shift, radius, at, residual, used, ok = _fit_ring(edge, design, ray_ok, strength)
+        shift, radius, at, residual, used, ok = _fit_ring(edge, design[rays], ray_ok, strength)
         ok &= ray_ok.mean(axis=1) >= MIN_VALID_RAY_FRACTION * (coverage if refinement >= 2 else 1.0)
         fit_ok = ok if refinement == 0 else fit_ok & ok
-        if fitting_only:
+        if fitting_only or refinement == 0:
+            # The coarse pass's coverage would not be used: the fine pass measures it again.
             centres = np.where(fit_ok[:, None], centres + shift, centres)
             continue
         # Ring amplitude of every ray at the fitted circle: erased arcs read about zero there.
@@ -253,8 +269,8 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
     mid_radius = radius
     harmonic = _second_harmonic(at, angles)
     if tracked is not None:
-        profiles, used, at, sampled_at, radial = (
-            tracked[key] for key in ("profiles", "used", "at", "sampled_at", "radial"))
+        profiles, used, at, sampled_at, radial, step, half = (
+            tracked[key] for key in ("profiles", "used", "at", "sampled_at", "radial", "step", "half"))
     # Second harmonic of the tracked ring (half the difference of its axes): a ring on the plate is a
     # circle, so this is small; the envelope of two offset rings (a merged detection) is not.
     ellipticity = np.hypot(*_second_harmonic(at, angles).T)
