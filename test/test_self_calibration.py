@@ -265,3 +265,22 @@ def test_simulated_line_offset_default_is_unchanged_and_the_field_follows_the_ar
     assert np.array_equal(moved[1], base[1]) and not np.allclose(shifted[1], base[1], atol=1e-3)
     with pytest.raises(ValueError, match="plate_moved needs line_offset_mm"):
         scanner.sweep_data(plate, 200.0, step_mm=1.0, plate_moved=True)
+
+
+def test_separable_field_recovers_a_separable_chain_and_names_a_bad_model():
+    """A field that is a function of the column plus one of the row: the separable model fits it exactly."""
+    rng = np.random.default_rng(8)
+    truth = POSITION + rng.normal(0.0, 0.5, POSITION.shape)
+    views = []
+    for name, shifts in DESIGN.items():
+        column, row = rng.normal(0.0, 0.03, (40, 2)), rng.normal(0.0, 0.03, (40, 2))
+        for shift in shifts:
+            at = NODES - np.array(shift) + 20
+            views.append(GridView(truth + column[at[:, 0]] + row[at[:, 1]], np.ones(len(NODES), bool), shift,
+                                  name, SIGMA[name]))
+    result = self_calibrate(NODES, views, PITCH, field_model="separable",
+                            linear_correction=chain_linear_in_mean(truth, views))
+    assert np.max(np.abs(rigid_part_removed(result.marks_mm - truth))) < 1e-8
+    with pytest.raises(ValueError) as caught:
+        self_calibrate(NODES, views, PITCH, field_model="spline")
+    assert str(caught.value) == "field_model must be one of nodes, separable, got 'spline'"

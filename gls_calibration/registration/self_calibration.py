@@ -76,6 +76,7 @@ PASSES = 3
 #: Fewest marks a view must see, fewest field nodes it must share with the other views of its pass type.
 MIN_MARKS = 3
 MIN_SHARED_NODES = 3
+FIELD_MODELS = ("nodes", "separable")
 UNOBSERVABLE = ("rigid motion of the marks (translation x, y, rotation)",
                 "per pass type: constant and rotation of its field (absorbed by its views' rigid motions)",
                 "symmetric linear part of the marks (scale x, scale y, shear): from a reference")
@@ -290,7 +291,7 @@ def _check_inputs(nodes, views: Sequence[GridView], pitch_mm, linear_correction)
 
 
 def self_calibrate(nodes, views: Sequence[GridView], pitch_mm: float, *, linear_correction=None,
-                   covariance: bool = False) -> SelfCalibration:
+                   field_model: str = "nodes", covariance: bool = False) -> SelfCalibration:
     """Separate the marks of a grid plate from the chain's error fields by views at several shifts.
 
     The model, the unobservable terms and the gauge are those of the module docstring.
@@ -307,6 +308,11 @@ def self_calibrate(nodes, views: Sequence[GridView], pitch_mm: float, *, linear_
     linear_correction : array_like, shape (2, 2), optional
         The chain's symmetric linear error (mm per mm) in the views' mean, from a reference; the
         marks lose it. None: the marks keep the views' mean linear part.
+    field_model : {"nodes", "separable"}, default "nodes"
+        ``nodes``: a free value per node and pass type (the exact algorithm). ``separable``: per
+        pass type and axis a term per node column plus a term per node row -- a line scanner on a
+        robot line errs by a function of the travel coordinate (the robot) plus one of the
+        coordinate along the laser line (the sensor); far fewer unknowns, so less noise.
     covariance : bool, default False
         Also propagate the views' ``sigma_mm`` to ``mark_sigma_mm`` (a dense inverse).
 
@@ -322,37 +328,47 @@ def self_calibrate(nodes, views: Sequence[GridView], pitch_mm: float, *, linear_
         mark seen by fewer than 2 views, or a system the views leave singular.
     """
     nodes, checked, passes = _check_inputs(nodes, views, pitch_mm, linear_correction)
+    if field_model not in FIELD_MODELS:
+        raise ValueError(f"field_model must be one of {', '.join(FIELD_MODELS)}, got {field_model!r}")
     count = len(nodes)
     centroid = nodes.mean(axis=0)
     position = pitch_mm * (nodes - centroid)
-    # unknown layout: marks (2N), fields (2 per node per pass), views (3 each: cx, cy, theta)
-    field_index = {}
+    # unknown layout: marks (2N), fields (2 per parameter per pass), views (3 each: cx, cy, theta)
+    node_parameters, parameter_count = {}, {}
     for name in passes:
         sampled = sorted({(int(nodes[k, 0]) - item[2][0], int(nodes[k, 1]) - item[2][1])
                           for item in checked if item[3] == name for k in np.flatnonzero(item[1])})
-        field_index[name] = {node: number for number, node in enumerate(sampled)}
+        if field_model == "nodes":
+            node_parameters[name] = {node: (number,) for number, node in enumerate(sampled)}
+            parameter_count[name] = len(sampled)
+        else:    # separable: a term per node column plus a term per node row
+            columns = sorted({node[0] for node in sampled})
+            rows_of = sorted({node[1] for node in sampled})
+            node_parameters[name] = {node: (columns.index(node[0]), len(columns) + rows_of.index(node[1]))
+                                     for node in sampled}
+            parameter_count[name] = len(columns) + len(rows_of)
     field_start, offset = {}, 2 * count
     for name in passes:
         field_start[name] = offset
-        offset += 2 * len(field_index[name])
+        offset += 2 * parameter_count[name]
     view_start = offset
     unknowns = view_start + 3 * len(checked)
 
-    rows, cols, weights, observed_index = [], [], [], []
+    entry_rows, entry_cols, entry_values, weights, observed_index = [], [], [], [], []
     for number, (centres, seen, shift, name, sigma) in enumerate(checked):
         for k in np.flatnonzero(seen):
-            node = field_index[name][(int(nodes[k, 0]) - shift[0], int(nodes[k, 1]) - shift[1])]
+            parameters = node_parameters[name][(int(nodes[k, 0]) - shift[0], int(nodes[k, 1]) - shift[1])]
             for axis in (0, 1):
-                rows.append([2 * k + axis, field_start[name] + 2 * node + axis, view_start + 3 * number + axis,
-                             view_start + 3 * number + 2])
-                cols.append(-position[k, 1] if axis == 0 else position[k, 0])
+                row = len(weights)
+                columns = ([2 * k + axis] + [field_start[name] + 2 * item + axis for item in parameters]
+                           + [view_start + 3 * number + axis, view_start + 3 * number + 2])
+                values = [1.0] * (len(columns) - 1) + [-position[k, 1] if axis == 0 else position[k, 0]]
+                entry_rows += [row] * len(columns)
+                entry_cols += columns
+                entry_values += values
                 weights.append(1.0 / sigma[axis])
                 observed_index.append((number, k, axis))
-    row_count = len(rows)
-    indices = np.array(rows)
-    values = np.column_stack([np.ones((row_count, 3)), np.array(cols)])
-    design = sparse.csr_matrix((values.ravel(), (np.repeat(np.arange(row_count), 4), indices.ravel())),
-                               shape=(row_count, unknowns))
+    design = sparse.csr_matrix((entry_values, (entry_rows, entry_cols)), shape=(len(weights), unknowns))
     weight = np.array(weights)
     weighted = sparse.diags(weight) @ design
     normal = (weighted.T @ weighted).tocsc()
@@ -412,9 +428,10 @@ def self_calibrate(nodes, views: Sequence[GridView], pitch_mm: float, *, linear_
     symmetric = np.array([[coefficients[3], coefficients[5]], [coefficients[5], coefficients[4]]])
     fields = []
     for name in passes:
-        field_nodes = np.array(list(field_index[name]), dtype=int)
+        field_nodes = np.array(list(node_parameters[name]), dtype=int)
         start = field_start[name]
-        error = solution[start:start + 2 * len(field_nodes)].reshape(-1, 2)
+        values = solution[start:start + 2 * parameter_count[name]].reshape(-1, 2)
+        error = np.array([values[list(node_parameters[name][tuple(node)])].sum(axis=0) for node in field_nodes])
         error = error - (pitch_mm * (field_nodes - centroid)) @ symmetric.T
         fields.append(PassField(name, field_nodes, error))
     views_part = solution[view_start:].reshape(-1, 3)
