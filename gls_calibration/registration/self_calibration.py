@@ -34,6 +34,15 @@ opposite symmetric linear part. ``linear_correction`` (a symmetric 2x2 matrix, m
 the chain's symmetric linear error in that mean, measured on a reference; the marks lose it:
 ``t_k -= L (p g_k - centroid)``. Without it the marks keep the chain's linear error.
 
+``field_model="separable"`` replaces the free value per node by a term per node column plus one per
+node row (per pass type and axis): a robot line's error depends on the travel coordinate, the
+sensor's on the coordinate along its laser line. The unobservable terms stay those above.
+
+Measured on the simulated cell (``benchmarks/bench_self_calibration.py``, docs/method-and-results.md,
+"Grid-plate self-calibration"): with the plate moved in its fixture it separates the chain's
+repeating field to 0.006 mm, but the per-sweep random path error of ``paper_like`` is amplified to
+0.09-0.2 mm; it is not wired into the calibration.
+
 A view's rotation acts in the model on the nominal node positions: a view rotated by ``theta``
 leaves ``theta`` times a mark's offset from its node unexplained (1e-4 mm at 2e-4 rad and 0.5 mm).
 The model samples the field at grid nodes: a mark that lies ``e`` off its node sees
