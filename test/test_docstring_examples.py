@@ -8,6 +8,7 @@ MODULES = ("gls_calibration.geometry.kinematics", "gls_calibration.geometry.opti
            "gls_calibration.scan.plate_pose", "gls_calibration.scan.plate_marks", "gls_calibration.scan.sweep",
            "gls_calibration.fiducials.measure", "gls_calibration.fiducials.targets",
            "gls_calibration.registration.rigid", "gls_calibration.registration.sweep_plan",
+           "gls_calibration.registration.self_calibration",
            "gls_calibration.discrepancy.selection", "gls_calibration.discrepancy.run_verdict",
            "gls_calibration.models.deviation_models", "gls_calibration.models.ols_rbf",
            "gls_calibration.models.thin_plate_spline", "gls_calibration.models.training",

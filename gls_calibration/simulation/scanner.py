@@ -237,12 +237,13 @@ class LaserLineScanner:
         return self._robot_fields[key]
 
     def _placement(self, seed: int, rows: int, step: float, start: np.ndarray | None = None, direction: int = 1,
-                   orientation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                   orientation_deg: float = 0.0, field_shift_mm: np.ndarray | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Return the reported travel, true travel, across and height deviation (rows,) of one sweep (mm).
 
         The reported travel is the robot's timing (what its encoders see); the true travel, across and
         height add what the robot cannot see: per-sweep wander and the errors that repeat per line,
-        evaluated where the sensor is in the base frame.
+        evaluated where the sensor is in the base frame (less ``field_shift_mm``, B x-y, when given).
         """
         c = self.chain
         nominal = np.arange(rows) * step
@@ -259,6 +260,8 @@ class LaserLineScanner:
                                    c.path_wander_correlation_mm)
         if c.robot_repeats:
             where = (start[:3, 3] + np.outer(direction * reported, start[:3, 1]))[:, :2]
+            if field_shift_mm is not None:
+                where = where - field_shift_mm
             true += (self._robot_field(3, direction, orientation_deg) * reported
                      + self._robot_field(0, direction, orientation_deg)(where))
             across = across + self._robot_field(1, direction, orientation_deg)(where)
@@ -354,15 +357,24 @@ class LaserLineScanner:
         half = 0.5 * self.settings.line_length_mm
         return self.settings.linearity_mm * np.sin(1.5 * np.pi * x / half)
 
-    def _chunks(self, plate, length_mm, speed_mm_s, step_mm, seed, direction=1, orientation_deg=0.0):
+    def _shifted_start(self, length_mm: float, direction: int, orientation_deg: float, line_offset_mm) -> np.ndarray:
+        """Return the sweep's start pose, moved by ``line_offset_mm`` (B x-y) when given."""
+        start = self.start_pose(float(length_mm), direction, orientation_deg)
+        if line_offset_mm is not None:
+            start[:2, 3] += line_offset_mm
+        return start
+
+    def _chunks(self, plate, length_mm, speed_mm_s, step_mm, seed, direction=1, orientation_deg=0.0,
+                line_offset_mm=None, plate_moved=False):
         rows, speed, step = self.sweep_parameters(length_mm, speed_mm_s, step_mm)
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1 or -1, got {direction!r}")
         if orientation_deg not in ORIENTATIONS_DEG:
             raise ValueError(f"orientation_deg must be 0 or 90, got {orientation_deg!r}")
         path_error = self._path_error(seed)
-        start = self.start_pose(float(length_mm), direction, orientation_deg)
-        placement = self._placement(seed, rows, step, start, direction, orientation_deg)
+        start = self._shifted_start(length_mm, direction, orientation_deg, line_offset_mm)
+        placement = self._placement(seed, rows, step, start, direction, orientation_deg,
+                                    line_offset_mm if plate_moved else None)
         for number, first in enumerate(range(0, rows, _CHUNK_ROWS)):
             count = min(_CHUNK_ROWS, rows - first)
             rng = np.random.default_rng([seed, number])
@@ -449,14 +461,30 @@ class LaserLineScanner:
 
     def sweep_data(self, plate: Plate, length_mm: float = 200.0, speed_mm_s: float | None = None,
                    step_mm: float | None = None, seed: int = 0, direction: int = 1,
-                   orientation_deg: float = 0.0) -> SweepData:
-        """Return the whole sweep with its stamps and reported poses (see :class:`SweepData`)."""
-        parts = list(self._chunks(plate, length_mm, speed_mm_s, step_mm, seed, direction, orientation_deg))
+                   orientation_deg: float = 0.0, *, line_offset_mm=None, plate_moved: bool = False) -> SweepData:
+        """Return the whole sweep with its stamps and reported poses (see :class:`SweepData`).
+
+        ``line_offset_mm`` (B x, y; None: the plan's line) moves the programmed line: the sensor
+        sweeps a line shifted by it and the robot reports it there. The robot's repeating error is a
+        function of where the arm is, so it is evaluated on the shifted line, unless ``plate_moved``:
+        then the offset stands for the plate moved by ``-line_offset_mm`` in its fixture under the
+        plan's own line (the arm runs its unshifted line, the field is evaluated there; the plate's
+        marks are met where a shifted line would meet them). Grid-plate self-calibration
+        (``registration/self_calibration.py``) measures with both.
+        """
+        if line_offset_mm is not None:
+            line_offset_mm = as_finite_array(line_offset_mm, "line_offset_mm", ndim=1)
+            if line_offset_mm.shape != (2,):
+                raise ValueError(f"line_offset_mm must be two numbers (B x, y), got {line_offset_mm.tolist()}")
+        elif plate_moved:
+            raise ValueError("plate_moved needs line_offset_mm")
+        parts = list(self._chunks(plate, length_mm, speed_mm_s, step_mm, seed, direction, orientation_deg,
+                                  line_offset_mm, plate_moved))
         rows = sum(part[2].shape[0] for part in parts)
         _, speed, step = self.sweep_parameters(length_mm, speed_mm_s, step_mm)
         return SweepData(np.concatenate([part[2] for part in parts]), np.concatenate([part[3] for part in parts]),
                          np.arange(rows) * step / speed, np.concatenate([part[4] for part in parts]),
-                         self.start_pose(float(length_mm), direction, orientation_deg), direction,
+                         self._shifted_start(length_mm, direction, orientation_deg, line_offset_mm), direction,
                          float(orientation_deg), step)
 
     def to_gls(self, points) -> np.ndarray:
