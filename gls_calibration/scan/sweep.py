@@ -27,6 +27,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 XYZI_FIELDS = ("x", "y", "z", "intensity")
+XYZI_DTYPE = np.dtype([(name, np.float32) for name in XYZI_FIELDS])
+"""A kept profile's and an assembled cloud's points: x, y, z, intensity, float32, packed."""
 
 
 @dataclass(frozen=True)
@@ -403,9 +405,13 @@ class SweepCollector:
         if len(self._profiles) >= self.max_profiles:
             self.dropped += 1
             return False
-        flat = np.empty(profile.size, dtype=[(name, np.float32) for name in XYZI_FIELDS])
-        for name in XYZI_FIELDS:
-            flat[name] = profile[name].reshape(-1)
+        if profile.dtype == XYZI_DTYPE:
+            # the wire's own layout: copied as plain float32 (a structured copy is 10x slower)
+            flat = profile.reshape(-1).view(np.float32).copy().view(XYZI_DTYPE)
+        else:
+            flat = np.empty(profile.size, dtype=XYZI_DTYPE)
+            for name in XYZI_FIELDS:
+                flat[name] = profile[name].reshape(-1)
         self._stamps.append(float(stamp_s))
         self._profiles.append(flat)
         self._layouts.append(layout)
@@ -457,13 +463,25 @@ class SweepCollector:
             travel = np.outer(stamps - stamps[0], np.asarray(motion.direction) * motion.speed_mm_s)
             translations = travel @ pose[:3, :3].T + pose[:3, 3]
         width = max(self._profiles[index].size for index in order)
-        cloud = np.full((len(order), width), np.nan,
-                        dtype=[(name, np.float32) for name in XYZI_FIELDS])
+        # every row is written below, a narrower one padded with NaN points (np.full of a structured
+        # NaN costs more than the placement)
+        cloud = np.empty((len(order), width), dtype=XYZI_DTYPE)
+        rows = cloud.view(np.float32).reshape(len(order), width, 4)     # x, y, z, intensity of each point
+        # Each row as one affine product into reused float64 buffers: the point (x, y, z, 1) times
+        # [R^T; t] gives (x', y', z', 0), written as one contiguous row; the intensity is copied after.
+        # About 9 us a row of 2 000 points against 60 us for a fresh float64 copy, a product, a sum and
+        # four field writes.
+        homogeneous, placed = np.empty((width, 4)), np.empty((width, 4))
+        affine = np.zeros((len(order), 4, 4))
+        affine[:, :3, :3] = np.swapaxes(rotations, 1, 2)
+        affine[:, 3, :3] = translations
         for row, index in enumerate(order):
-            profile = self._profiles[index]
-            local = np.column_stack([profile["x"], profile["y"], profile["z"]]).astype(float)
-            placed = local @ rotations[row].T + translations[row]
-            for axis, name in enumerate(("x", "y", "z")):
-                cloud[name][row, :profile.size] = placed[:, axis]
-            cloud["intensity"][row, :profile.size] = profile["intensity"]
+            profile = self._profiles[index].view(np.float32).reshape(-1, 4)
+            size = profile.shape[0]
+            np.copyto(homogeneous[:size], profile)
+            homogeneous[:size, 3] = 1.0
+            np.matmul(homogeneous[:size], affine[row], out=placed[:size])
+            rows[row, :size] = placed[:size]
+            rows[row, :size, 3] = profile[:, 3]
+            rows[row, size:] = np.nan
         return cloud, by_pose
