@@ -4,12 +4,14 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 
 from matplotlib.image import imread
 import numpy as np
 import pytest
 
-from gls_calibration.report.files import ReportData, format_mm, summary_json, table1_markdown, write_report
+from gls_calibration.report.files import (ReportData, format_mm, summary_json, table1_markdown, write_report,
+                                          write_summary_json)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -77,6 +79,23 @@ def test_report_writes_every_file(tmp_path):
     for name in ("deviations_arrows.png", "cumulative_histogram.png", "correction_field.png"):
         assert f"]({name})" in text
     assert "Simulated run, seed 0." in text
+
+
+def test_a_report_that_fails_midway_leaves_the_previous_files_whole(tmp_path, monkeypatch):
+    # every file goes through a temporary file and a rename: make the renames fail and the files of
+    # the report before must be byte for byte what they were, with no temporary file left behind
+    out = tmp_path / "out"
+    write_report(out, make_data(seed=0))
+    before = {path.name: path.read_bytes() for path in out.iterdir()}
+
+    def refuse(source, target):
+        raise OSError("disk full")
+    monkeypatch.setattr(os, "replace", refuse)
+    with pytest.raises(OSError, match="disk full"):
+        write_report(out, make_data(seed=1))
+    with pytest.raises(OSError, match="disk full"):
+        write_summary_json(out, {"pre_rms_mm": 1.0})
+    assert {path.name: path.read_bytes() for path in out.iterdir()} == before
 
 
 def test_arrow_panels_share_one_layout(tmp_path):

@@ -29,13 +29,14 @@ def test_stage_times_sum_over_plates_and_end_at_the_result():
     assert seen[-1] == "done"          # the wrapped callback still gets every message
     assert times.wall_s == {"sweep_plain": 3.0, "sweep_marked": 11.0, "measurement": 4.5, "training": 1.0}
     assert times.last_sweep_to_result_s == 2.5      # from the end of the last sweep (17 s) to the result
+    assert times.last_sweep_end_s == 17.0           # the clock's reading then, for the activation's time
 
 
 def test_without_a_finished_marked_sweep_there_is_no_last_sweep_time():
     assert math.isnan(stamped([("sweep_plain", 0.0), ("plate_pose", 1.0)])[0].last_sweep_to_result_s)
     assert math.isnan(stamped([("sweep_plain", 0.0), ("sweep_marked", 1.0)])[0].last_sweep_to_result_s)
     empty = StageClock().times()
-    assert empty.wall_s == {} and math.isnan(empty.last_sweep_to_result_s)
+    assert empty.wall_s == {} and math.isnan(empty.last_sweep_to_result_s) and math.isnan(empty.last_sweep_end_s)
 
 
 PLATE = ("sweep_plain", "sweep_plain", "plate_pose", "marking", "sweep_marked", "measurement", "sweep_marked",
@@ -98,15 +99,19 @@ def test_gls_sim_cell_writes_and_prints_the_time_budget(tmp_path):
     assert {"sweep_plain", "plate_pose", "marking", "sweep_marked", "measurement", "training"} <= set(
         budget["stage_wall_s"])
     assert budget["last_sweep_to_result_s"] == summary["last_sweep_to_result_s"] > 0.0
+    # the activation comes after the result and the report: summary.json is written again with it
+    assert summary["last_profile_to_activation_s"] > summary["last_sweep_to_result_s"]
+    assert budget["last_profile_to_activation_s"] == summary["last_profile_to_activation_s"]
     cpu = budget["cpu_s_by_node"]
     # every node of the cell has its thread's CPU; the ones that did work have some
     assert {"calibration_manager", "stream_acquisition", "fiducial_measurement", "sim_robot",
             "sim_line_scanner"} <= set(cpu)     # the split cell, gls-sim-cell's default
     assert cpu["fiducial_measurement"] > 0.0 and cpu["sim_robot"] > 0.0 and cpu["sim_line_scanner"] > 0.0
     pipeline = sum(value for name, value in cpu.items() if not name.startswith("sim_"))
-    assert budget["compute_cpu_s"] == pytest.approx(pipeline)
+    assert budget["compute_cpu_s"] == pytest.approx(pipeline) == summary["compute_cpu_s"]
     assert budget["process_cpu_s"] >= budget["compute_cpu_s"] + budget["simulation_cpu_s"]
     # no validation plate: no split of the pipeline's CPU (it would be a second training plate's)
     assert budget["compute_cpu_s_before_validation"] is None and budget["compute_cpu_s_from_validation"] is None
     assert "time budget: cell time" in done.stdout and "CPU of the pipeline" in done.stdout
+    assert "to the activation" in done.stdout
     assert "time budget (wall, this run): sweep_plain" in (out / "report.md").read_text()

@@ -282,6 +282,14 @@ class RunSummary:
         Wall time per stage, s.
     last_sweep_to_result_s : float, optional
         End of the last marked-plate sweep to the flow's result, s.
+    last_profile_to_activation_s : float, optional
+        End of the last marked-plate sweep (its last profile) to the candidate activated and the
+        correction node asked to load it, s; the report and its files come before the activation.
+        Filled in by the calibration manager after the activation (``summary.json`` is written
+        again); NaN where nothing was activated.
+    compute_cpu_s : float, optional
+        The pipeline's CPU (its nodes' threads, the simulation's excluded), s. Measurable only where
+        the nodes share one process: ``gls-sim-cell`` fills it in; NaN otherwise.
     measurement_preset : str, optional
         The simulated measurement chain's preset; empty: a real cell.
     certificate_u95_full_mm, certificate_u95_central_mm, certificate_u95_median_mm : float, optional
@@ -335,6 +343,8 @@ class RunSummary:
     accepted_against: str = ""
     stage_wall_s: Mapping[str, float] = field(default_factory=dict)   # wall time per stage (time_budget)
     last_sweep_to_result_s: float = math.nan    # end of the last marked-plate sweep to the flow's result
+    last_profile_to_activation_s: float = math.nan   # ... to the activation (set after it)
+    compute_cpu_s: float = math.nan             # the pipeline's CPU, where the nodes share a process
     measurement_preset: str = ""                # the simulated measurement chain's preset; empty: a real cell
     # the certificate (calibration.uncertainty): U (95 % radius of the 2-D landing, mm) of the candidate,
     # largest over the centred 190 x 190 mm and over the central 150 x 150 mm, median over its grid; in

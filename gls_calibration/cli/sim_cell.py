@@ -48,6 +48,7 @@ from gls_calibration.nodes.scan_acquisition import ScanAcquisitionNode
 from gls_calibration.nodes.sim_galvo import SimGalvoNode
 from gls_calibration.nodes.sim_scanner import SimScannerNode
 from gls_calibration.registration.sweep_plan import parse_plan
+from gls_calibration.report.files import write_summary_json
 from gls_calibration.ros.dds import use_fast_liveliness
 from gls_calibration.ros.manager_parameters import MANAGER_PARAMETERS, value_problem
 from gls_calibration.ros.parameter_rules import unapplied_rule_problem
@@ -492,7 +493,8 @@ def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, fl
     """Write ``report_dir/time_budget.json`` and return the table printed from it.
 
     ``report_dir/time_budget.json`` (the run's cell time, wall time per stage, CPU per node; see
-    ``time_budget``) and the table printed from it. The simulated nodes' CPU (``sim_*``) is the
+    ``time_budget``) and the table printed from it; ``summary`` (the run's ``summary.json`` as read)
+    is written back with ``compute_cpu_s``. The simulated nodes' CPU (``sim_*``) is the
     simulation's, not the pipeline's; CPU in threads a node does not own is not attributed.
     ``cpu_at_validation`` (CPU per node as the validation plate began, ``ValidationCpuMark``) splits
     ``compute_cpu_s`` into ``compute_cpu_s_before_validation`` (the training plates and their
@@ -509,11 +511,14 @@ def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, fl
         before_s = None     # a thread that ended has no clock: no split rather than a wrong one
     budget = {"cell_time_s": summary.get("cell_time_s"), "stage_wall_s": summary.get("stage_wall_s", {}),
               "last_sweep_to_result_s": summary.get("last_sweep_to_result_s"),
+              "last_profile_to_activation_s": summary.get("last_profile_to_activation_s"),
               "cpu_s_by_node": cpu_by_node, "compute_cpu_s": total_s,
               "compute_cpu_s_before_validation": before_s,
               "compute_cpu_s_from_validation": None if before_s is None else total_s - before_s,
               "simulation_cpu_s": sum(simulation.values()), "process_cpu_s": time.process_time()}
     atomic_write_text(report_dir / "time_budget.json", json.dumps(budget, indent=2) + "\n")
+    # the manager cannot see other nodes' CPU; here they share this process, so the summary gets it
+    write_summary_json(report_dir, {**summary, "compute_cpu_s": total_s})
 
     def seconds(value) -> str:
         return "n/a" if value is None or not math.isfinite(value) else f"{value:.1f} s"
@@ -525,7 +530,8 @@ def write_time_budget(report_dir: Path, summary: dict, cpu_by_node: dict[str, fl
     return "\n".join([
         f"time budget: cell time {seconds(budget['cell_time_s'])} (simulated robot, sweeps, marking)",
         f"  wall by stage: {stages}",
-        f"  last sweep to result: {seconds(budget['last_sweep_to_result_s'])}",
+        f"  last sweep to result: {seconds(budget['last_sweep_to_result_s'])}, to the activation "
+        f"{seconds(budget['last_profile_to_activation_s'])}",
         f"  CPU of the pipeline {seconds(budget['compute_cpu_s'])}{split}: {nodes}",
         f"  CPU of the simulation {seconds(budget['simulation_cpu_s'])}; whole process "
         f"{seconds(budget['process_cpu_s'])} (imports, reference check, DDS and library threads included)"])

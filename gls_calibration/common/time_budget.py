@@ -40,11 +40,15 @@ class StageTimes:
     """Return the wall time per stage (s) and from the last marked-plate sweep to the result (s).
 
     Wall time per stage (s, in the order the stages first came) and from the last marked-plate
-    sweep to the result (s; NaN without a marked-plate sweep followed by another message).
+    sweep to the result (s; NaN without a marked-plate sweep followed by another message);
+    ``last_sweep_end_s`` is the clock's reading at that sweep's end (NaN likewise).
     """
 
     wall_s: Mapping[str, float] = field(default_factory=dict)
     last_sweep_to_result_s: float = math.nan
+    # the clock's reading (time.monotonic by default) as the last marked-plate sweep ended: what a later
+    # step (the activation) measures its own "since the last profile" from
+    last_sweep_end_s: float = math.nan
 
 
 class StageClock:
@@ -71,10 +75,11 @@ class StageClock:
         for (stage, began), (_, ended) in zip(events, events[1:]):
             wall[stage] = wall.get(stage, 0.0) + (ended - began)
         sweeps = [index for index, (stage, _) in enumerate(events) if stage == SWEEP_STAGE]
-        last = math.nan
+        last = ended = math.nan
         if sweeps and sweeps[-1] + 1 < len(events):
-            last = events[-1][1] - events[sweeps[-1] + 1][1]
-        return StageTimes(wall, last)
+            ended = events[sweeps[-1] + 1][1]
+            last = events[-1][1] - ended
+        return StageTimes(wall, last, ended)
 
 
 class ValidationCpuMark:

@@ -38,7 +38,7 @@ from gls_calibration.common.files import require_regular_output
 from gls_calibration.correction.setpoints import Correction
 from gls_calibration.geometry import kinematics
 from gls_calibration.registration.chain_map import load_chain_map
-from gls_calibration.report.files import json_safe
+from gls_calibration.report.files import json_safe, write_summary_json
 from gls_calibration.report.run_report import write_outcome_report
 from gls_calibration.ros import conversions, rviz
 from gls_calibration.ros.base import GlsNode, SERVER_WAIT_S
@@ -445,6 +445,12 @@ class CalibrationManager(GlsNode):
                 message += (f"; activated, but the correction node did not reload it ({error}): "
                             "call correction/load")
                 self.get_logger().error(message)
+            summary = replace(summary, last_profile_to_activation_s=(
+                time.monotonic() - outcome.stage_times.last_sweep_end_s))
+            try:    # the summary as written before the activation stays if this fails
+                write_summary_json(response.report_dir, summary.to_dict())
+            except OSError as error:
+                self.get_logger().warning(f"summary.json not updated with the activation time: {error}")
         elif outcome.candidate is not None:
             await self.cell.reload_active()   # a rejected candidate: the active calibration stays
         _fill_response(response, summary)

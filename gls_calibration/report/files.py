@@ -18,6 +18,7 @@ from collections.abc import Callable, Mapping
 import csv
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+import io
 import json
 import math
 from pathlib import Path
@@ -28,7 +29,7 @@ from matplotlib.figure import Figure
 import numpy as np
 
 import gls_calibration
-from gls_calibration.common.files import nan_to_none, to_plain
+from gls_calibration.common.files import atomic_write_bytes, atomic_write_text, nan_to_none, to_plain
 from gls_calibration.common.validation import as_points
 
 # Published results of the in-situ calibration (|delta| over the full 190 x 190 mm field).
@@ -39,6 +40,9 @@ METRIC_COLUMNS = (
 )
 CORRECTION_GRID_PER_SIDE = 25
 _DPI = 100
+
+SUMMARY_FILE = "summary.json"
+"""The run summary's file name in a report folder (``write_summary_json``)."""
 
 CorrectionGrid = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
@@ -109,10 +113,35 @@ def write_report(out_dir: str | Path, data: ReportData) -> Path:
     if data.correction_field is not None:
         figures.append(("Fitted correction", _plot_correction_field(out_dir / "correction_field.png", data)))
     _write_fiducials_csv(out_dir / "fiducials.csv", data)
-    (out_dir / "summary.json").write_text(summary_json(data.summary) + "\n", encoding="utf-8")
+    write_summary_json(out_dir, data.summary)
     report_path = out_dir / "report.md"
-    report_path.write_text(_markdown(data, [(title, path.name) for title, path in figures]), encoding="utf-8")
+    atomic_write_text(report_path, _markdown(data, [(title, path.name) for title, path in figures]))
     return report_path
+
+
+def write_summary_json(out_dir: str | Path, summary: Mapping[str, Any]) -> Path:
+    """Write ``out_dir/summary.json`` atomically (a reader sees the old or the whole new summary).
+
+    Parameters
+    ----------
+    out_dir : str or pathlib.Path
+        The report folder (it must exist).
+    summary : Mapping
+        The summary's values; NaN and infinities are written as null.
+
+    Returns
+    -------
+    pathlib.Path
+        The path of ``summary.json``.
+
+    Raises
+    ------
+    OSError
+        If it cannot be written; an existing ``summary.json`` is then left as it was.
+    """
+    path = Path(out_dir) / SUMMARY_FILE
+    atomic_write_text(path, summary_json(summary) + "\n")
+    return path
 
 
 # ----------------------------------------------------------------------------------------- text
@@ -260,17 +289,18 @@ def _write_fiducials_csv(path: Path, data: ReportData) -> None:
     stages = [("before", data.targets_xy, data.deviations_before, data.true_before)]
     if data.targets_after is not None:
         stages.append(("after", data.targets_after, data.deviations_after, data.true_after))
-    with path.open("w", newline="", encoding="utf-8") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(header)
-        for stage, targets, deviations, truth in stages:
-            for index, (target, deviation) in enumerate(zip(targets, deviations)):
-                row = [stage, index, float(target[0]), float(target[1]), float(deviation[0]),
-                       float(deviation[1]), float(np.hypot(*deviation))]
-                if with_truth:
-                    row += ([float(truth[index, 0]), float(truth[index, 1]), float(np.hypot(*truth[index]))]
-                            if truth is not None else ["", "", ""])
-                writer.writerow(row)
+    handle = io.StringIO(newline="")
+    writer = csv.writer(handle)
+    writer.writerow(header)
+    for stage, targets, deviations, truth in stages:
+        for index, (target, deviation) in enumerate(zip(targets, deviations)):
+            row = [stage, index, float(target[0]), float(target[1]), float(deviation[0]),
+                   float(deviation[1]), float(np.hypot(*deviation))]
+            if with_truth:
+                row += ([float(truth[index, 0]), float(truth[index, 1]), float(np.hypot(*truth[index]))]
+                        if truth is not None else ["", "", ""])
+            writer.writerow(row)
+    atomic_write_text(path, handle.getvalue())
 
 
 # ---------------------------------------------------------------------------------------- plots
@@ -279,8 +309,10 @@ def _write_fiducials_csv(path: Path, data: ReportData) -> None:
 def save_figure(figure: Figure, path: Path) -> Path:
     """Render ``figure`` to the PNG ``path`` at the report's resolution; the path."""
     FigureCanvasAgg(figure)  # attaches the Agg canvas: rendering never touches a display backend
-    figure.savefig(path, dpi=_DPI)
+    image = io.BytesIO()
+    figure.savefig(image, format="png", dpi=_DPI)
     figure.clear()
+    atomic_write_bytes(path, image.getvalue())
     return path
 
 

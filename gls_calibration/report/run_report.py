@@ -7,6 +7,7 @@ import numpy as np
 
 from gls_calibration.calibration.outcome import CalibrationOutcome, RunSummary
 from gls_calibration.calibration.stated_accuracy import SELF_CONSISTENCY
+from gls_calibration.common.files import atomic_write_text
 from gls_calibration.discrepancy import run_verdict_lines
 from gls_calibration.correction.uncertainty_grid import UNCERTAINTY_KEY
 from gls_calibration.report.certificate import certificate_lines, write_certificate_files
@@ -135,7 +136,7 @@ def write_outcome_report(out_dir: Path, outcome: CalibrationOutcome, summary: Ru
         if outcome.candidate is not None else (),
     )
     write_report(out_dir, data)
-    (out_dir / "training.csv").write_text(training_csv_text(first), encoding="utf-8")
+    atomic_write_text(out_dir / "training.csv", training_csv_text(first))
     return out_dir
 
 
