@@ -12,6 +12,7 @@ from typing import Any
 
 import yaml
 
+from gls_calibration.common.files import atomic_write_text
 from gls_calibration.common.validation import require_mapping
 from gls_calibration.models.physical_model import PhysicalDeviationModel, SumModel
 from gls_calibration.models.rbf import DeviationModel, OLSRBFNetwork, ThinPlateSplineModel
@@ -62,9 +63,8 @@ MODEL_TYPES: Mapping[str, Callable[[Mapping[str, Any]], DeviationModel]] = Mappi
 
 
 def save_model_yaml(path: str | os.PathLike, model: DeviationModel) -> None:
-    """Write ``model.to_dict()`` as YAML (plain write; atomic saving is persistence's job)."""
-    with open(path, "w", encoding="utf-8") as stream:
-        yaml.safe_dump(model.to_dict(), stream, sort_keys=False)
+    """Write ``model.to_dict()`` as YAML, atomically (a reader sees the old or the whole new file)."""
+    atomic_write_text(path, yaml.safe_dump(model.to_dict(), sort_keys=False))
 
 
 def load_model_yaml(path: str | os.PathLike) -> DeviationModel:
