@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from gls_calibration.common.time_budget import StageClock, ValidationCpuMark, thread_cpu_s
+from gls_calibration.common.time_budget import StageClock, ValidationCpuMark, thread_cpu_s, unowned_threads_cpu_s
 
 
 def stamped(stages_and_times):
@@ -85,6 +85,32 @@ def test_thread_cpu_counts_a_busy_thread_and_not_an_idle_one():
     assert math.isnan(thread_cpu_s(workers[0]))       # ended: its clock is gone
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/task")
+def test_unowned_thread_cpu_counts_the_threads_no_node_owns_and_not_the_owned_ones():
+    stop = threading.Event()
+
+    def busy():
+        while not stop.is_set():
+            sum(range(1000))
+
+    owned, unowned = threading.Thread(target=busy), threading.Thread(target=busy)
+    before_s = unowned_threads_cpu_s([owned])
+    for worker in (owned, unowned):
+        worker.start()
+    time.sleep(0.6)
+    counted_s = unowned_threads_cpu_s([owned]) - before_s
+    unowned_s, owned_s = thread_cpu_s(unowned), thread_cpu_s(owned)
+    both_s = unowned_threads_cpu_s([]) - before_s       # nothing owned: both busy threads count
+    stop.set()
+    for worker in (owned, unowned):
+        worker.join()
+    # the kernel's clock ticks (10 ms) make the /proc reading coarser than the thread clocks
+    assert unowned_s > 0.1 and owned_s > 0.1
+    assert counted_s == pytest.approx(unowned_s, abs=0.05)
+    assert both_s >= counted_s + owned_s - 0.1
+    assert unowned_threads_cpu_s([]) - before_s < both_s + 0.1       # ended threads no longer count
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_gls_sim_cell_writes_and_prints_the_time_budget(tmp_path):
@@ -107,6 +133,8 @@ def test_gls_sim_cell_writes_and_prints_the_time_budget(tmp_path):
     assert {"calibration_manager", "stream_acquisition", "fiducial_measurement", "sim_robot",
             "sim_line_scanner"} <= set(cpu)     # the split cell, gls-sim-cell's default
     assert cpu["fiducial_measurement"] > 0.0 and cpu["sim_robot"] > 0.0 and cpu["sim_line_scanner"] > 0.0
+    # the threads no node owns (OpenCV's pool, DDS) are read and counted with the pipeline
+    assert "library threads" in cpu and cpu["library threads"] >= 0.0
     pipeline = sum(value for name, value in cpu.items() if not name.startswith("sim_"))
     assert budget["compute_cpu_s"] == pytest.approx(pipeline) == summary["compute_cpu_s"]
     assert budget["process_cpu_s"] >= budget["compute_cpu_s"] + budget["simulation_cpu_s"]

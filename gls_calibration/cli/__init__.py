@@ -1,8 +1,18 @@
-"""Command-line tools: the simulated cell, the operator clients and the discrepancy workflow."""
+"""Command-line tools: the simulated cell, the operator clients and the discrepancy workflow.
+
+Importing this package sets the process's allocator options for sweep-sized arrays
+(:func:`gls_calibration.ros.allocator.keep_freed_memory`; ``GLS_KEEP_FREED_MEMORY=0`` leaves glibc's
+defaults): it must happen before numpy, OpenCV and rclpy start threads of their own, and a tool
+imports its package before its module's imports.
+"""
 from __future__ import annotations
 
 import argparse
 import math
+
+from gls_calibration.ros.allocator import keep_freed_memory
+
+keep_freed_memory()
 
 
 def timeout_seconds(text: str) -> float:
