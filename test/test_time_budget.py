@@ -108,7 +108,7 @@ def test_unowned_thread_cpu_counts_the_threads_no_node_owns_and_not_the_owned_on
     assert unowned_s > 0.1 and owned_s > 0.1
     assert counted_s == pytest.approx(unowned_s, abs=0.05)
     assert both_s >= counted_s + owned_s - 0.1
-    assert unowned_threads_cpu_s([]) - before_s < both_s + 0.1       # ended threads no longer count
+    assert unowned_threads_cpu_s([]) - before_s < 0.5 * both_s       # ended threads no longer count
 
 
 @pytest.mark.slow

@@ -4,14 +4,13 @@ A sweep travels as clouds of 64 MB (2 000 x 2 000 points, float32 x, y, z, inten
 arrays of 100-130 MB. By default glibc serves every such block with a fresh ``mmap`` and returns it
 with ``munmap`` when freed; in any thread but the main one it must, whatever its threshold, since a
 thread's own arena grows in heaps of at most 64 MB. The kernel then zeroes every page again on first
-touch: in the main job (``gls-sim-cell --seed 1``, 2026-11-29) 31 s of the process's 128 s of CPU were
-system time, and converting one received cloud to arrays in a node's thread took 0.20 s instead of
-0.05 s. One arena (the main one, which grows without that limit), blocks up to
+touch: in the main job about a quarter of the process's CPU was system time (figures: docs/benchmarks.md,
+"Memory kept for the next sweep"). One arena (the main one, which grows without that limit), blocks up to
 :data:`MMAP_THRESHOLD_BYTES` taken from it, and at most :data:`TRIM_THRESHOLD_BYTES` kept free at
 its top keep those pages mapped from one sweep to the next.
 
 Hazards: the process keeps its peak of freed memory mapped (its resident size does not fall back
-after a sweep; in the main job the peak itself fell, 1.44 -> 1.38 GB); every thread, DDS's
+after a sweep; in the main job the peak itself fell); every thread, DDS's
 included, allocates from one arena under one lock (Python's lock already serialises the nodes'
 work; no loss was measured). Set ``GLS_KEEP_FREED_MEMORY=0`` in the environment to leave glibc's
 defaults. No maintained Python library sets these options; the standard library's ``ctypes`` calls
@@ -20,9 +19,7 @@ glibc's ``mallopt`` directly. On a C library other than glibc nothing is changed
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import os
-import platform
 
 # mallopt's parameter numbers (glibc's malloc.h)
 _M_TRIM_THRESHOLD = -1
@@ -58,11 +55,10 @@ def keep_freed_memory() -> bool:
     """
     if os.environ.get(ENVIRONMENT_SWITCH, "1").strip() == "0":
         return False
-    if platform.libc_ver()[0] != "glibc":
-        return False
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
+        process = ctypes.CDLL(None)         # the symbols already loaded, the C library's among them
+        process.gnu_get_libc_version        # glibc's own: another C library's options differ
+        mallopt = process.mallopt
     except (OSError, AttributeError):
         return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
