@@ -6,9 +6,9 @@ departure, so that the outliers being looked for do not set it.
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
+from scipy.special import ndtri
 
-NORMAL_MAD_SCALE = float(1.0 / stats.norm.ppf(0.75))
+NORMAL_MAD_SCALE = float(1.0 / ndtri(0.75))
 """Standard deviations per median absolute departure of a normal sample (1.4826)."""
 
 

@@ -28,7 +28,7 @@ sharp lines along rays would put its own phase-dependent width pattern on every 
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
+from scipy.special import fdtrc
 from scipy.signal import savgol_filter
 
 from gls_calibration.common.robust import robust_sigma
@@ -207,5 +207,5 @@ def merged(signature: np.ndarray, covariance: np.ndarray, groups: np.ndarray, re
     t_squared = np.einsum("mi,mij,mj->m", excess[check], np.linalg.inv(total[check]), excess[check])
     dof = groups[check].astype(float)
     statistic = t_squared * (dof - SIGNATURE_DOF) / (SIGNATURE_DOF * (dof - 1))
-    flagged[check] = stats.f.sf(statistic, SIGNATURE_DOF, dof - SIGNATURE_DOF) < false_alarm
+    flagged[check] = fdtrc(SIGNATURE_DOF, dof - SIGNATURE_DOF, statistic) < false_alarm
     return flagged

@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 
 from gls_calibration.common.validation import as_finite_array
 
@@ -117,6 +116,8 @@ def estimate_plate_pose(points, *, distance_threshold_mm: float = 0.2, head_dire
                         ransac_iterations: int = 1000) -> PlatePose:
     """Fit the plate plane to a scanner cloud: (N, 3) or organized (H, W, 3), NaNs allowed (dropped).
 
+    The first call in a process imports Open3D (about 1 s of CPU; see ``benchmarks/bench_startup.py``).
+
     Parameters
     ----------
     points : array_like
@@ -174,6 +175,9 @@ def estimate_plate_pose(points, *, distance_threshold_mm: float = 0.2, head_dire
         # Drawing with replacement is much faster than without and a repeat is harmless to RANSAC.
         sample = cloud[rng.integers(0, len(cloud), int(RANSAC_SUBSAMPLE * len(cloud) / finite_count))]
         sample = sample[np.isfinite(sample @ np.ones(3))]
+    # Imported here, not with the module: Open3D loads its plotting stack too, which every process
+    # that imports PlatePose would otherwise pay at start-up.
+    import open3d as o3d
     o3d.utility.random.seed(int(rng.integers(2**31 - 1)))
     o3d_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample))
     (a, b, c, d), _ = o3d_cloud.segment_plane(distance_threshold=distance_threshold_mm, ransac_n=3,
