@@ -3,43 +3,16 @@ and the stage folders import only the stages before them, without circles."""
 from __future__ import annotations
 
 import ast
-import json
 from pathlib import Path
-import subprocess
-import sys
 
-import gls_calibration
+from import_probe import PACKAGE, loaded_roots, module_name_of, module_names
 
-PACKAGE = Path(gls_calibration.__file__).parent
 ROS_ROOTS = ("rclpy", "rcl_interfaces", "builtin_interfaces", "std_srvs", "rosidl_runtime_py")
-
-PROBE = """
-import importlib, json, sys
-for name in sys.argv[1:]:
-    importlib.import_module(name)
-roots = sorted({name.split(".")[0] for name in sys.modules})
-print(json.dumps(roots))
-"""
-
-
-def module_name_of(path: Path) -> str:
-    """The dotted module name of a file of the package."""
-    parts = path.relative_to(PACKAGE).with_suffix("").parts
-    if parts[-1] == "__init__":
-        parts = parts[:-1]
-    return ".".join(("gls_calibration",) + parts)
-
-
-def module_names(include_nodes: bool) -> list[str]:
-    return [module_name_of(path) for path in sorted(PACKAGE.rglob("*.py"))
-            if include_nodes or path.relative_to(PACKAGE).parts[0] not in ("ros", "nodes", "cli")]
 
 
 def loaded_ros_packages(modules: list[str]) -> list[str]:
     """Top-level ROS packages in sys.modules of a fresh interpreter after importing ``modules``."""
-    result = subprocess.run([sys.executable, "-c", PROBE, *modules], capture_output=True, text=True, check=True)
-    roots = json.loads(result.stdout)
-    return [root for root in roots if root in ROS_ROOTS or root.endswith("_msgs")]
+    return [root for root in loaded_roots(modules) if root in ROS_ROOTS or root.endswith("_msgs")]
 
 
 def test_core_modules_import_neither_rclpy_nor_messages():
