@@ -29,7 +29,8 @@ from gls_calibration.registration.sweep_plan import parse_plan, plan_label
 from gls_calibration.simulation.reference_plate import calibration_plan, measure_chain_map
 from gls_calibration.simulation.world import load_sim_config
 
-PLANS = ((4, "0+,0-,90+,90-"), (1, "0+,0-,90+,90-"), (2, "0+,90+"), (1, "0+,90+"), (1, "0+"))
+PLANS = ((4, "0+,0-,90+,90-"), (1, "0+,0-,90+,90-"), (2, "0+,90+"), (1, "0+,90+"), (1, "0+"), (4, "0+,90+,45+"),
+         (1, "0+,90+,45+"))
 """(plain sweeps, passes over the marked plate); the first is config/gls.yaml's."""
 
 
@@ -60,7 +61,7 @@ def main() -> None:
     parser.add_argument("--chain-map", action="store_true", help="also run each plan with a chain map of its lines")
     parser.add_argument("--map-only", action="store_true", help="with --chain-map: only the runs with the map")
     parser.add_argument("--plan", action="append", metavar="PLAIN:PASSES",
-                        help="a plan to run, e.g. 1:0+,0-,90+,90- (repeatable; default: the table's five)")
+                        help="a plan to run, e.g. 1:0+,0-,90+,90- (repeatable; default: the table's seven)")
     args = parser.parse_args()
     plans = PLANS
     if args.plan:

@@ -12,13 +12,16 @@ the same core steps as the nodes, without ROS -- with the calibration manager's 
 existed, for the "no loss" comparison); ``--along-prior MM`` sets the separation's along-track prior
 (the robot's along-track accuracy; default: the code's default).
 
+``--sweep-plan PLAN`` replaces the plan's passes over the marked plates (and the lines of the chain
+map) by PLAN, e.g. ``0+,90+,45+``.
+
 ``--chain-map`` runs every calibration twice on the same cell: without and with a chain map
 (``registration/chain_map.py``), measured before the calibration on the certified plate over the whole field
 (``reference_plate.FIELD_PLATE``) along the calibration's lines, ``--map-repeats`` sweeps per line
 (default 2), and prints the figures side by side with the map's cell time.
 
 Run: .venv/bin/python benchmarks/bench_honest_robot.py [--presets paper_like careful] [--seeds 1 2 3 4 5]
-     [--chain-map [--map-repeats 2]]
+     [--chain-map [--map-repeats 2]] [--sweep-plan PLAN]
 """
 from __future__ import annotations
 
@@ -33,6 +36,7 @@ from direct_runs import calibrate_validated, direct_cell, plan_settings
 from gls_calibration.calibration import procedure
 from gls_calibration.registration.chain_map import ChainMap
 from gls_calibration.registration.separation import SeparationSettings
+from gls_calibration.registration.sweep_plan import parse_plan
 from gls_calibration.simulation.reference_plate import FIELD_PLATE, calibration_plan, measure_chain_map
 from gls_calibration.simulation.world import load_sim_config
 
@@ -46,16 +50,18 @@ def cell_config(preset: str, seed: int, robot: bool):
     return dataclasses.replace(config, seed=seed, measurement=chain)
 
 
-def map_cell_time_s(repeats: int) -> float:
-    """Cell time of a chain map: ``repeats`` sweeps of every line of the plan, a robot move before each."""
+def map_cell_time_s(repeats: int, plan=None) -> float:
+    """Cell time of a chain map: ``repeats`` sweeps of every line of the plan (default: config/gls.yaml's)."""
     timing = procedure.ProcedureSettings().cell_time
-    return repeats * len(calibration_plan().passes) * timing.plate_s(1, 0.0)
+    return repeats * len((plan or calibration_plan()).passes) * timing.plate_s(1, 0.0)
 
 
 def calibrate_once(preset: str, seed: int, robot: bool, separation: SeparationSettings | None, store_dir: Path,
-                   chain_map: ChainMap | None = None) -> dict:
+                   chain_map: ChainMap | None = None, sweep_plan: str | None = None) -> dict:
     cell = direct_cell(cell_config(preset, seed, robot), store_dir)
     settings = plan_settings(cell, chain_map=chain_map)
+    if sweep_plan is not None:
+        settings = dataclasses.replace(settings, sweep_plan=parse_plan(sweep_plan))
     if separation is not None:
         settings = dataclasses.replace(settings, separation=separation)
     began = time.perf_counter()
@@ -74,11 +80,18 @@ def main() -> None:
     parser.add_argument("--along-prior", type=float, default=None, help="separation along_prior_sigma_mm")
     parser.add_argument("--chain-map", action="store_true", help="also calibrate with a chain map; both side by side")
     parser.add_argument("--map-repeats", type=int, default=2, help="sweeps per line of the chain map (default 2)")
+    parser.add_argument("--sweep-plan", default=None, metavar="PLAN",
+                        help="passes over the marked plates instead of config/gls.yaml's, e.g. 0+,90+,45+")
     args = parser.parse_args()
+    if args.sweep_plan is not None:
+        try:
+            parse_plan(args.sweep_plan)
+        except ValueError as error:
+            parser.error(f"--sweep-plan: {error}")
     if args.map_repeats < 1:
         parser.error("--map-repeats must be at least 1")
     separation = None if args.along_prior is None else SeparationSettings(along_prior_sigma_mm=args.along_prior)
-    print(f"robot repeating errors {args.robot}; along prior "
+    print(f"plan {args.sweep_plan or calibration_plan().label}; robot repeating errors {args.robot}; along prior "
           f"{SeparationSettings().along_prior_sigma_mm if args.along_prior is None else args.along_prior} mm")
     if args.chain_map:
         compare_chain_map(args, separation)
@@ -89,7 +102,8 @@ def main() -> None:
         rows = []
         for seed in args.seeds:
             with tempfile.TemporaryDirectory() as folder:
-                row = calibrate_once(preset, seed, args.robot == "on", separation, Path(folder))
+                row = calibrate_once(preset, seed, args.robot == "on", separation, Path(folder),
+                                     sweep_plan=args.sweep_plan)
             rows.append(row)
             print(f"{preset:11s} {seed:4d} {row['pre_rms']:7.4f} {row['measured_rms']:9.4f} {row['measured_max']:9.4f} "
                   f"{row['true_rms']:9.4f} {row['true_max']:9.4f} {row['true_rms'] / row['measured_rms']:9.2f} "
@@ -102,8 +116,11 @@ def main() -> None:
 
 def compare_chain_map(args: argparse.Namespace, separation: SeparationSettings | None) -> None:
     """TRUE and MEASURED without and with a chain map, per preset and seed, and their medians."""
-    print(f"chain map: {FIELD_PLATE.label}, {args.map_repeats} sweep(s) per line of {calibration_plan().label}, "
-          f"cell time {map_cell_time_s(args.map_repeats):.0f} s; mm")
+    plan = calibration_plan()
+    if args.sweep_plan is not None:
+        plan = dataclasses.replace(plan, passes=parse_plan(args.sweep_plan))
+    print(f"chain map: {FIELD_PLATE.label}, {args.map_repeats} sweep(s) per line of {plan.label}, "
+          f"cell time {map_cell_time_s(args.map_repeats, plan):.0f} s; mm")
     print(f"{'preset':11s} {'seed':>4s} {'MEAS w/o':>9s} {'MEAS map':>9s} {'TRUE w/o':>9s} {'TRUE map':>9s} "
           f"{'TMAX w/o':>9s} {'TMAX map':>9s} {'map fit x/y':>13s}")
     keys = ("measured_rms", "measured_rms_map", "true_rms", "true_rms_map", "true_max", "true_max_map")
@@ -111,11 +128,12 @@ def compare_chain_map(args: argparse.Namespace, separation: SeparationSettings |
         rows = []
         for seed in args.seeds:
             config = cell_config(preset, seed, args.robot == "on")
-            chain_map = measure_chain_map(config, calibration_plan(), seed=seed, repeats=args.map_repeats)
+            chain_map = measure_chain_map(config, plan, seed=seed, repeats=args.map_repeats)
             row = {}
             for suffix, used in (("", None), ("_map", chain_map)):
                 with tempfile.TemporaryDirectory() as folder:
-                    result = calibrate_once(preset, seed, args.robot == "on", separation, Path(folder), used)
+                    result = calibrate_once(preset, seed, args.robot == "on", separation, Path(folder), used,
+                                            args.sweep_plan)
                 row.update({f"{key}{suffix}": value for key, value in result.items()})
             rows.append(row)
             fit = chain_map.residual_rms_mm

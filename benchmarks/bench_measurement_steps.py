@@ -10,8 +10,10 @@ A repeating error of the robot's reported pose is measured again on every run of
 it is in this figure as in the calibration's TRUE error, but not in the validation plate's MEASURED
 figure (see ``calibration/stated_accuracy.py``).
 
+``--plans P [P ...]`` measures only the given plans, placed by pose (e.g. ``0+,90+,45+``).
+
 Run: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_measurement_steps.py
-     [--preset paper_like] [--seeds 1 2 3]
+     [--preset paper_like] [--seeds 1 2 3] [--plans 0+,0-,90+,90- 0+,90+,45+]
 """
 from __future__ import annotations
 
@@ -56,10 +58,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="paper_like")
     parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3])
+    parser.add_argument("--plans", nargs="+", metavar="PLAN", help="only these plans, placed by pose")
     args = parser.parse_args()
+    ways = WAYS
+    if args.plans:
+        for plan in args.plans:
+            try:
+                parse_plan(plan)
+            except ValueError as error:
+                parser.error(f"--plans: {error}")
+        ways = tuple((f"{plan} by pose", plan, True) for plan in args.plans)
     print(f"DirectCell, {args.preset}, one 19x19 plate marked through the nominal model; MEASURED - TRUE "
           "deviations, common shift removed, RMS / max of the 2-D error (mm)")
-    for label, passes, by_pose in WAYS:
+    for label, passes, by_pose in ways:
         rows = []
         for seed in args.seeds:
             with tempfile.TemporaryDirectory() as store:

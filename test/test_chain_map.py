@@ -11,11 +11,16 @@ import pytest
 from gls_calibration.fiducials.measure import FiducialMeasurement
 from gls_calibration.registration.chain_map import (NO_CHAIN_MAP, ChainMap, ChainMapFit, ReferenceSweep,
                                                     chain_map_identity, correct_measurements, fit_chain_map,
-                                                    load_chain_map, save_chain_map, travel_axis)
+                                                    load_chain_map, save_chain_map, travel_direction)
 from gls_calibration.registration.sweep_plan import parse_plan
 from gls_calibration.scan.plate_pose import estimate_plate_pose
 
 LINES = ("0+", "0-", "90+", "90-")
+
+
+def travel_axis(line: str) -> int:
+    """The B axis (0: x, 1: y) along which an axis-aligned line travels."""
+    return int(np.argmax(np.abs(travel_direction(line))))
 
 
 def true_error(line: str, xy: np.ndarray) -> np.ndarray:
@@ -70,6 +75,31 @@ def test_fit_recovers_a_known_field_and_its_scale():
         assert abs(fitted - wanted) < 2e-5, (line, fitted, wanted)
     assert max(chain_map.residual_rms_mm) < 0.004
     assert chain_map.sweeps_per_line == 2
+
+
+def test_a_45_deg_line_is_mapped_along_its_diagonal_travel():
+    """The 45 deg line's coordinate runs along its travel, (-1, 1) / sqrt(2) in B: an error that is a
+    function of it comes back, beside a 0 deg line without error that holds the plate."""
+    assert np.allclose(travel_direction("45-"), [-math.sqrt(0.5), math.sqrt(0.5)])
+    rng = np.random.default_rng(3)
+    axis = (np.arange(19) - 9) * 10.0
+    known = np.array([(a, b) for b in axis for a in axis])
+    placed = known + np.array([0.0, 100.0])
+    direction = travel_direction("45+")
+
+    def error(xy):
+        u = (xy - [0.0, 100.0]) @ direction
+        across = np.array([direction[1], -direction[0]])
+        return np.outer(0.04 * np.sin(u / 19.0) + 2e-4 * u, direction) + np.outer(0.01 * np.cos(u / 13.0), across)
+
+    sweeps = [ReferenceSweep(line, 0, known, placed + (error(placed) if line == "45+" else 0.0)
+                             + 0.002 * rng.standard_normal(placed.shape)) for line in ("0+", "45+") for _ in range(2)]
+    chain_map = fit_chain_map(sweeps, "synthetic plate")
+    u = np.linspace(-85.0, 85.0, 35)
+    points = np.array([0.0, 100.0]) + np.outer(u, direction)
+    difference = chain_map.error_mm("45+", points) - error(points)
+    assert np.sqrt(np.mean(difference ** 2)) < 0.004, difference
+    assert np.max(np.abs(chain_map.error_mm("0+", points - np.outer(u, direction) + np.outer(u, [0.0, 1.0])))) < 0.004
 
 
 def test_no_field_fits_to_noise_only():
@@ -165,8 +195,8 @@ def _good_file() -> dict:
     (lambda d: d["chain_map"].update(lines=[]), "chain_map.lines must be a list of one or more line maps"),
     (lambda d: d["chain_map"]["lines"].append(d["chain_map"]["lines"][0]),
      "chain_map.lines maps a line twice: 0+, 0+"),
-    (lambda d: d["chain_map"]["lines"][0].update(line="45+"),
-     "chain_map line '45+': sweep plan orientation must be 0 or 90 deg, got 45.0"),
+    (lambda d: d["chain_map"]["lines"][0].update(line="30+"),
+     "chain_map line '30+': sweep plan orientation must be 0, 45 or 90 deg, got 30.0"),
     (lambda d: d["chain_map"]["lines"][0].update(line="0+,0-"),
      "chain_map line must be one sweep plan item, got '0+,0-'"),
     (lambda d: d["chain_map"]["lines"][0].update(knot_spacing_mm=0),
@@ -223,8 +253,8 @@ def test_bad_fit_inputs_are_refused():
     with pytest.raises(ValueError, match="^reference sweep 1: centres must be finite$"):
         fit_chain_map([good[0], dataclasses.replace(good[1], measured_xy_mm=nan)], "plate")
     with pytest.raises(ValueError, match=r"^reference sweep 0: line must be one sweep plan item such as 0\+, "
-                                         r"got '45\+'$"):
-        fit_chain_map([dataclasses.replace(good[0], line="45+")], "plate")
+                                         r"got '30\+'$"):
+        fit_chain_map([dataclasses.replace(good[0], line="30+")], "plate")
     with pytest.raises(ValueError, match="^reference sweep 0: plate must be a non-negative integer, got -1$"):
         fit_chain_map([dataclasses.replace(good[0], plate=-1)], "plate")
     with pytest.raises(ValueError, match="^chain map fit knot_spacing_mm must be a positive finite number, got 0$"):

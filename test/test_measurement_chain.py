@@ -318,7 +318,8 @@ def plan_centres(scanner_chain: MeasurementChain, direction: int, orientation: f
     return found[np.argmin(np.linalg.norm(found[:, None, :] - CENTRES_B[None, :, :], axis=2), axis=0)]
 
 
-@pytest.mark.parametrize("direction, orientation", [(1, 0.0), (-1, 0.0), (1, 90.0), (-1, 90.0)])
+@pytest.mark.parametrize("direction, orientation", [(1, 0.0), (-1, 0.0), (1, 90.0), (-1, 90.0), (1, 45.0),
+                                                    (-1, 45.0)])
 def test_every_direction_and_orientation_measures_the_plate_in_the_base_frame(direction, orientation):
     measured = plan_centres(MeasurementChain(), direction, orientation, "time")
     assert np.abs(measured - CENTRES_B).max() < 0.005
@@ -335,6 +336,9 @@ def test_scanner_frame_errors_change_sign_or_axis_with_the_sweep():
     turned = plan_centres(linear, 1, 90.0, "time") - CENTRES_B
     # turned by 90 deg, the line runs along base y: the lateral error moves y, not x
     assert np.abs(turned[:, 0]).max() < 0.004 and np.abs(turned[:, 1]).max() > 0.02
+    diagonal = plan_centres(linear, 1, 45.0, "time") - CENTRES_B
+    # at 45 deg along the line (1, 1) / sqrt(2): the lateral error moves x and y alike, nothing across
+    assert np.abs(diagonal[:, 0] - diagonal[:, 1]).max() < 0.006 and np.abs(diagonal).max() > 0.015
     for direction, orientation in ((1, 0.0), (-1, 0.0), (1, 90.0), (-1, 90.0)):
         assert np.abs(plan_centres(scale, direction, orientation, "pose") - CENTRES_B).max() < 0.005
 
@@ -353,8 +357,8 @@ def test_reported_poses_follow_the_true_travel_and_profiles_carry_them():
     profiles = list(scanner.sweep(Plate(FLAT), 20.0, seed=7, direction=-1, orientation_deg=90.0))
     assert np.allclose(profiles[50].reported_pose, data.reported_poses[50])
     assert np.allclose(profiles[50].points["y"], -50 * 0.1, atol=1e-5)
-    with pytest.raises(ValueError, match="orientation_deg must be 0 or 90"):
-        scanner.sweep_data(Plate(FLAT), 20.0, orientation_deg=45.0)
+    with pytest.raises(ValueError, match="orientation_deg must be 0, 45 or 90"):
+        scanner.sweep_data(Plate(FLAT), 20.0, orientation_deg=30.0)
     with pytest.raises(ValueError, match="direction must be"):
         scanner.sweep_data(Plate(FLAT), 20.0, direction=2)
 
@@ -397,8 +401,8 @@ def test_reference_plate_calibration_plan_is_the_calibration_managers(tmp_path):
                                              plain_step_mm=defaults.plain_sweep_step_mm,
                                              marked_step_mm=defaults.marked_sweep_step_mm)
     bad = tmp_path / "bad.yaml"
-    bad.write_text("/**:\n  ros__parameters:\n    sweep: {plan: '0+,45-'}\n")
-    with pytest.raises(ValueError, match=r"bad.yaml: sweep plan orientation must be 0 or 90 deg, got 45.0"):
+    bad.write_text("/**:\n  ros__parameters:\n    sweep: {plan: '0+,30-'}\n")
+    with pytest.raises(ValueError, match=r"bad.yaml: sweep plan orientation must be 0, 45 or 90 deg, got 30.0"):
         calibration_plan(bad)
 
 

@@ -107,3 +107,23 @@ def test_a_failed_acquisition_drops_a_measurement_that_never_began():
         with pytest.raises(procedure.CalibrationError, match=r"^sweep 2 failed$"):
             measure(cell)
     assert ("measure begins", 1) not in cell.log
+
+
+def test_a_45_deg_pass_needs_the_share_of_the_fiducials_in_its_view():
+    """A 45 deg pass sees the grid's middle band: of the 19 x 19 grid, the 277 inside the grid's square
+    turned with it (``sweep_plan.in_view``); 90 % of those (250) are enough for it, 90 % of all for the others."""
+    grid = np.stack(np.meshgrid(np.arange(19.0), np.arange(19.0)), -1).reshape(-1, 2) * 10.0 - 90.0
+    settings = procedure.ProcedureSettings(sweep_plan=parse_plan("0+,90+,45+"))
+
+    def run(found):
+        cell = ScriptedCell(side_by_side=True, found=found)
+        return asyncio.run(procedure.measure_marked_plate(cell, settings, None, len(grid), lambda *_: None,
+                                                          targets_gls=grid))
+
+    assert [len(item.centres) for item in run({2: 250})] == [361, 361, 250]
+    with pytest.raises(procedure.CalibrationError,
+                       match=r"^found 249 of the 277 in its view of 361 fiducials; at least 250 \(90%\) are "
+                             r"needed \(sweep 45\+ of 0\+,90\+,45\+\)$"):
+        run({2: 249})
+    with pytest.raises(procedure.CalibrationError, match=r"^found 324 of 361 fiducials; at least 325 \(90%\)"):
+        run({1: 324})

@@ -27,9 +27,9 @@ def test_sweep_direction_orientation_and_reported_pose_stream(start_cell):
     cell.client_node.create_subscription(PoseStamped, "scan/pose", poses.append, qos)
     cell.client_node.create_subscription(PointCloud2, "scan/points", lambda m: stamps.append(m.header.stamp), qos)
     cell.client_node.create_subscription(SweepDone, "scan/sweep_done", done.append, qos)
-    refused = cell.call(StartSweep, "scanner/start_sweep", StartSweep.Request(length_mm=2.0, orientation_deg=45.0),
+    refused = cell.call(StartSweep, "scanner/start_sweep", StartSweep.Request(length_mm=2.0, orientation_deg=30.0),
                         10.0)
-    assert not refused.success and "orientation_deg 0 or 90" in refused.message
+    assert not refused.success and "orientation_deg 0, 45 or 90" in refused.message
     refused = cell.call(StartSweep, "scanner/start_sweep", StartSweep.Request(length_mm=2.0, direction=2), 10.0)
     assert not refused.success and "direction must be +1 or -1" in refused.message
     started = cell.call(StartSweep, "scanner/start_sweep",

@@ -23,7 +23,7 @@ def test_a_plan_reads_and_writes_back():
     ("", "must be an orientation"),
     ("0", "must be an orientation"),
     ("x+", "is not a number"),
-    ("45+", "orientation must be 0 or 90"),
+    ("30+", "orientation must be 0, 45 or 90"),
     ("0+,,90-", "must be an orientation"),
 ])
 def test_a_bad_plan_is_refused_with_the_item_named(text, message):

@@ -28,7 +28,8 @@ from gls_calibration.models.training import TrainedModel
 from gls_calibration.registration.chain_map import ChainMap, chain_map_identity, correct_measurements
 from gls_calibration.registration.rigid import RigidTransform, align_rigid_2d, pair_with_targets
 from gls_calibration.registration.separation import SeparationSettings
-from gls_calibration.registration.sweep_plan import CellTimeModel, CombinedSweeps, SweepPass, combine_sweeps, plan_label
+from gls_calibration.registration.sweep_plan import (CellTimeModel, CombinedSweeps, SweepPass, combine_sweeps,
+                                                     in_view, plan_label)
 from gls_calibration.scan.plate_marks import existing_marks
 from gls_calibration.scan.plate_pose import PlatePose, mean_plate_pose, pose_at_height
 
@@ -62,7 +63,7 @@ class Cell(Protocol):
         """Sweep the scanner over the plate and return the cloud in the scanner (base) frame.
 
         Profiles are ``step_mm`` apart, along the sensor's +y (``direction`` 1) or -y (-1), the
-        sensor turned by ``orientation_deg`` (0 or 90) about its viewing axis. The cloud is in the
+        sensor turned by ``orientation_deg`` (0, 45 or 90) about its viewing axis. The cloud is in the
         scanner (base) frame whatever the direction and orientation, placed by the robot's reported
         pose where the cell has one (see ``scan/sweep.py``).
         """
@@ -452,24 +453,33 @@ async def plate_height_at_marking(cell: Cell, settings: ProcedureSettings, pose_
 
 
 async def measure_marked_plate(cell: Cell, settings: ProcedureSettings, pose_scanner: PlatePose,
-                               expected_count: int, report: Progress
-                               ) -> list[FiducialMeasurement]:
+                               expected_count: int, report: Progress, *,
+                               targets_gls: Optional[np.ndarray] = None) -> list[FiducialMeasurement]:
     """Scan the marked plate by the sweep plan and measure each sweep while the next is scanned.
 
     The measurement of sweep k runs (``Cell.start``) while sweep k + 1 is acquired; its result is taken
-    after that acquisition. A sweep with fewer than ``min_found_fraction`` of the fiducials fails the
-    run; on any failure the measurement still running is awaited first, so that nothing of this run
-    goes on behind its error.
+    after that acquisition. A sweep with fewer than ``min_found_fraction`` of the fiducials in its view
+    fails the run: of all ``expected_count`` at 0 and 90 deg; a 45 deg pass sees the middle band of
+    the plate, and with ``targets_gls`` (N, 2+) it needs that share of the targets it is sure to see
+    (``sweep_plan.in_view``; without them, of all). On any failure the measurement still running is
+    awaited first, so that nothing of this run goes on behind its error.
     """
     plan = settings.sweep_plan
-    needed = fiducials_needed(settings, expected_count)
+    in_view_count = {item: expected_count for item in plan}
+    if targets_gls is not None:
+        targets_b = settings.scanner_to_gls.inverse().apply(
+            np.column_stack([np.asarray(targets_gls, dtype=float)[:, :2], np.zeros(len(targets_gls))]))
+        in_view_count = {item: int(np.count_nonzero(in_view(item, targets_b[:, :2]))) for item in plan}
     measurements: list[FiducialMeasurement] = []
 
     async def take(item: SweepPass, pending: Awaitable[FiducialMeasurement]) -> None:
         found = await pending
+        needed = fiducials_needed(settings, in_view_count[item])
         if len(found.centres) < needed:
             which = f" (sweep {item.label} of {plan_label(plan)})" if len(plan) > 1 else ""
-            raise CalibrationError(f"found {len(found.centres)} of {expected_count} fiducials; at least {needed} "
+            of = (f"{expected_count}" if in_view_count[item] == expected_count
+                  else f"the {in_view_count[item]} in its view of {expected_count}")
+            raise CalibrationError(f"found {len(found.centres)} of {of} fiducials; at least {needed} "
                                    f"({settings.min_found_fraction:.0%}) are needed{which}")
         measurements.append(found)
 
@@ -582,7 +592,7 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
     marking_s = await cell.mark(setpoints.alpha_x, setpoints.alpha_y, setpoints.focus_shift, starts)
 
     plan, needed = settings.sweep_plan, fiducials_needed(settings, len(grid_xy))
-    measurements = await measure_marked_plate(cell, settings, pose_scanner, len(grid_xy), report)
+    measurements = await measure_marked_plate(cell, settings, pose_scanner, len(grid_xy), report, targets_gls=grid_xy)
     report("measurement", 0.85, "combining the sweeps")
     centres_gls, combined = combined_centres_gls(measurements, settings, targets, pose_scanner)
     pairing = pair_with_targets(centres_gls, targets)

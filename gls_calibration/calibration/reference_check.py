@@ -228,7 +228,8 @@ async def scan_reference_check(cell: procedure.Cell, settings: ProcedureSettings
         raise ValueError("reference must name the plate and its certificate")
     pose_scanner = await procedure.scan_plate_pose(cell, settings, progress, check_clean=False,
                                                    plate="reference plate")
-    measurements = await procedure.measure_marked_plate(cell, settings, pose_scanner, len(known_gls), progress)
+    measurements = await procedure.measure_marked_plate(cell, settings, pose_scanner, len(known_gls), progress,
+                                                        targets_gls=known_gls)
     progress("measurement", 0.85, "combining the sweeps")
     measured, known = paired_centres(measurements, settings, known_gls, pose_scanner)
     needed = procedure.fiducials_needed(settings, len(known_gls))

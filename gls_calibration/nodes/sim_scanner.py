@@ -8,7 +8,7 @@ sees the real plate.
 
 Hooks for placing profiles by pose and for sweep plans (see ``simulation/scanner.py``):
 
-- ``StartSweep.direction`` (+1 / -1, 0 means +1) and ``StartSweep.orientation_deg`` (0 or 90);
+- ``StartSweep.direction`` (+1 / -1, 0 means +1) and ``StartSweep.orientation_deg`` (0, 45 or 90);
   ``SweepDone.direction`` is then ``(0, direction, 0)`` in the sensor frame.
 - ``scanner/start_standstill`` (``StartSweep``): profiles taken with the robot standing still at the
   marking pose, the sensor over the middle of the sweep (``LaserLineScanner.standstill``): as many
@@ -31,13 +31,14 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.duration import Duration
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG
 from gls_calibration.ros import conversions
 from gls_calibration.ros.base import GlsNode
 from gls_calibration.ros.request_ids import AnsweredRequests
 from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import ServiceCallError, answers_errors
 from gls_calibration.ros.sim_parameters import declare_sim_config
-from gls_calibration.simulation.scanner import ORIENTATIONS_DEG, Profile
+from gls_calibration.simulation.scanner import Profile
 from gls_calibration_msgs.msg import SweepDone
 from gls_calibration_msgs.srv import GetMarkedPaths, StartSweep
 from geometry_msgs.msg import PoseStamped
@@ -123,7 +124,7 @@ class SimScannerNode(GlsNode):
             return response
         if direction not in (1, -1) or request.orientation_deg not in ORIENTATIONS_DEG:
             response.success = False
-            response.message = (f"direction must be +1 or -1 (got {request.direction}) and orientation_deg 0 or 90 "
+            response.message = (f"direction must be +1 or -1 (got {request.direction}) and orientation_deg 0, 45 or 90 "
                                 f"(got {request.orientation_deg:g})")
             return response
         try:

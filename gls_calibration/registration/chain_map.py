@@ -76,21 +76,30 @@ MAX_ERROR_MM = 5.0
 """Largest error a map may hold at a knot: a robot off by more is broken, not mapped."""
 
 
-def travel_axis(line: str) -> int:
-    """Return the index of the B axis along which line ``line`` travels.
+def travel_direction(line: str) -> np.ndarray:
+    """Return the unit vector (2,) in B x-y along which the coordinate of line ``line`` runs.
 
-    Index of the B axis along which line ``line`` (a sweep-plan label) travels: 1 (y) for the
-    sensor as mounted, 0 (x) for the sensor turned 90 deg.
+    The B axis the line (a sweep-plan label) travels along: y for the sensor as mounted, x for the
+    sensor turned 90 deg; for the 45 deg line its travel with a positive y component,
+    (-1, 1) / sqrt(2). Either travel direction of a line gives the same coordinate.
     """
     (item,) = parse_plan(line)
-    return 1 if item.orientation_deg == 0.0 else 0
+    if item.orientation_deg in (0.0, 90.0):
+        return np.array([0.0, 1.0]) if item.orientation_deg == 0.0 else np.array([1.0, 0.0])
+    angle = math.radians(item.orientation_deg)
+    return np.array([-math.sin(angle), math.cos(angle)])
+
+
+def travel_coordinate(line: str, xy_mm: np.ndarray) -> np.ndarray:
+    """Return the coordinate (N,) of points ``xy_mm`` (N, 2+, B, mm) along :func:`travel_direction`."""
+    return np.asarray(xy_mm, dtype=float)[:, :2] @ travel_direction(line)
 
 
 @dataclass(frozen=True)
 class LineMap:
     """The repeating error of one programmed line: ``e_x, e_y`` (mm, B frame) at knots along its travel.
 
-    Knot ``i`` is at ``u = first_knot_mm + i * knot_spacing_mm`` on the B axis of :func:`travel_axis`;
+    Knot ``i`` is at ``u = first_knot_mm + i * knot_spacing_mm`` along the travel (:func:`travel_coordinate`);
     between knots a natural cubic spline. ``error_mm`` evaluates it; outside the knots it refuses.
     """
 
@@ -148,7 +157,7 @@ class LineMap:
         ValueError for a point beyond the first or last knot: the map says nothing there.
         """
         xy = np.asarray(xy_mm, dtype=float)
-        u = xy[:, travel_axis(self.line)]
+        u = travel_coordinate(self.line, xy)
         knots = self.knots_mm
         tolerance = 1e-9 * self.knot_spacing_mm
         if not np.all(np.isfinite(u)) or np.any(u < knots[0] - tolerance) or np.any(u > knots[-1] + tolerance):
@@ -456,8 +465,7 @@ def fit_chain_map(sweeps: Sequence[ReferenceSweep], reference: str, fit: ChainMa
         poses[plate] = alignment
     knots = {}
     for label in labels:
-        axis = travel_axis(label)
-        u = np.concatenate([m[:, axis] for lab, _, _, m in checked if lab == label])
+        u = np.concatenate([travel_coordinate(label, m) for lab, _, _, m in checked if lab == label])
         h = fit.knot_spacing_mm
         first = math.floor((u.min() - fit.margin_mm) / h) * h
         count = int(math.ceil((u.max() + fit.margin_mm - first) / h)) + 1
@@ -476,7 +484,7 @@ def fit_chain_map(sweeps: Sequence[ReferenceSweep], reference: str, fit: ChainMa
         predicted = poses[plate].apply(known)
         residual = measured - predicted
         about = predicted - poses[plate].apply(np.zeros((1, 2)))
-        basis = _spline_basis(knots[label], measured[:, travel_axis(label)])
+        basis = _spline_basis(knots[label], travel_coordinate(label, measured))
         k = knots[label].size
         p = 3 * plates.index(plate)
         for component in (0, 1):

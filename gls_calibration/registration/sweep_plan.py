@@ -1,6 +1,6 @@
 """The sweep plan of the marked plate, its cell time, and the combination of its sweeps.
 
-A plan is a sequence of passes (direction +1/-1 along the sensor's y, sensor turned 0 or 90 deg
+A plan is a sequence of passes (direction +1/-1 along the sensor's y, sensor turned 0, 45 or 90 deg
 about its viewing axis). Every sweep's fiducials are paired with the targets, expressed in that
 sweep's sensor axes, and :func:`separation.separate` removes what is fixed to the scanner frame or
 to one sweep's motion; what is left is averaged. Clouds are in the scanner base frame (see
@@ -18,7 +18,10 @@ from gls_calibration.registration.rigid import RigidTransform, pair_with_targets
 from gls_calibration.registration.separation import TIME_PLACED, Separation, SeparationSettings, separate
 from gls_calibration.scan.sweep import nominal_start_pose
 
-ORIENTATIONS_DEG = (0.0, 90.0)
+ORIENTATIONS_DEG = (0.0, 45.0, 90.0)
+"""Turns of the sensor a pass may take, degrees. At 0 and 90 the sweep covers the whole grid; the
+diagonal pass covers its middle band (:func:`in_view`) and is what makes a symmetric shear of the
+marks observable apart from the sweeps' path yaw (docs/method-and-results.md, the 45 deg pass)."""
 
 
 @dataclass(frozen=True)
@@ -30,7 +33,7 @@ class SweepPass:
     direction : int, default 1
         +1 or -1.
     orientation_deg : float, default 0.0
-        0 or 90, degrees.
+        0, 45 or 90, degrees.
 
     Raises
     ------
@@ -46,7 +49,7 @@ class SweepPass:
         if self.direction not in (1, -1):
             raise ValueError(f"sweep plan direction must be +1 or -1, got {self.direction!r}")
         if self.orientation_deg not in ORIENTATIONS_DEG:
-            raise ValueError(f"sweep plan orientation must be 0 or 90 deg, got {self.orientation_deg!r}")
+            raise ValueError(f"sweep plan orientation must be 0, 45 or 90 deg, got {self.orientation_deg!r}")
 
     @property
     def label(self) -> str:
@@ -70,7 +73,7 @@ def parse_plan(text: str) -> tuple[SweepPass, ...]:
     Raises
     ------
     ValueError
-        If an item is not an orientation (0 or 90) followed by + or -, or the plan is empty.
+        If an item is not an orientation (0, 45 or 90) followed by + or -, or the plan is empty.
 
     Examples
     --------
@@ -83,7 +86,7 @@ def parse_plan(text: str) -> tuple[SweepPass, ...]:
     passes = []
     for item in (part.strip() for part in str(text).split(",")):
         if len(item) < 2 or item[-1] not in "+-":
-            raise ValueError(f"sweep plan item {item!r} must be an orientation (0 or 90) followed by + or -, "
+            raise ValueError(f"sweep plan item {item!r} must be an orientation (0, 45 or 90) followed by + or -, "
                              "e.g. 0+,0-,90+,90-")
         try:
             orientation = float(item[:-1])
@@ -109,6 +112,39 @@ def plan_label(passes: Sequence[SweepPass]) -> str:
         Comma-separated labels, e.g. ``"0+,0-,90+,90-"``.
     """
     return ",".join(item.label for item in passes)
+
+
+def in_view(item: SweepPass, points_xy_mm: np.ndarray) -> np.ndarray:
+    """Return which points a pass is sure to see: those inside its footprint's guaranteed square.
+
+    The plan's 0 and 90 deg passes must each cover every point, so the sensor's footprint holds the
+    points' bounding square in both; a pass turned by another angle holds at least that square
+    turned with it, about the same centre. At 0 and 90 deg every point is in view.
+
+    Parameters
+    ----------
+    item : SweepPass
+        The pass.
+    points_xy_mm : numpy.ndarray, shape (N, 2)
+        The points (targets) in the scanner base frame's x-y, mm.
+
+    Returns
+    -------
+    numpy.ndarray, shape (N,)
+        True where the point lies inside the turned square (1 um of slack).
+
+    Examples
+    --------
+    >>> corners = np.array([[-90.0, -90.0], [90.0, 90.0], [0.0, 0.0], [90.0, 0.0]])
+    >>> in_view(SweepPass(1, 45.0), corners).tolist()
+    [False, False, True, True]
+    """
+    points = np.asarray(points_xy_mm, dtype=float)[:, :2]
+    low, high = points.min(axis=0), points.max(axis=0)
+    half = 0.5 * float(np.max(high - low)) + 1e-3
+    axes = nominal_start_pose(0.0, item.direction, item.orientation_deg)[:2, :2]
+    local = (points - 0.5 * (low + high)) @ axes
+    return np.all(np.abs(local) <= half, axis=1)
 
 
 @dataclass(frozen=True)

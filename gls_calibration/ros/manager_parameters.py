@@ -123,8 +123,9 @@ MANAGER_PARAMETERS: tuple[ManagerParameter, ...] = (
     ManagerParameter("max_iterations", _SETTINGS.max_iterations, "most iterations a request may ask for (each "
                      "marks a fresh plate)", "integer", 1, procedure.ITERATIONS_LIMIT),
     ManagerParameter("sweep.plan", plan_label(_SETTINGS.sweep_plan), "passes over the marked plate, orientation "
-                     "(0|90 deg) and direction (+|-) each, e.g. 0+,0-,90+,90-: errors fixed to the scanner frame "
-                     "are separated from the marks", "text"),
+                     "(0|45|90 deg) and direction (+|-) each, e.g. 0+,0-,90+,90-: errors fixed to the scanner frame "
+                     "are separated from the marks; a 45 deg pass sees the plate's middle band and pins a shear "
+                     "of the marks", "text"),
     ManagerParameter("sweep.placed_by_pose", _SETTINGS.profiles_placed_by_pose, "the scanner driver publishes the "
                      "robot's reported pose (scan/pose): the travel is trusted for the scale; false: profiles "
                      "placed by time, the sensor's line scale is trusted", "flag"),

@@ -8,7 +8,7 @@ small unknown error (``mounting_error``, applied in B), and each sweep's path ma
 robot's repeatability (a constant per sweep) and wander along it (``MeasurementChain``).
 
 Sweeps (the hooks of the error-separation work). ``direction`` +1 moves the sensor along its +y,
--1 along its -y (the sensor does not turn); ``orientation_deg`` 0 or 90 turns the sensor about its
+-1 along its -y (the sensor does not turn); ``orientation_deg`` 0, 45 or 90 turns the sensor about its
 viewing axis (B's z) before the sweep, so a 90 deg sweep runs along B's x. Either way the sweep
 covers ``length_mm`` centred on ``(0, length_mm / 2, 0)`` of B. The sweep's *start frame* is the
 nominal sensor pose at its first profile (:meth:`LaserLineScanner.start_pose`, a 4x4 in B).
@@ -51,6 +51,7 @@ from gls_calibration.simulation.measurement import (MeasurementChain, lateral_li
                                                     smooth_process)
 from gls_calibration.common.validation import as_finite_array, as_non_negative_number, as_positive_number
 from gls_calibration.geometry.optics import plate_frame
+from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG
 from gls_calibration.simulation.plate import Plate
 
 PROFILE_DTYPE = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32), ("intensity", np.float32)])
@@ -61,7 +62,8 @@ _SPECKLE_STREAM = 2 ** 31 - 3   # correlated speckle, one sub-stream per profile
 _ROBOT_STREAM = 2 ** 31 - 4     # the robot's repeating errors, one sub-stream per line kind and component
 _WANDER_STREAM = 2 ** 31 - 5    # the per-sweep along-travel wander (apart, so old sweeps stay the same)
 _STANDSTILL_STREAM = 2 ** 31 - 6  # stand-still profiles: apart, so the sweeps' numbers stay the same
-ORIENTATIONS_DEG = (0.0, 90.0)
+_ORIENTATION_STREAM = {0.0: 0, 90.0: 1, 45.0: 2}
+"""Sub-stream of each orientation's repeating robot errors (0 and 90 as before 45 was added: the same draws)."""
 
 
 def pose_matrix(xyz_mm, rpy_rad) -> np.ndarray:
@@ -227,7 +229,7 @@ class LaserLineScanner:
         if key not in self._robot_fields:
             c = self.chain
             rng = np.random.default_rng([self.robot_seed, _ROBOT_STREAM, component, direction + 1,
-                                         ORIENTATIONS_DEG.index(orientation_deg)])
+                                         _ORIENTATION_STREAM[orientation_deg]])
             if component == 3:
                 self._robot_fields[key] = float(c.robot_scale_error * rng.standard_normal())
             elif component == 0:
@@ -370,7 +372,7 @@ class LaserLineScanner:
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1 or -1, got {direction!r}")
         if orientation_deg not in ORIENTATIONS_DEG:
-            raise ValueError(f"orientation_deg must be 0 or 90, got {orientation_deg!r}")
+            raise ValueError(f"orientation_deg must be 0, 45 or 90, got {orientation_deg!r}")
         path_error = self._path_error(seed)
         start = self._shifted_start(length_mm, direction, orientation_deg, line_offset_mm)
         placement = self._placement(seed, rows, step, start, direction, orientation_deg,
