@@ -36,7 +36,7 @@ from direct_runs import calibrate_validated, direct_cell, plan_settings
 from gls_calibration.calibration import procedure
 from gls_calibration.registration.chain_map import ChainMap
 from gls_calibration.registration.separation import SeparationSettings
-from gls_calibration.registration.sweep_plan import parse_plan
+from gls_calibration.registration.sweep_plan import SweepPass, parse_plan, plan_label
 from gls_calibration.simulation.reference_plate import FIELD_PLATE, calibration_plan, measure_chain_map
 from gls_calibration.simulation.world import load_sim_config
 
@@ -57,11 +57,11 @@ def map_cell_time_s(repeats: int, plan=None) -> float:
 
 
 def calibrate_once(preset: str, seed: int, robot: bool, separation: SeparationSettings | None, store_dir: Path,
-                   chain_map: ChainMap | None = None, sweep_plan: str | None = None) -> dict:
+                   chain_map: ChainMap | None = None, sweep_plan: tuple[SweepPass, ...] | None = None) -> dict:
     cell = direct_cell(cell_config(preset, seed, robot), store_dir)
     settings = plan_settings(cell, chain_map=chain_map)
     if sweep_plan is not None:
-        settings = dataclasses.replace(settings, sweep_plan=parse_plan(sweep_plan))
+        settings = dataclasses.replace(settings, sweep_plan=sweep_plan)
     if separation is not None:
         settings = dataclasses.replace(settings, separation=separation)
     began = time.perf_counter()
@@ -85,13 +85,14 @@ def main() -> None:
     args = parser.parse_args()
     if args.sweep_plan is not None:
         try:
-            parse_plan(args.sweep_plan)
+            args.sweep_plan = parse_plan(args.sweep_plan)      # parsed once: the passes from here on
         except ValueError as error:
             parser.error(f"--sweep-plan: {error}")
     if args.map_repeats < 1:
         parser.error("--map-repeats must be at least 1")
     separation = None if args.along_prior is None else SeparationSettings(along_prior_sigma_mm=args.along_prior)
-    print(f"plan {args.sweep_plan or calibration_plan().label}; robot repeating errors {args.robot}; along prior "
+    print(f"plan {plan_label(args.sweep_plan or calibration_plan().passes)}; robot repeating errors {args.robot}; "
+          "along prior "
           f"{SeparationSettings().along_prior_sigma_mm if args.along_prior is None else args.along_prior} mm")
     if args.chain_map:
         compare_chain_map(args, separation)
@@ -118,7 +119,7 @@ def compare_chain_map(args: argparse.Namespace, separation: SeparationSettings |
     """TRUE and MEASURED without and with a chain map, per preset and seed, and their medians."""
     plan = calibration_plan()
     if args.sweep_plan is not None:
-        plan = dataclasses.replace(plan, passes=parse_plan(args.sweep_plan))
+        plan = dataclasses.replace(plan, passes=args.sweep_plan)
     print(f"chain map: {FIELD_PLATE.label}, {args.map_repeats} sweep(s) per line of {plan.label}, "
           f"cell time {map_cell_time_s(args.map_repeats, plan):.0f} s; mm")
     print(f"{'preset':11s} {'seed':>4s} {'MEAS w/o':>9s} {'MEAS map':>9s} {'TRUE w/o':>9s} {'TRUE map':>9s} "

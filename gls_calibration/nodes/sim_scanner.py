@@ -31,7 +31,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.duration import Duration
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG
+from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG, ORIENTATIONS_TEXT
 from gls_calibration.ros import conversions
 from gls_calibration.ros.base import GlsNode
 from gls_calibration.ros.request_ids import AnsweredRequests
@@ -124,8 +124,8 @@ class SimScannerNode(GlsNode):
             return response
         if direction not in (1, -1) or request.orientation_deg not in ORIENTATIONS_DEG:
             response.success = False
-            response.message = (f"direction must be +1 or -1 (got {request.direction}) and orientation_deg 0, 45 or 90 "
-                                f"(got {request.orientation_deg:g})")
+            response.message = (f"direction must be +1 or -1 (got {request.direction}) and orientation_deg "
+                                f"{ORIENTATIONS_TEXT} (got {request.orientation_deg:g})")
             return response
         try:
             await self._load_marks()

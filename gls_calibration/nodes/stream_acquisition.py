@@ -45,7 +45,7 @@ from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
 from gls_calibration.nodes.scan_acquisition import request_problem
-from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG
+from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG, ORIENTATIONS_TEXT
 from gls_calibration.ros import cdr
 from gls_calibration.ros.base import GlsNode, take_waiting
 from gls_calibration.ros.pointcloud import xyzi_rows_to_msg
@@ -274,7 +274,8 @@ class StreamAcquisitionNode(GlsNode):
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1, -1 or 0 (+1), got {request.direction}")
         if request.orientation_deg not in ORIENTATIONS_DEG or (standstill and request.orientation_deg != 0.0):
-            raise ValueError(f"orientation_deg must be 0, 45 or 90 (0 standing still), got {request.orientation_deg:g}")
+            raise ValueError(f"orientation_deg must be {ORIENTATIONS_TEXT} (0 standing still), "
+                             f"got {request.orientation_deg:g}")
         speed = request.step_mm * self.rate_hz if request.step_mm else request.speed_mm_s or self.default_speed_mm_s
         start = nominal_start_pose(length, direction, request.orientation_deg)
         end = start.copy()

@@ -23,6 +23,9 @@ ORIENTATIONS_DEG = (0.0, 45.0, 90.0)
 diagonal pass covers its middle band (:func:`in_view`) and is what makes a symmetric shear of the
 marks observable apart from the sweeps' path yaw (docs/method-and-results.md, the 45 deg pass)."""
 
+ORIENTATIONS_TEXT = ", ".join(f"{value:g}" for value in ORIENTATIONS_DEG[:-1]) + f" or {ORIENTATIONS_DEG[-1]:g}"
+"""``ORIENTATIONS_DEG`` as the error messages name it: ``0, 45 or 90``."""
+
 
 @dataclass(frozen=True)
 class SweepPass:
@@ -49,7 +52,7 @@ class SweepPass:
         if self.direction not in (1, -1):
             raise ValueError(f"sweep plan direction must be +1 or -1, got {self.direction!r}")
         if self.orientation_deg not in ORIENTATIONS_DEG:
-            raise ValueError(f"sweep plan orientation must be 0, 45 or 90 deg, got {self.orientation_deg!r}")
+            raise ValueError(f"sweep plan orientation must be {ORIENTATIONS_TEXT} deg, got {self.orientation_deg!r}")
 
     @property
     def label(self) -> str:
@@ -86,8 +89,8 @@ def parse_plan(text: str) -> tuple[SweepPass, ...]:
     passes = []
     for item in (part.strip() for part in str(text).split(",")):
         if len(item) < 2 or item[-1] not in "+-":
-            raise ValueError(f"sweep plan item {item!r} must be an orientation (0, 45 or 90) followed by + or -, "
-                             "e.g. 0+,0-,90+,90-")
+            raise ValueError(f"sweep plan item {item!r} must be an orientation ({ORIENTATIONS_TEXT}) followed by "
+                             "+ or -, e.g. 0+,0-,90+,90-")
         try:
             orientation = float(item[:-1])
         except ValueError:

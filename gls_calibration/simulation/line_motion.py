@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG
+from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG, ORIENTATIONS_TEXT
 from gls_calibration.simulation.scanner import SweepData
 from gls_calibration.simulation.world import SimulatedCell
 
@@ -178,7 +178,7 @@ class SimulatedLineMotion:
         if direction not in (1, -1) or not np.allclose(start, scanner.start_pose(length, direction, orientation),
                                                        atol=POSE_TOLERANCE_MM):
             raise ValueError("the simulation sweeps the lines of its sweep plan only (sensor along its y, orientation "
-                             "0, 45 or 90 deg, centred on the plate); this line is not one of them")
+                             f"{ORIENTATIONS_TEXT} deg, centred on the plate); this line is not one of them")
         speed = length / command.duration_s
         step = speed / self.profile_rate_hz
         steps = round(length / step)

@@ -51,7 +51,7 @@ from gls_calibration.simulation.measurement import (MeasurementChain, lateral_li
                                                     smooth_process)
 from gls_calibration.common.validation import as_finite_array, as_non_negative_number, as_positive_number
 from gls_calibration.geometry.optics import plate_frame
-from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG
+from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG, ORIENTATIONS_TEXT
 from gls_calibration.simulation.plate import Plate
 
 PROFILE_DTYPE = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32), ("intensity", np.float32)])
@@ -372,7 +372,7 @@ class LaserLineScanner:
         if direction not in (1, -1):
             raise ValueError(f"direction must be +1 or -1, got {direction!r}")
         if orientation_deg not in ORIENTATIONS_DEG:
-            raise ValueError(f"orientation_deg must be 0, 45 or 90, got {orientation_deg!r}")
+            raise ValueError(f"orientation_deg must be {ORIENTATIONS_TEXT}, got {orientation_deg!r}")
         path_error = self._path_error(seed)
         start = self._shifted_start(length_mm, direction, orientation_deg, line_offset_mm)
         placement = self._placement(seed, rows, step, start, direction, orientation_deg,
