@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from gls_calibration.calibration import procedure
 from gls_calibration.calibration.record import build_record, save_candidate
 from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.fiducials.targets import grid_targets
-from gls_calibration.registration.sweep_plan import CellTimeModel
+from gls_calibration.registration.sweep_plan import CellTimeModel, parse_plan
 from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 
@@ -62,6 +63,28 @@ def run_calibrate(cell: DirectCell, settings: procedure.ProcedureSettings, *, it
 def nominal(cell: DirectCell) -> bool:
     """True when the cell corrects through the nominal model (no calibration loaded)."""
     return not cell.correction.models
+
+
+def test_fiducials_found_counts_every_fiducial_some_pass_measured(tmp_path):
+    """Report as found every fiducial with a measured centre, not the fewest of one sweep.
+
+    A 45 deg pass sees the grid's middle band only: on a 5 x 5 grid over 100 mm of the small cell it
+    misses the corners' fiducials, which the 0 and 90 deg passes see.
+    """
+    cell = new_cell(tmp_path)
+    settings = cell.settings(**{**FAST, "grid_size_mm": 100.0}, sweep_plan=parse_plan("0+,90+,45+"))
+    per_sweep = []
+    combine = procedure.combine_sweeps
+
+    def spy(measurements, *args, **kwargs):
+        per_sweep.append([len(found.centres) for found in measurements])
+        return combine(measurements, *args, **kwargs)
+
+    with mock.patch.object(procedure, "combine_sweeps", spy):
+        run = asyncio.run(procedure.run_plate(cell, settings, grid_targets(5, 100.0), lambda *_: None,
+                                              (0.0, 1.0), True))
+    assert per_sweep[0][:2] == [25, 25] and per_sweep[0][2] < 25, per_sweep
+    assert run.fiducials_found == len(run.deviations) == 25
 
 
 def test_run_plate_measures_the_uncorrected_field(tmp_path):

@@ -124,7 +124,8 @@ class PlateRun:
     plate_pose_gls : PlatePose
         The plate in the gls frame.
     fiducials_found : int
-        Fiducials measured.
+        Fiducials with a measured centre (seen in at least one pass of the plan; a turned pass sees
+        only part of the grid, so this is not the count of any one sweep).
     alignment : RigidTransform
         The rigid alignment of the measured centres.
     metrics : DeviationMetrics

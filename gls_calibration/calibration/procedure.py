@@ -625,7 +625,7 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
     return PlateRun(targets=targets, paired_targets_xy=paired_xy, deviations=deviations,
                     measured_gls=measured, corrections=corrections, true_deviations=true_deviations,
                     plate_pose_gls=pose_gls,
-                    fiducials_found=min(combined.found_per_sweep), alignment=pairing.transform,
+                    fiducials_found=len(combined.target_index), alignment=pairing.transform,
                     metrics=deviation_metrics(paired_xy, deviations), true_metrics=true_metrics,
                     sigma_mm=combined.sigma_mm[pairing.measured_index], sweep_plan=plan_label(plan),
                     chain_map=chain_map_identity(settings.chain_map),
