@@ -412,7 +412,9 @@ def acquire(ros_context, add_node, script: str, timeout_s: float,
     scanner = FakeScanner(add_node(Node("fake_scanner", namespace=NAMESPACE, context=ros_context)), script)
     node = client_node(ros_context, add_node)
     client = node.create_client(AcquireSweep, "scan/acquire")
-    wait_for(lambda: scanner.points.get_subscription_count() > 0 and scanner.done.get_subscription_count() > 0,
+    wait_for(lambda: scanner.points.get_subscription_count() > 0 and scanner.done.get_subscription_count() > 0
+             # a pose sent before its subscription is matched is lost (reliable delivers to matched readers only)
+             and (script != "posed" or scanner.poses.get_subscription_count() > 0),
              TIMEOUT_S, what="scan_acquisition subscribing to the fake scanner")
     began = time.monotonic()
     response = call_service(node, client, AcquireSweep.Request(timeout_s=timeout_s, step_mm=0.15),
