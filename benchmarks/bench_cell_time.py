@@ -31,7 +31,7 @@ from gls_calibration.simulation.world import load_sim_config
 
 PLANS = ((4, "0+,0-,90+,90-"), (1, "0+,0-,90+,90-"), (2, "0+,90+"), (1, "0+,90+"), (1, "0+"), (4, "0+,90+,45+"),
          (1, "0+,90+,45+"))
-"""(plain sweeps, passes over the marked plate); the first is config/gls.yaml's."""
+"""(plain sweeps, passes over the marked plate); (4, "0+,90+,45+") is config/gls.yaml's."""
 
 
 def calibrate(preset: str, seed: int, plain_sweeps: int, passes: str, chain_map, store_dir: Path) -> dict:

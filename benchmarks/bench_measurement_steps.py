@@ -35,7 +35,8 @@ from gls_calibration.simulation.world import load_sim_config
 WAYS = (("one sweep placed by time (the paper's way)", "0+", False),
         ("one sweep placed by pose", "0+", True),
         ("0+,90+ by pose", "0+,90+", True),
-        ("0+,0-,90+,90- by pose (config/gls.yaml)", "0+,0-,90+,90-", True),
+        ("0+,0-,90+,90- by pose", "0+,0-,90+,90-", True),
+        ("0+,90+,45+ by pose (config/gls.yaml)", "0+,90+,45+", True),
         ("0+,0-,90+,90- placed by time (no pose stream)", "0+,0-,90+,90-", False))
 """(label, passes over the marked plate, profiles placed by the reported pose)."""
 

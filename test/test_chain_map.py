@@ -322,18 +322,21 @@ def test_simulated_map_finds_the_robots_repeating_error_and_nothing_without_it()
     assert set(chain_map.labels) == {item.label for item in plan.passes}
     scanner = config.make_scanner()
     u = np.linspace(-85.0, 85.0, 69)    # within the plate (+-90 mm about the field's centre)
-    errors, truths = {0: [], 1: []}, {0: [], 1: []}
+    # Along each line's own travel (a 45 deg line's along-travel error has an x and a y part), pooled
+    # per travel direction: the lines of one direction share the common shift.
+    errors, truths = {}, {}
     for item in plan.passes:
         axis = travel_axis(item.label)
         where, truth = _true_line_error(scanner, item, u + (100.0 if axis == 1 else 0.0), config.sweep_length_mm)
         fitted = chain_map.error_mm(item.label, where)
-        errors[axis].append(fitted[:, axis] - truth[:, axis])
-        truths[axis].append(truth[:, axis])
+        direction = travel_direction(item.label)
+        errors.setdefault(tuple(direction), []).append((fitted - truth) @ direction)
+        truths.setdefault(tuple(direction), []).append(truth @ direction)
     left, size = [], []
-    for axis in (0, 1):
-        difference = np.concatenate(errors[axis])
-        left.append(difference - difference.mean())           # the common shift of the along axis
-        size.append(np.concatenate(truths[axis]) - np.concatenate(truths[axis]).mean())
+    for key in errors:
+        difference = np.concatenate(errors[key])
+        left.append(difference - difference.mean())           # the common shift along this direction
+        size.append(np.concatenate(truths[key]) - np.concatenate(truths[key]).mean())
     left_rms, size_rms = (float(np.sqrt(np.mean(np.concatenate(v) ** 2))) for v in (left, size))
     assert size_rms > 0.02          # the preset's repeating error is there to be found
     assert left_rms < 0.6 * size_rms, (left_rms, size_rms)
@@ -343,6 +346,8 @@ def test_simulated_map_finds_the_robots_repeating_error_and_nothing_without_it()
         robot_along_wander_mm=0.0))
     quiet = measure_chain_map(off, plan, seed=1, repeats=1)
     for line in quiet.lines:
-        along = line.error_y_mm if travel_axis(line.line) == 1 else line.error_x_mm
-        inside = np.abs(line.knots_mm - (100.0 if travel_axis(line.line) == 1 else 0.0)) <= 90.0
+        direction = travel_direction(line.line)
+        along = np.column_stack([line.error_x_mm, line.error_y_mm]) @ direction
+        # knots within the plate: +-90 mm about the field's centre (B x 0, y 100) along the travel
+        inside = np.abs(line.knots_mm - np.array([0.0, 100.0]) @ direction) <= 90.0
         assert np.sqrt(np.mean((along[inside] - along[inside].mean()) ** 2)) < 0.01, (line.line, along)

@@ -13,7 +13,7 @@ a position-dependent error leaves).
 Two measurement plans are compared: ``RAW_PLAN``, the paper's way (one sweep, profiles placed by
 time at the nominal speed, the plate plane from that sweep), and the plan the calibration runs
 (:func:`calibration_plan`: the calibration manager's ``sweep.plan``, ``sweep.placed_by_pose`` and
-``sweep.plain_repeats`` from its parameter file, ``config/gls.yaml`` -- today four passes, 0+,0-,90+,90-,
+``sweep.plain_repeats`` from its parameter file, ``config/gls.yaml`` -- today three passes, 0+,90+,45+,
 placed by the robot's reported pose). A plan's sweeps are combined by the calibration's own code
 (``procedure.combined_centres_gls``: the error separation of ``sweep_plan.combine_sweeps``) and
 paired with the known centres as the calibration pairs its targets; the plate plane comes from
