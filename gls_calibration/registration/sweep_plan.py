@@ -185,8 +185,6 @@ class CombinedSweeps:
         Standard uncertainty per axis of each (ring fit and sweep spread; NaN when unknown), mm.
     target_index : numpy.ndarray, shape (K,)
         The target each belongs to.
-    found_per_sweep : tuple of int
-        Centres found in each sweep.
     separation : Separation or None
         The separation of the scanner-frame errors; None for a single sweep.
     """
@@ -194,7 +192,6 @@ class CombinedSweeps:
     centres_xy: np.ndarray
     sigma_mm: np.ndarray
     target_index: np.ndarray
-    found_per_sweep: tuple[int, ...]
     separation: Optional[Separation]
 
 
@@ -245,7 +242,7 @@ def combine_sweeps(measurements: Sequence[FiducialMeasurement], passes: Sequence
         found = measurements[0]
         pairing = pair_with_targets(scanner_to_gls.apply(found.centres), targets_gls)
         return CombinedSweeps(found.centres[pairing.measured_index, :2], _ring_sigma(found)[pairing.measured_index],
-                              pairing.target_index, (len(found.centres),), None)
+                              pairing.target_index, None)
     tables, sigmas = [], []
     for found, item in zip(measurements, passes):
         pairing = pair_with_targets(scanner_to_gls.apply(found.centres), targets_gls)
@@ -265,5 +262,4 @@ def combine_sweeps(measurements: Sequence[FiducialMeasurement], passes: Sequence
     result = separate([tables[k] for k in order], [sigmas[k] for k in order], settings)
     seen = result.sweeps_seen > 0
     axes = nominal_start_pose(0.0, passes[reference].direction, passes[reference].orientation_deg)[:2, :2]
-    return CombinedSweeps(result.centres_mm[seen] @ axes.T, result.sigma_mm[seen], np.flatnonzero(seen),
-                          tuple(len(found.centres) for found in measurements), result)
+    return CombinedSweeps(result.centres_mm[seen] @ axes.T, result.sigma_mm[seen], np.flatnonzero(seen), result)
