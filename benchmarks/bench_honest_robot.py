@@ -91,9 +91,9 @@ def main() -> None:
     if args.map_repeats < 1:
         parser.error("--map-repeats must be at least 1")
     separation = None if args.along_prior is None else SeparationSettings(along_prior_sigma_mm=args.along_prior)
+    along_prior_mm = SeparationSettings().along_prior_sigma_mm if args.along_prior is None else args.along_prior
     print(f"plan {plan_label(args.sweep_plan or calibration_plan().passes)}; robot repeating errors {args.robot}; "
-          "along prior "
-          f"{SeparationSettings().along_prior_sigma_mm if args.along_prior is None else args.along_prior} mm")
+          f"along prior {along_prior_mm} mm")
     if args.chain_map:
         compare_chain_map(args, separation)
         return
