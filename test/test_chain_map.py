@@ -284,7 +284,8 @@ def test_procedure_settings_carry_the_map_into_the_combination():
     with_map = ProcedureSettings(grid_per_side=5, sweep_plan=passes, chain_map=chain_map)
     centres, _ = combined_centres_gls(measurements, with_map, grid, pose)
     corrected = correct_measurements(chain_map, measurements, passes, pose)
-    expected = combine_sweeps(corrected, passes, grid, with_map.scanner_to_gls, True)
+    expected = combine_sweeps(corrected, passes, grid, with_map.scanner_to_gls, True,
+                              sweep_length_mm=with_map.cell_time.sweep_length_mm)
     assert np.allclose(centres[:, :2], expected.centres_xy)
     plain, _ = combined_centres_gls(measurements, dataclasses.replace(with_map, chain_map=None), grid, pose)
     assert not np.allclose(plain[:, :2], centres[:, :2], atol=1e-3)

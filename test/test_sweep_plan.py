@@ -8,7 +8,12 @@ import pytest
 from gls_calibration.calibration import procedure
 from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.fiducials.targets import grid_targets
-from gls_calibration.registration.sweep_plan import CellTimeModel, SweepPass, parse_plan, plan_label
+from gls_calibration.fiducials.measure import FiducialMeasurement
+from gls_calibration.registration.rigid import RigidTransform
+from gls_calibration.registration.sweep_plan import (CellTimeModel, SweepPass, combine_sweeps, parse_plan,
+                                                     plan_label)
+from gls_calibration.scan.plate_pose import estimate_plate_pose
+from gls_calibration.scan.sweep import nominal_start_pose, sweep_middle_mm
 from gls_calibration.simulation.direct_cell import DirectCell
 from gls_calibration.simulation.world import SimulatedCell, load_sim_config
 
@@ -75,3 +80,49 @@ def test_reversed_and_turned_sweeps_measure_the_plate_better_than_one(tmp_path):
     # three sweeps more cost three sweeps and robot moves more (the marking is the same)
     single = runs["0+"]
     assert full.cell_time_s - single.cell_time_s == pytest.approx(3 * (200.0 / 15.0 + 4.0), rel=0.05)
+
+
+def _found(centres: np.ndarray) -> FiducialMeasurement:
+    """A sweep's centres (N, 3) as the fiducial measurement states them, sigma 1 um."""
+    pose = estimate_plate_pose(np.column_stack([np.random.default_rng(3).uniform(-100, 100, (2000, 2)),
+                                                np.zeros(2000)]))
+    count = len(centres)
+    return FiducialMeasurement(centres=centres, centres_plane=pose.to_plane(centres), quality=np.full(count, 0.001),
+                               radii=np.full(count, 2.7), inner_radii=np.full(count, 2.5), merged=0, rejected=0,
+                               missing=0, image_shape=(10, 10), pixel_pitch_mm=(0.1, 0.1),
+                               sigma_xy_mm=np.full((count, 2), 0.001))
+
+
+@pytest.mark.parametrize("plan", ["0+,0-,90+,90-", "0+,90+,45+"])
+def test_the_lateral_error_is_taken_where_it_lies_on_the_sensors_line(plan):
+    """The scanner's lateral linearity error is a function of the position on its laser line, measured
+    from the sweep's middle, about which every pass turns the sensor (``sweep_middle_mm``); every pass
+    sees it there, so the turned passes separate it from the marks. Measured from another origin, a
+    turned pass reads the same place of the line at another coordinate, and the marks keep the error."""
+    length_mm = 200.0
+    side = np.linspace(-90.0, 90.0, 13)
+    marks = np.array([(x, 100.0 + y, 0.0) for y in side for x in side])       # B frame, around the middle
+    rng = np.random.default_rng(11)
+
+    def lateral_error_mm(u):
+        return 0.03 * np.sin(u / 25.0) + 0.02 * np.cos(u / 11.0)              # no polynomial: not a placement
+
+    passes = parse_plan(plan)
+    measurements = []
+    for item in passes:
+        line = nominal_start_pose(length_mm, item.direction, item.orientation_deg)[:2, 0]   # the laser line in B
+        u = (marks[:, :2] - sweep_middle_mm(length_mm)) @ line
+        seen = np.abs(u) <= 100.0                                                # the sensor's 200 mm line
+        measured = marks[seen].copy()
+        measured[:, :2] += lateral_error_mm(u[seen])[:, None] * line + rng.normal(0.0, 0.001, (seen.sum(), 2))
+        measurements.append(_found(measured))
+
+    def error_rms(sweep_length_mm):
+        combined = combine_sweeps(measurements, passes, marks, RigidTransform.identity(), True,
+                                  sweep_length_mm=sweep_length_mm)
+        error = combined.centres_xy - marks[combined.target_index, :2]
+        error -= error.mean(axis=0)
+        return float(np.sqrt(np.mean(np.sum(error ** 2, axis=1))))
+
+    assert error_rms(length_mm) < 0.004
+    assert error_rms(0.5 * length_mm) > 2.0 * error_rms(length_mm)      # a middle 50 mm off: part of it stays

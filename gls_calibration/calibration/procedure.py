@@ -426,7 +426,8 @@ def combined_centres_gls(measurements: list[FiducialMeasurement], settings: Proc
     try:
         measurements = correct_measurements(settings.chain_map, measurements, settings.sweep_plan, pose_scanner)
         combined = combine_sweeps(measurements, settings.sweep_plan, targets, settings.scanner_to_gls,
-                                  settings.profiles_placed_by_pose, settings.separation)
+                                  settings.profiles_placed_by_pose, settings.separation,
+                                  sweep_length_mm=settings.cell_time.sweep_length_mm)
     except ValueError as error:
         raise CalibrationError(f"the sweeps of the marked plate cannot be combined: {error}") from None
     centres = np.column_stack([combined.centres_xy, plane_height(pose_scanner, *combined.centres_xy.T)])

@@ -16,7 +16,7 @@ import numpy as np
 from gls_calibration.fiducials.measure import FiducialMeasurement
 from gls_calibration.registration.rigid import RigidTransform, pair_with_targets
 from gls_calibration.registration.separation import TIME_PLACED, Separation, SeparationSettings, separate
-from gls_calibration.scan.sweep import nominal_start_pose
+from gls_calibration.scan.sweep import nominal_start_pose, sweep_middle_mm
 
 ORIENTATIONS_DEG = (0.0, 45.0, 90.0)
 """Turns of the sensor a pass may take, degrees. At 0 and 90 the sweep covers the whole grid; the
@@ -205,7 +205,7 @@ def _ring_sigma(found: FiducialMeasurement) -> np.ndarray:
 
 def combine_sweeps(measurements: Sequence[FiducialMeasurement], passes: Sequence[SweepPass], targets_gls: np.ndarray,
                    scanner_to_gls: RigidTransform, placed_by_pose: bool,
-                   settings: Optional[SeparationSettings] = None) -> CombinedSweeps:
+                   settings: Optional[SeparationSettings] = None, *, sweep_length_mm: float) -> CombinedSweeps:
     """Pair every sweep's centres with the targets and separate the scanner-frame errors.
 
     Parameters
@@ -223,6 +223,9 @@ def combine_sweeps(measurements: Sequence[FiducialMeasurement], passes: Sequence
     settings : SeparationSettings, optional
         Defaults to the separation for profiles placed by pose, or by time
         (``separation.TIME_PLACED``) when ``placed_by_pose`` is false.
+    sweep_length_mm : float
+        Length of the sweeps, mm: they are turned about their middle (``sweep.sweep_middle_mm``),
+        from which a centre's coordinate along the sensor's line is measured.
 
     Returns
     -------
@@ -243,13 +246,17 @@ def combine_sweeps(measurements: Sequence[FiducialMeasurement], passes: Sequence
         pairing = pair_with_targets(scanner_to_gls.apply(found.centres), targets_gls)
         return CombinedSweeps(found.centres[pairing.measured_index, :2], _ring_sigma(found)[pairing.measured_index],
                               pairing.target_index, None)
+    # Coordinates from the sweeps' common middle: there each sweep's x is the position on the sensor's
+    # line, where the scanner's lateral linearity shape is the same in every sweep (from B's origin,
+    # the 90 deg sweeps' x was 100 mm off the 0 deg sweeps' for the same place on the line).
+    middle = sweep_middle_mm(sweep_length_mm)
     tables, sigmas = [], []
     for found, item in zip(measurements, passes):
         pairing = pair_with_targets(scanner_to_gls.apply(found.centres), targets_gls)
         axes = nominal_start_pose(0.0, item.direction, item.orientation_deg)[:2, :2]
         table = np.full((count, 2), np.nan)
         # the sweep's own axes: x along its line, y along its travel (B's axes turned by the orientation)
-        table[pairing.target_index] = found.centres[pairing.measured_index, :2] @ axes
+        table[pairing.target_index] = (found.centres[pairing.measured_index, :2] - middle) @ axes
         sigma = np.full(count, np.nan)
         sigma[pairing.target_index] = _ring_sigma(found)[pairing.measured_index]
         tables.append(table)
@@ -262,4 +269,5 @@ def combine_sweeps(measurements: Sequence[FiducialMeasurement], passes: Sequence
     result = separate([tables[k] for k in order], [sigmas[k] for k in order], settings)
     seen = result.sweeps_seen > 0
     axes = nominal_start_pose(0.0, passes[reference].direction, passes[reference].orientation_deg)[:2, :2]
-    return CombinedSweeps(result.centres_mm[seen] @ axes.T, result.sigma_mm[seen], np.flatnonzero(seen), result)
+    return CombinedSweeps(result.centres_mm[seen] @ axes.T + middle, result.sigma_mm[seen], np.flatnonzero(seen),
+                          result)

@@ -263,6 +263,21 @@ def stamp_window_s(profiles: int, step_mm: float, speed_mm_s: float, rules: Prof
     return rules.stamp_window_s(profiles, step_mm, speed_mm_s)
 
 
+def sweep_middle_mm(length_mm: float) -> np.ndarray:
+    """Return the middle (2,) of every nominal sweep of ``length_mm`` in the base frame's x-y, mm.
+
+    Every pass of a plan, forward or back and turned or not, runs through this point: the sensor is
+    turned about it (:func:`nominal_start_pose`), so a point's coordinate along the sensor's line is
+    measured from here.
+
+    Examples
+    --------
+    >>> sweep_middle_mm(200.0).tolist()
+    [0.0, 100.0]
+    """
+    return np.array([0.0, 0.5 * float(length_mm)])
+
+
 def nominal_start_pose(length_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> np.ndarray:
     """Return the sensor's 4x4 pose (start frame -> base frame, mm) at the first profile of a sweep.
 
@@ -296,7 +311,7 @@ def nominal_start_pose(length_mm: float, direction: int = 1, orientation_deg: fl
     cos, sin = round(math.cos(angle), 15), round(math.sin(angle), 15)
     pose = np.eye(4)
     pose[:3, :3] = [[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]]
-    pose[:3, 3] = (np.array([0.0, 0.5 * length_mm, 0.0])
+    pose[:3, 3] = (np.append(sweep_middle_mm(length_mm), 0.0)
                    - pose[:3, :3] @ np.array([0.0, direction * 0.5 * length_mm, 0.0]))
     return pose
 

@@ -17,6 +17,7 @@ from gls_calibration.calibration.procedure import ProcedureSettings
 from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.models.training import TrainingOptions
 from gls_calibration.registration.rigid import RigidTransform
+from gls_calibration.registration.sweep_plan import CellTimeModel
 from gls_calibration.simulation.world import SimulatedCell
 
 
@@ -40,11 +41,13 @@ class DirectCell(CoreCell):
         super().__init__(sim.config.geometry, store, physics_first=physics_first, training=training)
 
     def settings(self, **overrides) -> ProcedureSettings:
-        """Procedure settings for this cell: its CAD scanner mounting, then ``overrides``."""
+        """Procedure settings for this cell: its CAD scanner mounting and sweep length, then ``overrides``."""
         mounting = self.sim.config.scanner_to_gls
-        base = ProcedureSettings(scanner_to_gls=RigidTransform(mounting[:3, :3].copy(), mounting[:3, 3].copy()),
-                                 profiles_placed_by_pose=self.placed_by_pose)
-        return dataclasses.replace(base, **overrides)
+        values = dict(scanner_to_gls=RigidTransform(mounting[:3, :3].copy(), mounting[:3, 3].copy()),
+                      profiles_placed_by_pose=self.placed_by_pose,
+                      # the simulated sweeps' length: where they turn the sensor (the lateral coordinate's origin)
+                      cell_time=dataclasses.replace(CellTimeModel(), sweep_length_mm=self.sim.config.sweep_length_mm))
+        return ProcedureSettings(**{**values, **overrides})
 
     async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Cloud:
         """Simulate a sweep with its own robot path error and noise (see ``Cell.acquire_sweep``)."""
