@@ -123,7 +123,9 @@ def test_too_few_fiducials_fail_before_anything_is_saved(tmp_path):
     # The 120 x 110 mm scan sees only the centre of a 3x3 grid over 190 mm.
     cell = new_cell(tmp_path)
     with pytest.raises(procedure.CalibrationError, match=r"found \d of 9 fiducials; at least 9 \(90%\) are needed"):
-        run_calibrate(cell, cell.settings(**{**FAST, "grid_per_side": 3, "grid_size_mm": 190.0}))
+        # (settings that claim a sweep long enough for the grid: a shorter one is refused first)
+        run_calibrate(cell, cell.settings(**{**FAST, "grid_per_side": 3, "grid_size_mm": 190.0,
+                                             "cell_time": CellTimeModel(sweep_length_mm=200.0)}))
     assert cell.store.history() == [] and nominal(cell)
 
 

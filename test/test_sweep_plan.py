@@ -79,7 +79,9 @@ def test_reversed_and_turned_sweeps_measure_the_plate_better_than_one(tmp_path):
     assert np.all(np.isfinite(full.sigma_mm)) and np.all(full.sigma_mm > 0)
     # three sweeps more cost three sweeps and robot moves more (the marking is the same)
     single = runs["0+"]
-    assert full.cell_time_s - single.cell_time_s == pytest.approx(3 * (200.0 / 15.0 + 4.0), rel=0.05)
+    sweep_s = settings.cell_time.sweep_length_mm / settings.cell_time.sweep_speed_mm_s   # the small cell's 110 mm
+    assert full.cell_time_s - single.cell_time_s == pytest.approx(3 * (sweep_s + settings.cell_time.robot_move_s),
+                                                                  rel=0.05)
 
 
 def _found(centres: np.ndarray) -> FiducialMeasurement:
