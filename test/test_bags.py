@@ -15,6 +15,7 @@ from rosbags.typesys import Stores, get_typestore
 from gls_calibration.calibration import procedure
 from gls_calibration.calibration.record import build_record, save_candidate
 from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.cli.sim_record import sweep_length_mm
 from gls_calibration.cli.measure import csv_text, measure_cloud
 from gls_calibration.cli.measure import main as measure_main
 from gls_calibration.fiducials.measure import measure_fiducials
@@ -34,8 +35,9 @@ PLAN = "0+,90-"      # forward, then reversed with the sensor turned: the chain'
 
 def _small_config(preset: str):
     config = load_sim_config(preset=preset)
+    # the sweep length of config/gls.yaml, which gls-train reads (the error separation measures from its middle)
     return dataclasses.replace(config, scanner=dataclasses.replace(config.scanner, line_length_mm=120.0),
-                               sweep_length_mm=110.0, scanner_to_gls=None)
+                               sweep_length_mm=sweep_length_mm(), scanner_to_gls=None)
 
 
 def _record(folder, preset: str, storage: str):
@@ -68,7 +70,7 @@ def _replay_as_the_procedure(bag, cell):
     poses = [estimate_plate_pose(sweep.xyz_mm.reshape(-1, 3), head_direction=(0.0, 0.0, -1.0))
              for sweep in sweeps[:PLAIN_SWEEPS]]
     pose = pose_at_height(mean_plate_pose(poses), sweeps[PLAIN_SWEEPS].xyz_mm.reshape(-1, 3))
-    found = [measure_fiducials(sweep.xyz_mm, sweep.intensity, pose, ring_radii_mm=cell.settings().ring_radii_mm,
+    found = [measure_fiducials(sweep.xyz_mm, sweep.intensity, pose, ring_radii_mm=procedure.ProcedureSettings.ring_radii_mm,
                                expected_count=GRID ** 2) for sweep in sweeps[PLAIN_SWEEPS + 1:]]
     return sweeps, poses, found
 

@@ -18,6 +18,7 @@ from gls_calibration.calibration.record import build_record, save_candidate
 from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.common.config_files import config_path, read_config_file
 from gls_calibration.geometry.head_config import parameters_block
+from gls_calibration.registration.sweep_plan import CellTimeModel
 from gls_calibration.scan.bag_io import BagRecorder
 from gls_calibration.simulation.recording_cell import SIM_FLANGE_TO_SENSOR, RecordingCell, base_to_gls
 from gls_calibration.simulation.world import SimulatedCell
@@ -44,6 +45,21 @@ def standstill_height() -> bool:
 def grid_size_mm() -> float:
     """``grid.size_mm`` of config/gls.yaml (the procedure's default when the file leaves it out)."""
     return float(_grid_value("size_mm", ProcedureSettings.grid_size_mm))
+
+
+def sweep_length_mm() -> float:
+    """``sweep.length_mm`` of config/gls.yaml (the cell-time model's default when the file leaves it out).
+
+    The recorded sweeps' length: they turn the sensor about their middle, from which the error separation
+    measures a centre's place on the laser line.
+    """
+    def parse(document):
+        sweep = parameters_block(document).get("sweep") or {}
+        return sweep.get("length_mm", CellTimeModel.sweep_length_mm)
+    value = read_config_file(config_path("gls.yaml"), "parameter file", parse)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"sweep.length_mm of config/gls.yaml must be a number, got {value!r}")
+    return float(value)
 
 
 def grid_per_side() -> int:

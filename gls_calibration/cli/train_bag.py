@@ -51,12 +51,13 @@ def plates_in(motion_count: int, settings: ProcedureSettings) -> int:
 
 def recording_settings(grid: int | None, size_mm: float | None, sweep_plan: str | None,
                        plain_sweeps: int | None, standstill: bool | None = None) -> ProcedureSettings:
-    """Return grid, plan, plain sweeps and stand-still height as given, else as gls.yaml has them.
+    """Return grid, plan, plain sweeps and stand-still height as given, else as gls.yaml has them, and
+    the sweep length of gls.yaml (the recording's: the error separation measures from its middle).
 
     ValueError naming a bad one.
     """
-    from gls_calibration.cli.sim_record import grid_per_side, grid_size_mm, standstill_height
-    from gls_calibration.registration.sweep_plan import parse_plan
+    from gls_calibration.cli.sim_record import grid_per_side, grid_size_mm, standstill_height, sweep_length_mm
+    from gls_calibration.registration.sweep_plan import CellTimeModel, parse_plan
     from gls_calibration.simulation.reference_plate import calibration_plan
 
     plan = calibration_plan()
@@ -64,7 +65,8 @@ def recording_settings(grid: int | None, size_mm: float | None, sweep_plan: str 
                              grid_size_mm=size_mm if size_mm is not None else grid_size_mm(),
                              sweep_plan=parse_plan(sweep_plan) if sweep_plan is not None else plan.passes,
                              plain_sweeps=plain_sweeps if plain_sweeps is not None else plan.plain_sweeps,
-                             standstill_height=standstill if standstill is not None else standstill_height())
+                             standstill_height=standstill if standstill is not None else standstill_height(),
+                             cell_time=replace(CellTimeModel(), sweep_length_mm=sweep_length_mm()))
 
 
 def train_from_bag(args: argparse.Namespace, settings: ProcedureSettings) -> int:

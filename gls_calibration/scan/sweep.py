@@ -270,6 +270,16 @@ def sweep_middle_mm(length_mm: float) -> np.ndarray:
     turned about it (:func:`nominal_start_pose`), so a point's coordinate along the sensor's line is
     measured from here.
 
+    Parameters
+    ----------
+    length_mm : float
+        Length of the sweeps, mm.
+
+    Returns
+    -------
+    numpy.ndarray, shape (2,)
+        The middle's x and y in the base frame, mm.
+
     Examples
     --------
     >>> sweep_middle_mm(200.0).tolist()

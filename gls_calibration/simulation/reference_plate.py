@@ -44,7 +44,7 @@ from gls_calibration.geometry.head_config import parameters_block
 from gls_calibration.registration.chain_map import (ChainMap, ChainMapFit, ReferenceSweep, chain_map_identity,
                                                     fit_chain_map)
 from gls_calibration.registration.rigid import RigidTransform, pair_with_targets
-from gls_calibration.registration.sweep_plan import SweepPass, parse_plan, plan_label
+from gls_calibration.registration.sweep_plan import CellTimeModel, SweepPass, parse_plan, plan_label
 from gls_calibration.simulation.plate import Plate
 from gls_calibration.simulation.world import SimConfig
 
@@ -201,7 +201,8 @@ def measure_plate(config: SimConfig, plate: Plate, plan: MeasurementPlan, seed: 
     settings = ProcedureSettings(ring_radii_mm=RING_RADII_MM, sweep_plan=plan.passes,
                                  profiles_placed_by_pose=plan.placed_by_pose,
                                  scanner_to_gls=RigidTransform(mounting[:3, :3].copy(), mounting[:3, 3].copy()),
-                                 chain_map=chain_map)
+                                 chain_map=chain_map,
+                                 cell_time=replace(CellTimeModel(), sweep_length_mm=config.sweep_length_mm))
 
     def cloud(number: int, step_mm: float, item: SweepPass = SweepPass()) -> tuple[np.ndarray, np.ndarray]:
         data = scanner.sweep_data(plate, config.sweep_length_mm, step_mm=step_mm, seed=seed * 1009 + number,
