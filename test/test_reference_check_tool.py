@@ -167,7 +167,7 @@ def test_the_tool_on_a_bag_gives_the_in_process_check(tmp_path):
     the simulation's in-process check measure the same sweeps of the same plate to the same figure.
 
     Two independent assemblies of the sweeps (``reference_plate_check`` places the simulator's points
-    directly; the tool places streamed profiles by the recorded TF) agree to 0.02 %.
+    directly; the tool places streamed profiles by the recorded TF) agree to 0.5 % (measured 0.23 %).
     """
     from gls_calibration.registration.sweep_plan import parse_plan
     from gls_calibration.simulation import reference_plate as rp
