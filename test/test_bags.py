@@ -70,8 +70,9 @@ def _replay_as_the_procedure(bag, cell):
     poses = [estimate_plate_pose(sweep.xyz_mm.reshape(-1, 3), head_direction=(0.0, 0.0, -1.0))
              for sweep in sweeps[:PLAIN_SWEEPS]]
     pose = pose_at_height(mean_plate_pose(poses), sweeps[PLAIN_SWEEPS].xyz_mm.reshape(-1, 3))
-    found = [measure_fiducials(sweep.xyz_mm, sweep.intensity, pose, ring_radii_mm=procedure.ProcedureSettings.ring_radii_mm,
-                               expected_count=GRID ** 2) for sweep in sweeps[PLAIN_SWEEPS + 1:]]
+    found = [measure_fiducials(sweep.xyz_mm, sweep.intensity, pose,
+                               ring_radii_mm=procedure.ProcedureSettings.ring_radii_mm, expected_count=GRID ** 2)
+             for sweep in sweeps[PLAIN_SWEEPS + 1:]]
     return sweeps, poses, found
 
 

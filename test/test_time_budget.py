@@ -1,7 +1,6 @@
 """The time budget's clock: wall time per stage of the calibrate flow and CPU per thread."""
 import json
 import math
-import os
 import subprocess
 import sys
 import threading
@@ -9,7 +8,7 @@ import time
 
 import pytest
 
-from gls_calibration.common.time_budget import StageClock, ValidationCpuMark, thread_cpu_s, unowned_threads_cpu_s
+from gls_calibration.common.time_budget import StageClock, ValidationCpuMark, thread_cpu_s
 
 
 def stamped(stages_and_times):
@@ -86,41 +85,52 @@ def test_thread_cpu_counts_a_busy_thread_and_not_an_idle_one():
     assert math.isnan(thread_cpu_s(workers[0]))       # ended: its clock is gone
 
 
+# Run in a fresh interpreter: in a whole test run, threads left by earlier tests (executors, DDS) may
+# end during the reading, and an ended thread's CPU leaves the sum.
+UNOWNED_CPU_PROBE = """
+import json, os, threading, time
+from gls_calibration.common.time_budget import thread_cpu_s, unowned_threads_cpu_s
+stop = threading.Event()
+
+def busy():
+    while not stop.is_set():
+        sum(range(1000))
+
+owned, unowned = threading.Thread(target=busy), threading.Thread(target=busy)
+before_s = unowned_threads_cpu_s([owned])
+for worker in (owned, unowned):
+    worker.start()
+time.sleep(0.6)
+counted_s = unowned_threads_cpu_s([owned]) - before_s
+unowned_s, owned_s = thread_cpu_s(unowned), thread_cpu_s(owned)
+alive_s = unowned_threads_cpu_s([])
+stop.set()
+for worker in (owned, unowned):
+    worker.join()
+# join() returns when Python is done with a thread, a moment before the kernel lists it no more
+ids = {str(worker.native_id) for worker in (owned, unowned)}
+deadline = time.monotonic() + 5.0
+while ids & set(os.listdir("/proc/self/task")) and time.monotonic() < deadline:
+    time.sleep(0.01)
+print(json.dumps(dict(before_s=before_s, counted_s=counted_s, unowned_s=unowned_s, owned_s=owned_s,
+                      alive_s=alive_s, listed=sorted(ids & set(os.listdir("/proc/self/task"))),
+                      ended_s=unowned_threads_cpu_s([]))))
+"""
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/task")
 def test_unowned_thread_cpu_counts_the_threads_no_node_owns_and_not_the_owned_ones():
-    stop = threading.Event()
-
-    def busy():
-        while not stop.is_set():
-            sum(range(1000))
-
-    owned, unowned = threading.Thread(target=busy), threading.Thread(target=busy)
-    before_s = unowned_threads_cpu_s([owned])
-    for worker in (owned, unowned):
-        worker.start()
-    time.sleep(0.6)
-    counted_s = unowned_threads_cpu_s([owned]) - before_s
-    unowned_s, owned_s = thread_cpu_s(unowned), thread_cpu_s(owned)
-    alive_s = unowned_threads_cpu_s([])
-    both_s = alive_s - before_s       # nothing owned: both busy threads count
-    stop.set()
-    for worker in (owned, unowned):
-        worker.join()
-    # join() returns when Python is done with a thread, a moment before the kernel lists it no more
-    ids = {str(worker.native_id) for worker in (owned, unowned)}
-    deadline = time.monotonic() + 5.0
-    while ids & set(os.listdir("/proc/self/task")) and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert not ids & set(os.listdir("/proc/self/task"))
-    ended_s = unowned_threads_cpu_s([])
+    done = subprocess.run([sys.executable, "-c", UNOWNED_CPU_PROBE], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    read = json.loads(done.stdout)
+    assert read["listed"] == []
     # the kernel's clock ticks (10 ms) make the /proc reading coarser than the thread clocks
-    assert unowned_s > 0.1 and owned_s > 0.1
-    assert counted_s == pytest.approx(unowned_s, abs=0.05)
-    assert both_s >= counted_s + owned_s - 0.1
-    # ended threads no longer count: the total falls by about their CPU. Compared with the reading
-    # just before they stopped, not with the start: the process's other threads (a whole test run's
-    # DDS and library threads) may use CPU meanwhile, as much as 0.3 s under load.
-    assert ended_s < alive_s - 0.5 * (unowned_s + owned_s)
+    assert read["unowned_s"] > 0.1 and read["owned_s"] > 0.1
+    assert read["counted_s"] == pytest.approx(read["unowned_s"], abs=0.05)
+    # nothing owned: both busy threads count
+    assert read["alive_s"] - read["before_s"] >= read["counted_s"] + read["owned_s"] - 0.1
+    # ended threads no longer count: the total falls by about their CPU
+    assert read["ended_s"] < read["alive_s"] - 0.5 * (read["unowned_s"] + read["owned_s"])
 
 
 @pytest.mark.slow

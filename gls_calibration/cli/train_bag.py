@@ -51,8 +51,9 @@ def plates_in(motion_count: int, settings: ProcedureSettings) -> int:
 
 def recording_settings(grid: int | None, size_mm: float | None, sweep_plan: str | None,
                        plain_sweeps: int | None, standstill: bool | None = None) -> ProcedureSettings:
-    """Return grid, plan, plain sweeps and stand-still height as given, else as gls.yaml has them, and
-    the sweep length of gls.yaml (the recording's: the error separation measures from its middle).
+    """Return grid, plan, plain sweeps and stand-still height as given, else as gls.yaml has them.
+
+    The sweep length is gls.yaml's (the recording's: the error separation measures from its middle).
 
     ValueError naming a bad one.
     """
