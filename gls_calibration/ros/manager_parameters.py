@@ -70,8 +70,9 @@ MANAGER_PARAMETERS: tuple[ManagerParameter, ...] = (
     ManagerParameter("scanner_to_gls.rpy_rad", SCANNER_TO_GLS_DEFAULTS["scanner_to_gls.rpy_rad"],
                      "scanner frame orientation in the gls frame: roll, pitch, yaw (rad, extrinsic xyz), "
                      "3 numbers", "numbers"),
-    ManagerParameter("sweep.length_mm", _CELL_TIME.sweep_length_mm, "length of each sweep (mm), sent to the scanner",
-                     minimum=1.0, maximum=5000.0),
+    ManagerParameter("sweep.length_mm", _CELL_TIME.sweep_length_mm,
+                     "length of each sweep (mm), sent to the scanner; the passes turn about its middle, the error "
+                     "separation's origin", minimum=1.0, maximum=5000.0),
     ManagerParameter("sweep.speed_mm_s", _CELL_TIME.sweep_speed_mm_s, "sensor speed of each sweep (mm/s), sent to "
                      "the scanner", minimum=0.1, maximum=10000.0),
     ManagerParameter("marking.speed_mm_s", 500.0, "the galvo's marking speed (mm/s), for the marking time limit",
