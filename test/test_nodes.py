@@ -387,23 +387,37 @@ class FakeScanner:
         """Where the robot reports the sensor at a profile: a 2 % fast robot with a ripple."""
         return 1.02 * SPEED_MM_S * PROFILE_PERIOD_S * index + 0.05 * math.sin(index)
 
+    def pose(self, index: int) -> PoseStamped:
+        """The robot's reported sensor pose at profile ``index`` (metres on the wire)."""
+        pose = PoseStamped()
+        pose.header.stamp, pose.header.frame_id = self.stamp(index).to_msg(), "scanner_base"
+        pose.pose.position.y = self.reported_y_mm(index) * 1e-3
+        pose.pose.orientation.w = 1.0
+        return pose
+
+    @staticmethod
+    def stamp(index: int) -> Time:
+        return Time(nanoseconds=int(round((FIRST_STAMP_S + index * PROFILE_PERIOD_S) * 1e9)))
+
     def stream(self) -> None:
-        count = PROFILES if self.script in ("complete", "posed", "millimetres") else 5
+        complete = self.script in ("complete", "posed", "posed_late", "millimetres")
+        count = PROFILES if complete else 5
         for index in range(count):
-            stamp = Time(nanoseconds=int(round((FIRST_STAMP_S + index * PROFILE_PERIOD_S) * 1e9)))
+            stamp = self.stamp(index)
             if self.script == "posed":
-                pose = PoseStamped()
-                pose.header.stamp, pose.header.frame_id = stamp.to_msg(), "scanner_base"
-                pose.pose.position.y = self.reported_y_mm(index) * 1e-3         # metres on the wire
-                pose.pose.orientation.w = 1.0
-                self.poses.publish(pose)
+                self.poses.publish(self.pose(index))
             if self.script == "millimetres":     # a driver that publishes millimetres
                 self.points.publish(array_to_pointcloud2(self.profiles[index], "scanner_sensor", stamp.to_msg()))
             else:
                 self.points.publish(cloud_to_msg(self.profiles[index], "scanner_sensor", stamp))   # metres
         self.done.publish(SweepDone(sweep_id=7, profiles=count, step_mm=SPEED_MM_S * PROFILE_PERIOD_S,
-                                    speed_mm_s=SPEED_MM_S, direction=[0.0, 1.0, 0.0],
-                                    complete=self.script in ("complete", "posed", "millimetres")))
+                                    speed_mm_s=SPEED_MM_S, direction=[0.0, 1.0, 0.0], complete=complete))
+        if self.script == "posed_late":
+            # a robot state publisher behind the scanner: the first poses before the end of sweep, the rest after it
+            self.poses.publish(self.pose(0))
+            time.sleep(0.2)
+            for index in range(1, count):
+                self.poses.publish(self.pose(index))
 
 
 def acquire(ros_context, add_node, script: str, timeout_s: float,
@@ -414,7 +428,7 @@ def acquire(ros_context, add_node, script: str, timeout_s: float,
     client = node.create_client(AcquireSweep, "scan/acquire")
     wait_for(lambda: scanner.points.get_subscription_count() > 0 and scanner.done.get_subscription_count() > 0
              # a pose sent before its subscription is matched is lost (reliable delivers to matched readers only)
-             and (script != "posed" or scanner.poses.get_subscription_count() > 0),
+             and (script not in ("posed", "posed_late") or scanner.poses.get_subscription_count() > 0),
              TIMEOUT_S, what="scan_acquisition subscribing to the fake scanner")
     began = time.monotonic()
     response = call_service(node, client, AcquireSweep.Request(timeout_s=timeout_s, step_mm=0.15),
@@ -478,8 +492,10 @@ def test_scan_acquisition_assembles_an_organized_cloud(ros_context, add_node):
         np.testing.assert_array_equal(cloud["intensity"][row], profile["intensity"])
 
 
-def test_scan_acquisition_places_profiles_by_the_reported_pose(ros_context, add_node):
-    response, _, scanner = acquire(ros_context, add_node, "posed", timeout_s=TIMEOUT_S)
+@pytest.mark.parametrize("script", ["posed", "posed_late"])
+def test_scan_acquisition_places_profiles_by_the_reported_pose(ros_context, add_node, script):
+    """Placed by pose, also when the poses of the last profiles come 0.2 s after the end of sweep."""
+    response, _, scanner = acquire(ros_context, add_node, script, timeout_s=TIMEOUT_S)
     assert response.success, response.message
     assert response.placed_by_pose and response.message.endswith("placed by the reported pose")
     cloud = cloud_from_msg(response.cloud)

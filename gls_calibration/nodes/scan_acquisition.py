@@ -47,6 +47,7 @@ MAX_SPEED_MM_S = 10000.0
 MAX_STEP_MM = 100.0
 MALFORMED_GRACE_S = 2.0    # profiles still in flight after the end of sweep: wait this before giving up
 MAX_ENDS_KEPT = 16         # ends of sweep remembered during one acquisition, per sweep id and of ids
+POSE_GRACE_S = 0.5         # the robot's poses of the last profiles may come after the end of sweep
 SCANNER_TOPICS_WAIT_S = 5.0  # before a sweep: how long to wait for the scanner's topics to match (after a restart)
 
 
@@ -224,6 +225,22 @@ class ScanAcquisitionNode(GlsNode):
             return f"it says the sweep was cut short after {done.profiles} profiles, but {received} came"
         return ""
 
+    async def _wait_for_poses(self, stamps_s: np.ndarray) -> None:
+        """Wait up to ``POSE_GRACE_S`` for the reported poses to cover ``stamps_s``, once any came.
+
+        The pose stream and the scanner are separate publishers: the poses of the last profiles may
+        arrive after the end of sweep. Without any pose (a driver without a pose stream) nothing is
+        awaited; still uncovered after the grace, the sweep is placed by time and the answer says so.
+        """
+        poses = self.poses
+        if poses is None or not len(poses) or poses.covers(stamps_s):
+            return
+        try:
+            await self.wait_for(lambda: poses.covers(stamps_s), POSE_GRACE_S, "poses do not cover the sweep")
+        except ServiceCallError:
+            self.get_logger().warning(f"the reported pose does not cover the sweep {POSE_GRACE_S:g} s after its "
+                                      "end: placed by time")
+
     def _sweep_over(self) -> bool:
         """Tell whether every profile of the sweep is kept or, after a grace time, accounted for.
 
@@ -333,6 +350,7 @@ class ScanAcquisitionNode(GlsNode):
             # standing still the sensor does not travel: its motion only matters when placed by time, refused below
             motion = SweepMotion((0.0, 1.0, 0.0) if standstill else tuple(done.direction), done.speed_mm_s)
             start = nominal_start_pose(length_mm, direction, request.orientation_deg)
+            await self._wait_for_poses(collector.stamps_s(members))
             cloud, by_pose = collector.assemble(motion, start, self.poses, members)
             if standstill and not by_pose:
                 raise ServiceCallError("the reported pose (scan/pose) does not cover the stand-still profiles: "

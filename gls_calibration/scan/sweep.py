@@ -462,6 +462,10 @@ class SweepCollector:
         first = int(np.argmax(ends - np.arange(len(ordered))))
         return same & (stamps >= ordered[first]) & (stamps <= ordered[first] + window_s)
 
+    def stamps_s(self, members: np.ndarray) -> np.ndarray:
+        """Return the stamps (s) of the profiles ``members`` selects, in arrival order."""
+        return np.asarray(self._stamps, dtype=float)[np.asarray(members, dtype=bool)]
+
     def first_stamp_s(self, members: np.ndarray) -> float:
         """Return the earliest stamp (s) of the profiles ``members`` selects."""
         return float(np.min(np.asarray(self._stamps)[np.asarray(members, dtype=bool)]))
