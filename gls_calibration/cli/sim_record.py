@@ -31,12 +31,16 @@ def _grid_value(key: str, default):
     return read_config_file(config_path("gls.yaml"), "parameter file", parse)
 
 
-def standstill_height() -> bool:
-    """``sweep.standstill_height`` of config/gls.yaml (the procedure's default when the file leaves it out)."""
+def _sweep_value(key: str, default):
     def parse(document):
         sweep = parameters_block(document).get("sweep") or {}
-        return sweep.get("standstill_height", ProcedureSettings.standstill_height)
-    value = read_config_file(config_path("gls.yaml"), "parameter file", parse)
+        return sweep.get(key, default)
+    return read_config_file(config_path("gls.yaml"), "parameter file", parse)
+
+
+def standstill_height() -> bool:
+    """``sweep.standstill_height`` of config/gls.yaml (the procedure's default when the file leaves it out)."""
+    value = _sweep_value("standstill_height", ProcedureSettings.standstill_height)
     if not isinstance(value, bool):
         raise ValueError(f"sweep.standstill_height of config/gls.yaml must be true or false, got {value!r}")
     return value
@@ -53,10 +57,7 @@ def sweep_length_mm() -> float:
     The recorded sweeps' length: they turn the sensor about their middle, from which the error separation
     measures a centre's place on the laser line.
     """
-    def parse(document):
-        sweep = parameters_block(document).get("sweep") or {}
-        return sweep.get("length_mm", CellTimeModel.sweep_length_mm)
-    value = read_config_file(config_path("gls.yaml"), "parameter file", parse)
+    value = _sweep_value("length_mm", CellTimeModel.sweep_length_mm)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueError(f"sweep.length_mm of config/gls.yaml must be a number, got {value!r}")
     return float(value)

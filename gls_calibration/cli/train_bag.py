@@ -67,7 +67,7 @@ def recording_settings(grid: int | None, size_mm: float | None, sweep_plan: str 
                              sweep_plan=parse_plan(sweep_plan) if sweep_plan is not None else plan.passes,
                              plain_sweeps=plain_sweeps if plain_sweeps is not None else plan.plain_sweeps,
                              standstill_height=standstill if standstill is not None else standstill_height(),
-                             cell_time=replace(CellTimeModel(), sweep_length_mm=sweep_length_mm()))
+                             cell_time=CellTimeModel(sweep_length_mm=sweep_length_mm()))
 
 
 def train_from_bag(args: argparse.Namespace, settings: ProcedureSettings) -> int:

@@ -468,7 +468,7 @@ class SweepCollector:
 
     def first_stamp_s(self, members: np.ndarray) -> float:
         """Return the earliest stamp (s) of the profiles ``members`` selects."""
-        return float(np.min(np.asarray(self._stamps)[np.asarray(members, dtype=bool)]))
+        return float(np.min(self.stamps_s(members)))
 
     def assemble(self, motion: SweepMotion, start_pose: Optional[np.ndarray] = None,
                  poses: Optional[PoseTrack] = None, members: Optional[np.ndarray] = None) -> tuple[np.ndarray, bool]:

@@ -7,7 +7,6 @@ clouds stay numpy arrays (xyz, intensity) in the scanner base frame instead of P
 """
 from __future__ import annotations
 
-import dataclasses
 from typing import Optional
 
 import numpy as np
@@ -46,7 +45,7 @@ class DirectCell(CoreCell):
         values = dict(scanner_to_gls=RigidTransform(mounting[:3, :3].copy(), mounting[:3, 3].copy()),
                       profiles_placed_by_pose=self.placed_by_pose,
                       # the simulated sweeps' length: where they turn the sensor (the lateral coordinate's origin)
-                      cell_time=dataclasses.replace(CellTimeModel(), sweep_length_mm=self.sim.config.sweep_length_mm))
+                      cell_time=CellTimeModel(sweep_length_mm=self.sim.config.sweep_length_mm))
         return ProcedureSettings(**{**values, **overrides})
 
     async def acquire_sweep(self, step_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> Cloud:

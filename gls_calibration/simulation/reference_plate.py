@@ -202,7 +202,7 @@ def measure_plate(config: SimConfig, plate: Plate, plan: MeasurementPlan, seed: 
                                  profiles_placed_by_pose=plan.placed_by_pose,
                                  scanner_to_gls=RigidTransform(mounting[:3, :3].copy(), mounting[:3, 3].copy()),
                                  chain_map=chain_map,
-                                 cell_time=replace(CellTimeModel(), sweep_length_mm=config.sweep_length_mm))
+                                 cell_time=CellTimeModel(sweep_length_mm=config.sweep_length_mm))
 
     def cloud(number: int, step_mm: float, item: SweepPass = SweepPass()) -> tuple[np.ndarray, np.ndarray]:
         data = scanner.sweep_data(plate, config.sweep_length_mm, step_mm=step_mm, seed=seed * 1009 + number,
