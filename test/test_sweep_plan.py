@@ -128,3 +128,21 @@ def test_the_lateral_error_is_taken_where_it_lies_on_the_sensors_line(plan):
 
     assert error_rms(length_mm) < 0.004
     assert error_rms(0.5 * length_mm) > 2.0 * error_rms(length_mm)      # a middle 50 mm off: part of it stays
+
+
+@pytest.mark.parametrize("length", [float("nan"), float("inf"), 0.0, -200.0])
+def test_a_sweep_length_that_has_no_middle_is_refused(length):
+    """The separation measures every sweep from half its length: NaN or infinity would be passed on."""
+    with pytest.raises(ValueError, match=r"^cell_time\.sweep_length_mm must be a positive finite number, got "):
+        procedure.ProcedureSettings(cell_time=CellTimeModel(sweep_length_mm=length))
+
+
+@pytest.mark.parametrize("text", [".nan", ".inf", "0", "-200.0"])
+def test_gls_yaml_sweep_length_is_checked_where_the_tools_read_it(tmp_path, monkeypatch, text):
+    from gls_calibration.cli import sim_record
+
+    (tmp_path / "gls.yaml").write_text(f"calibration_manager:\n  ros__parameters:\n    sweep:\n"
+                                       f"      length_mm: {text}\n")
+    monkeypatch.setattr(sim_record, "config_path", lambda name: tmp_path / name)
+    with pytest.raises(ValueError, match=r"^sweep\.length_mm of config/gls\.yaml must be a positive finite number"):
+        sim_record.sweep_length_mm()

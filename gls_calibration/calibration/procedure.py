@@ -273,6 +273,8 @@ class ProcedureSettings:
         for name in ("max_outlying_points", "max_cluster_points"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must not be negative, got {getattr(self, name)}")
+        # finite: the error separation measures every sweep from its middle, half this length
+        as_positive_number(self.cell_time.sweep_length_mm, "cell_time.sweep_length_mm")
         covered_mm = self.grid_size_mm + 2.0 * (float(radii[-1]) + SWEEP_END_MARGIN_MM)
         if self.cell_time.sweep_length_mm < covered_mm:
             raise ValueError(f"sweep length {self.cell_time.sweep_length_mm:g} mm cannot cover the grid: its "

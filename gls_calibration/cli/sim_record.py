@@ -17,6 +17,7 @@ from gls_calibration.calibration.procedure import CalibrationError, ProcedureSet
 from gls_calibration.calibration.record import build_record, save_candidate
 from gls_calibration.calibration.store import CalibrationStore
 from gls_calibration.common.config_files import config_path, read_config_file
+from gls_calibration.common.validation import as_positive_number
 from gls_calibration.geometry.head_config import parameters_block
 from gls_calibration.registration.sweep_plan import CellTimeModel
 from gls_calibration.scan.bag_io import BagRecorder
@@ -60,7 +61,7 @@ def sweep_length_mm() -> float:
     value = _sweep_value("length_mm", CellTimeModel.sweep_length_mm)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueError(f"sweep.length_mm of config/gls.yaml must be a number, got {value!r}")
-    return float(value)
+    return as_positive_number(value, "sweep.length_mm of config/gls.yaml")
 
 
 def grid_per_side() -> int:
