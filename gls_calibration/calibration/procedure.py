@@ -649,7 +649,8 @@ def validation_grid(settings: ProcedureSettings) -> np.ndarray:
 async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int, validate: bool, force: bool,
                     want_truth: bool, progress: Progress,
                     save_candidate: Callable[[list[PlateRun], list[TrainedModel]], Candidate],
-                    active_calibration: bool = False) -> CalibrationOutcome:
+                    active_calibration: bool = False,
+                    certify: Optional[Callable[[Candidate, PlateRun], Candidate]] = None) -> CalibrationOutcome:
     """Run the calibrate flow; ``save_candidate`` stores a calibration without activating it.
 
     The cell is switched to the candidate for later iterations and validation; the caller activates
@@ -682,6 +683,10 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
         ``save_candidate(runs, models) -> Candidate``: store a calibration without activating it.
     active_calibration : bool, default False
         The cell corrects through a trained calibration (not the nominal model) when the run starts.
+    certify : callable, optional
+        ``certify(candidate, validation) -> Candidate``: called once a validated candidate is
+        accepted, returns the candidate to activate (``record.certified_candidate``: its U map raised
+        to what the validation showed, as a new file).
 
     Returns
     -------
@@ -749,6 +754,8 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
                                       time.monotonic() - began, rejection=rejected,
                                       active_validation=active_validation, active_calibration=active_calibration,
                                       stage_times=clock.times())
+        if certify is not None:
+            candidate = certify(candidate, validation)
     progress("done", 1.0, "calibration finished")
     return CalibrationOutcome("calibrated", tuple(runs), validation, tuple(models), candidate,
                               time.monotonic() - began, active_validation=active_validation,

@@ -19,7 +19,7 @@ from gls_calibration.calibration.procedure import ProcedureSettings
 from gls_calibration.calibration.record_file import CalibrationRecord, dump_record, new_record
 from gls_calibration.calibration.stated_accuracy import ChainCheck
 from gls_calibration.calibration.store import CalibrationStore
-from gls_calibration.calibration.uncertainty import run_budget
+from gls_calibration.calibration.uncertainty import run_budget, with_validation_floor_stored
 from gls_calibration.correction.setpoints import CalibratedRegion, Correction
 from gls_calibration.correction.uncertainty_grid import UNCERTAINTY_KEY, UncertaintyGrid
 from gls_calibration.geometry.kinematics import HeadGeometry
@@ -209,6 +209,51 @@ def save_candidate(store: CalibrationStore, record: CalibrationRecord, geometry:
     """
     correction = correction_from_record(record, geometry)   # refuses an unusable record before saving
     return Candidate(str(store.save(record, activate=False)), correction, record)
+
+
+def certified_candidate(store: CalibrationStore, candidate: Candidate, geometry: HeadGeometry,
+                        post_rms_mm: float, chain_check: Optional[ChainCheck], check_matches: bool) -> Candidate:
+    """Return the candidate whose certificate holds what its validation showed: raised, a new file; or itself.
+
+    After the validation plate, the candidate's U map is raised to the validation's measured RMS in
+    quadrature with the reference check where it is below (``uncertainty.with_validation_floor``).
+    A raised map is a new candidate in the history (the first stays there, inactive: files are
+    written once), with the ``validation`` line in its budget; without a U map, a validated figure
+    or a matching check the candidate is returned as it is.
+
+    Parameters
+    ----------
+    store : CalibrationStore
+        The store the candidate was saved in.
+    candidate : Candidate
+        The validated candidate.
+    geometry : HeadGeometry
+        The nominal head.
+    post_rms_mm : float
+        The validation plate's measured 2-D RMS after calibration.
+    chain_check : ChainCheck, optional
+        The reference check of the chain.
+    check_matches : bool
+        The check was made with the calibration's plan, placement and chain map.
+
+    Returns
+    -------
+    Candidate
+        The candidate to activate.
+
+    Raises
+    ------
+    OSError
+        If the new file cannot be written (nothing is activated; the first candidate stays).
+    """
+    stored = None if candidate.record is None else candidate.record.get(UNCERTAINTY_KEY)
+    if stored is None:
+        return candidate
+    raised = with_validation_floor_stored(stored, post_rms_mm, chain_check, check_matches)
+    if raised is None:
+        return candidate
+    record = CalibrationRecord({**dict(candidate.record), UNCERTAINTY_KEY: raised})
+    return save_candidate(store, record, geometry)
 
 
 def record_models(record: Mapping) -> list[dict]:

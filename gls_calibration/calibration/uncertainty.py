@@ -36,17 +36,22 @@ The budget (all from what the cell knows; no simulation truth):
     the same way): ``sqrt(2) r sigma_z / h`` radially, ``sigma_z`` the cell's plate-height
     repeatability (``CertificateSettings.plate_height_sigma_mm``).
 
+(e) ``validation`` (only after a validation plate, :func:`with_validation_floor`): the chain term is one
+    draw of the check, and the calibration's own draw of the chain's random error is in none of the
+    above; the validation plate carries it. Where the validation's RMS in quadrature with the check
+    is above the 2-D RMS the budget implies, the difference is added uniformly over the field.
+
 The marking itself (thermal drift of the head over a job, the laser spot) is not in the budget.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import math
 from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
-from gls_calibration.calibration.stated_accuracy import ChainCheck
+from gls_calibration.calibration.stated_accuracy import ChainCheck, placement_name
 from gls_calibration.common.validation import as_positive_number
 from gls_calibration.correction.uncertainty_grid import COVERAGE_FACTOR, UncertaintyGrid
 from gls_calibration.models import rbf
@@ -54,10 +59,13 @@ from gls_calibration.models.linear_response import LINEAR_TYPES, physics_respons
 from gls_calibration.models.physical_model import physics_first_parts, refit_physics_then_rbf
 
 CONTRIBUTIONS = ("measurement", "chain", "model", "plate_height")
+VALIDATION_FLOOR = "validation"
+"""The contribution :func:`with_validation_floor` adds when the validation shows more than the budget."""
 COVERED_TYPES = LINEAR_TYPES + ("sum",)     # "sum": physics first (``physical_model.train_physics_then_rbf``)
 _SAME_POINT_MM = 1e-9     # a model's centre is a training point within this
 CHAIN_FROM_CHECK = "reference check"
 CHAIN_ASSUMED = "assumed: no reference check of this plan"
+CENTRAL_HALF_WIDTH_MM = 75.0   # the central 150 x 150 mm the certificate states U over besides the whole field
 
 
 @dataclass(frozen=True)
@@ -213,7 +221,6 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
 
     total = np.sqrt(measurement_var + chain_var + model_var + height_var)
     u_grid = COVERAGE_FACTOR * total
-    central = (np.abs(points[:, 0]) <= 75.0 + 1e-9) & (np.abs(points[:, 1]) <= 75.0 + 1e-9)
     contributions = (
         _contribution("measurement", measurement_var,
                       "per-centre sigma through the model (physics first: linearised at its solution)"
@@ -225,10 +232,116 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
         _contribution("plate_height", height_var, f"plate height sigma {settings.plate_height_sigma_mm:g} mm, "
                                                   f"twice, over h = {height:.1f} mm"),
     )
-    return UncertaintyBudget(contributions, UncertaintyGrid(x_nodes, y_nodes, u_grid.reshape(gx.shape)),
-                             COVERAGE_FACTOR, float(u_grid.max()),
-                             float(u_grid[central].max()) if central.any() else math.nan,
-                             float(np.median(u_grid)), float(exponent), float(pitch))
+    grid = UncertaintyGrid(x_nodes, y_nodes, u_grid.reshape(gx.shape))
+    return UncertaintyBudget(contributions, grid, COVERAGE_FACTOR, *_field_figures(grid), float(exponent),
+                             float(pitch))
+
+
+def _validation_floor(grid: UncertaintyGrid, coverage_factor: float, post_rms_mm: float,
+                      check: Optional[ChainCheck], check_matches: bool) -> Optional[tuple[np.ndarray, float, str]]:
+    """Return the raised U grid, the added per-axis standard uncertainty and its basis; None: no floor."""
+    post_rms_mm = float(post_rms_mm)
+    if post_rms_mm < 0.0:
+        raise ValueError(f"post_rms_mm must be non-negative, got {post_rms_mm!r}")
+    if check is None or not check_matches or not math.isfinite(post_rms_mm):
+        return None
+    floor_2d = math.sqrt(post_rms_mm ** 2 + float(np.sum(np.square(check.sigma_mm))))
+    per_axis_var = np.square(grid.u_k2_mm / coverage_factor)
+    extra = floor_2d ** 2 / 2.0 - float(np.mean(per_axis_var))
+    if not extra > 0.0:
+        return None
+    basis = (f"the validation plate's {post_rms_mm:.4f} mm RMS in quadrature with the reference check's "
+             f"{check.sigma_mm[0]:.4f} / {check.sigma_mm[1]:.4f} mm: {floor_2d:.4f} mm 2-D, above the budget's "
+             f"{math.sqrt(2.0 * float(np.mean(per_axis_var))):.4f} mm; the difference added uniformly")
+    return coverage_factor * np.sqrt(per_axis_var + extra), math.sqrt(extra), basis
+
+
+def _field_figures(grid: UncertaintyGrid) -> tuple[float, float, float]:
+    """Return U's largest value over the grid, over its central 150 x 150 mm, and its median (mm)."""
+    gx, gy = np.meshgrid(grid.x_mm, grid.y_mm)
+    central = (np.abs(gx) <= CENTRAL_HALF_WIDTH_MM + 1e-9) & (np.abs(gy) <= CENTRAL_HALF_WIDTH_MM + 1e-9)
+    return (float(grid.u_k2_mm.max()), float(grid.u_k2_mm[central].max()) if central.any() else math.nan,
+            float(np.median(grid.u_k2_mm)))
+
+
+def with_validation_floor(budget: UncertaintyBudget, post_rms_mm: float, check: Optional[ChainCheck],
+                          check_matches: bool) -> UncertaintyBudget:
+    """Return ``budget`` with U raised, where needed, to what the validation plate and the check show.
+
+    The chain term is one draw of the reference check; the calibration's own draw of the chain's
+    random error (the sweeps' random slopes and shapes that the separation leaves in the marks,
+    correlated over the plate, so not averaged by the model) is in neither it nor the measurement
+    term, and a check that drew low left U below the TRUE error (coverage 0.64-0.71 on one seed of
+    five in simulation). The validation plate carries that draw: its measured RMS holds the
+    calibration's random draw and the validation's own (the repeating error cancels there), the
+    check holds the repeating error and its own draw. Their quadrature sum
+    ``sqrt(post_rms^2 + sigma_x^2 + sigma_y^2)`` estimates the 2-D RMS landing error (assuming the
+    parts independent; ``stated_accuracy`` states the bound, their plain sum, for the RMS figure).
+    Where the 2-D RMS that U implies over the grid (``sqrt(2 mean(u^2))``, u = U / coverage factor,
+    per axis) is below it, one uniform per-axis variance is added over the grid to reach it, as the
+    contribution ``validation``; otherwise ``budget`` is returned unchanged.
+
+    Parameters
+    ----------
+    budget : UncertaintyBudget
+        The budget made when the calibration was trained (:func:`uncertainty_budget`).
+    post_rms_mm : float
+        The validation plate's measured 2-D RMS deviation after calibration (``post_rms_mm``).
+    check : ChainCheck or None
+        The reference check the budget's chain term came from.
+    check_matches : bool
+        The check was made with the calibration's plan, placement and chain map.
+
+    Returns
+    -------
+    UncertaintyBudget
+        The budget, with the ``validation`` contribution and the raised grid when the floor is above it.
+
+    Raises
+    ------
+    ValueError
+        If ``post_rms_mm`` is negative (NaN or a missing or non-matching check: no floor, unchanged).
+
+    Examples
+    --------
+    >>> grid = UncertaintyGrid([0.0, 10.0], [0.0, 10.0], [[0.01, 0.01], [0.01, 0.01]])
+    >>> budget = UncertaintyBudget((Contribution("chain", 0.004, 0.004, "check"),), grid, COVERAGE_FACTOR,
+    ...                            0.01, 0.01, 0.01, 1.0, 10.0)
+    >>> check = ChainCheck(sigma_mm=(0.004, 0.004), plan="0+,90+", placement="pose", reference="plate A",
+    ...                    centres=143)
+    >>> raised = with_validation_floor(budget, 0.012, check, True)
+    >>> round(raised.u95_median_mm, 4), raised.contributions[-1].name
+    (0.023, 'validation')
+    """
+    floor = _validation_floor(budget.grid, budget.coverage_factor, post_rms_mm, check, check_matches)
+    if floor is None:
+        return budget
+    u_grid, added_mm, basis = floor
+    grid = UncertaintyGrid(budget.grid.x_mm, budget.grid.y_mm, u_grid)
+    full, central, median = _field_figures(grid)
+    return replace(budget, contributions=budget.contributions + (
+                       Contribution(VALIDATION_FLOOR, added_mm, added_mm, basis),),
+                   grid=grid, u95_full_mm=full, u95_central_mm=central, u95_median_mm=median)
+
+
+def with_validation_floor_stored(stored: Mapping[str, Any], post_rms_mm: float, check: Optional[ChainCheck],
+                                 check_matches: bool) -> Optional[dict]:
+    """Return a record's ``uncertainty`` mapping raised as :func:`with_validation_floor` does; None: unchanged.
+
+    The mapping as :meth:`UncertaintyBudget.to_dict` wrote it (a calibration file's ``uncertainty``);
+    ValueError if it is not one.
+    """
+    grid = UncertaintyGrid.from_dict(stored)
+    floor = _validation_floor(grid, float(stored.get("coverage_factor", COVERAGE_FACTOR)), post_rms_mm, check,
+                              check_matches)
+    if floor is None:
+        return None
+    u_grid, added_mm, basis = floor
+    raised = UncertaintyGrid(grid.x_mm, grid.y_mm, u_grid)
+    full, central, median = _field_figures(raised)
+    line = {"name": VALIDATION_FLOOR, "rms_mm": added_mm, "max_mm": added_mm, "basis": basis}
+    return {**stored, **raised.to_dict(), "u95_full_mm": full, "u95_central_150_mm": central, "u95_median_mm": median,
+            "budget": list(stored.get("budget", [])) + [line]}
 
 
 def blocked_cv_model_error(landed: np.ndarray, corrections: np.ndarray, sigma: np.ndarray,
@@ -383,6 +496,14 @@ def run_sigma_mm(sigma: Optional[np.ndarray], count: int, floor_mm: float) -> np
     return np.where(np.isfinite(sigma) & (sigma > 0.0), sigma, floor_mm)
 
 
+def check_matches_run(check: Optional[ChainCheck], run: Any, settings: Any) -> bool:
+    """Whether the reference ``check`` was made with ``run``'s plan, placement and chain map (a ``PlateRun``)."""
+    if check is None:
+        return False
+    return (check.plan == run.sweep_plan and check.placement == placement_name(settings.profiles_placed_by_pose)
+            and check.chain_map == run.chain_map)
+
+
 def run_budget(runs: Sequence[Any], models: Sequence[Any], settings: Any, region: Mapping[str, float],
                working_distance_mm: float, check: Optional[ChainCheck],
                certificate: CertificateSettings = CertificateSettings()) -> UncertaintyBudget:
@@ -397,11 +518,7 @@ def run_budget(runs: Sequence[Any], models: Sequence[Any], settings: Any, region
     trainings = [TrainingData(run.measured_gls[:, :2], run.corrections,
                               run_sigma_mm(run.sigma_mm, len(run.corrections), settings.measurement_uncertainty_mm),
                               model.model) for run, model in zip(runs, models)]
-    matches = False
-    if check is not None:
-        placement = "pose" if settings.profiles_placed_by_pose else "time"
-        matches = (check.plan == runs[0].sweep_plan and check.placement == placement
-                   and check.chain_map == runs[0].chain_map)
+    matches = check_matches_run(check, runs[0], settings)
     first = runs[0]
     removed = math.hypot(first.scanner_error_rms_mm, first.motion_error_rms_mm)
     return uncertainty_budget(trainings, region, working_distance_mm, check, matches, certificate,

@@ -28,12 +28,14 @@ from visualization_msgs.msg import MarkerArray
 from gls_calibration import discrepancy
 from gls_calibration.calibration import procedure
 from gls_calibration.calibration.outcome import RunSummary, summarise
-from gls_calibration.calibration.record import build_record, record_fiducials, record_models, save_candidate
+from gls_calibration.calibration.record import (build_record, certified_candidate, record_fiducials, record_models,
+                                                save_candidate)
 from gls_calibration.calibration.record_file import CalibrationFileError
 from gls_calibration.calibration.reference_check import read_certified_centres, scan_reference_check
 from gls_calibration.calibration.stated_accuracy import (SELF_CONSISTENCY, load_chain_check, placement_name,
                                                          save_chain_check)
 from gls_calibration.calibration.store import CalibrationStore
+from gls_calibration.calibration.uncertainty import check_matches_run
 from gls_calibration.common.files import require_regular_output
 from gls_calibration.correction.setpoints import Correction
 from gls_calibration.geometry import kinematics
@@ -419,10 +421,14 @@ class CalibrationManager(GlsNode):
             record = build_record(self.geometry, settings, runs, models, existing_models, chain_check)
             return save_candidate(self.store, record, self.geometry)
 
+        def certify(candidate, validation):
+            return certified_candidate(self.store, candidate, self.geometry, validation.metrics.full.rms_abs_mm,
+                                       chain_check, check_matches_run(chain_check, validation, settings))
+
         outcome = await procedure.calibrate(
             self.cell, settings, iterations=request.iterations, validate=request.validate,
             force=request.force, want_truth=bool(self.ground_truth_service),
-            progress=progress, save_candidate=save, active_calibration=active is not None)
+            progress=progress, save_candidate=save, active_calibration=active is not None, certify=certify)
         stamp = self.get_clock().now().to_msg()
         self.plate_pose_publisher.publish(rviz.plate_pose_msg(outcome.runs[-1].plate_pose_gls, stamp))
         self.markers_publisher.publish(rviz.calibration_markers(outcome.runs[0], outcome.validation, stamp,

@@ -86,8 +86,10 @@ def certificate_lines(stored: Optional[Mapping[str, Any]], summary: Any, map_nam
     lines += ["", "Method: the measurement's per-centre uncertainty carried exactly through the trained model "
               "(it is linear in its training data); the chain's correlated error from the reference check of the "
               "same sweep plan; the model's error between fiducials from spatially blocked cross-validation by the "
-              "distance to the nearest fiducial; the plate height's scale error "
-              "(docs/method-and-results.md, Certificate).",
+              "distance to the nearest fiducial; the plate height's scale error; where the validation plate's RMS in "
+              "quadrature with the reference check is above the 2-D RMS the budget implies, the difference added "
+              "uniformly (the `validation` line: the check is one draw of the chain's random error, the validation "
+              "carries the calibration's own) (docs/method-and-results.md, Certificate).",
               f"Conditions: sweep plan {summary.sweep_plan}, chain map {summary.chain_map}, "
               f"{summary.fiducials_found} of {summary.fiducials_expected} fiducials, model {summary.method} "
               f"({summary.neurons} units).",
