@@ -129,9 +129,13 @@ def test_the_calibrate_flow_activates_the_candidate_certify_returns(tmp_path):
     grid = outcome.candidate.correction.uncertainty
     assert implied_rms_2d(grid, stored["coverage_factor"]) == pytest.approx(floor, rel=1e-9)
     assert cell.store.load(outcome.candidate.path)[UNCERTAINTY_KEY] == stored
-    assert summarise(outcome, check).certificate_u95_median_mm == pytest.approx(stored["u95_median_mm"])
+    summary = summarise(outcome, check)
+    assert summary.certificate_u95_median_mm == pytest.approx(stored["u95_median_mm"])
+    assert stored["budget"][-1]["rms_mm"] > 0.0
+    assert summary.certificate_validation_mm == pytest.approx(stored["budget"][-1]["rms_mm"])
     # without validation there is nothing to raise it to: certify is not called
     calls.clear()
-    asyncio.run(procedure.calibrate(cell, settings, iterations=1, validate=False, force=True, want_truth=True,
-                                    progress=lambda *_: None, save_candidate=save, certify=certify))
-    assert calls == []
+    unvalidated = asyncio.run(procedure.calibrate(cell, settings, iterations=1, validate=False, force=True,
+                                                  want_truth=True, progress=lambda *_: None, save_candidate=save,
+                                                  certify=certify))
+    assert calls == [] and math.isnan(summarise(unvalidated, check).certificate_validation_mm)

@@ -14,8 +14,10 @@ from typing import TYPE_CHECKING, Any, Optional
 import numpy as np
 
 from gls_calibration.calibration.stated_accuracy import SELF_CONSISTENCY, ChainCheck, stated_accuracy
+from gls_calibration.calibration.uncertainty import VALIDATION_FLOOR
 from gls_calibration.common.time_budget import StageTimes
 from gls_calibration.common.validation import as_points, as_positive_number
+from gls_calibration.correction.uncertainty_grid import UNCERTAINTY_KEY
 from gls_calibration.registration.chain_map import NO_CHAIN_MAP
 from gls_calibration.registration.rigid import RigidTransform
 from gls_calibration.scan.plate_pose import PlatePose
@@ -300,6 +302,10 @@ class RunSummary:
         In simulation, the fraction of validation fiducials whose TRUE landing error is within U.
     certificate_reference : str, optional
         What the chain term rests on.
+    certificate_validation_mm : float, optional
+        The per-axis standard uncertainty (k = 1) the validation plate added to U over the field
+        (``uncertainty.with_validation_floor``), mm: 0 where the budget as trained already implied
+        more; NaN without a U map or a validation plate.
     """
 
     message: str
@@ -356,6 +362,7 @@ class RunSummary:
     certificate_u95_median_mm: float = math.nan
     certificate_coverage: float = math.nan
     certificate_reference: str = ""
+    certificate_validation_mm: float = math.nan
 
     def to_dict(self) -> dict:
         """Return the summary as plain values, in field order (``summary.json``)."""
@@ -439,6 +446,10 @@ def _certificate(outcome: CalibrationOutcome, check: Optional[ChainCheck]) -> di
                                                         else "none (no reference check: the chain term is assumed "
                                                              "and the scale is the scanner's own)")}
     validation = outcome.validation
+    if validation is not None:
+        stored = (outcome.candidate.record or {}).get(UNCERTAINTY_KEY) or {}
+        values["certificate_validation_mm"] = next((float(line["rms_mm"]) for line in stored.get("budget", [])
+                                                    if line.get("name") == VALIDATION_FLOOR), 0.0)
     if validation is not None and validation.true_deviations is not None:
         u = grid.at(validation.paired_targets_xy[:, 0], validation.paired_targets_xy[:, 1])
         values["certificate_coverage"] = float(np.mean(np.hypot(*validation.true_deviations.T) <= u))

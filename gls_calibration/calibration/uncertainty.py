@@ -65,7 +65,6 @@ COVERED_TYPES = LINEAR_TYPES + ("sum",)     # "sum": physics first (``physical_m
 _SAME_POINT_MM = 1e-9     # a model's centre is a training point within this
 CHAIN_FROM_CHECK = "reference check"
 CHAIN_ASSUMED = "assumed: no reference check of this plan"
-CENTRAL_HALF_WIDTH_MM = 75.0   # the central 150 x 150 mm the certificate states U over besides the whole field
 
 
 @dataclass(frozen=True)
@@ -233,7 +232,7 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
                                                   f"twice, over h = {height:.1f} mm"),
     )
     grid = UncertaintyGrid(x_nodes, y_nodes, u_grid.reshape(gx.shape))
-    return UncertaintyBudget(contributions, grid, COVERAGE_FACTOR, *_field_figures(grid), float(exponent),
+    return UncertaintyBudget(contributions, grid, COVERAGE_FACTOR, *grid.field_figures(), float(exponent),
                              float(pitch))
 
 
@@ -254,14 +253,6 @@ def _validation_floor(grid: UncertaintyGrid, coverage_factor: float, post_rms_mm
              f"{check.sigma_mm[0]:.4f} / {check.sigma_mm[1]:.4f} mm: {floor_2d:.4f} mm 2-D, above the budget's "
              f"{math.sqrt(2.0 * float(np.mean(per_axis_var))):.4f} mm; the difference added uniformly")
     return coverage_factor * np.sqrt(per_axis_var + extra), math.sqrt(extra), basis
-
-
-def _field_figures(grid: UncertaintyGrid) -> tuple[float, float, float]:
-    """Return U's largest value over the grid, over its central 150 x 150 mm, and its median (mm)."""
-    gx, gy = np.meshgrid(grid.x_mm, grid.y_mm)
-    central = (np.abs(gx) <= CENTRAL_HALF_WIDTH_MM + 1e-9) & (np.abs(gy) <= CENTRAL_HALF_WIDTH_MM + 1e-9)
-    return (float(grid.u_k2_mm.max()), float(grid.u_k2_mm[central].max()) if central.any() else math.nan,
-            float(np.median(grid.u_k2_mm)))
 
 
 def with_validation_floor(budget: UncertaintyBudget, post_rms_mm: float, check: Optional[ChainCheck],
@@ -318,7 +309,7 @@ def with_validation_floor(budget: UncertaintyBudget, post_rms_mm: float, check: 
         return budget
     u_grid, added_mm, basis = floor
     grid = UncertaintyGrid(budget.grid.x_mm, budget.grid.y_mm, u_grid)
-    full, central, median = _field_figures(grid)
+    full, central, median = grid.field_figures()
     return replace(budget, contributions=budget.contributions + (
                        Contribution(VALIDATION_FLOOR, added_mm, added_mm, basis),),
                    grid=grid, u95_full_mm=full, u95_central_mm=central, u95_median_mm=median)
@@ -338,7 +329,7 @@ def with_validation_floor_stored(stored: Mapping[str, Any], post_rms_mm: float, 
         return None
     u_grid, added_mm, basis = floor
     raised = UncertaintyGrid(grid.x_mm, grid.y_mm, u_grid)
-    full, central, median = _field_figures(raised)
+    full, central, median = raised.field_figures()
     line = {"name": VALIDATION_FLOOR, "rms_mm": added_mm, "max_mm": added_mm, "basis": basis}
     return {**stored, **raised.to_dict(), "u95_full_mm": full, "u95_central_150_mm": central, "u95_median_mm": median,
             "budget": list(stored.get("budget", [])) + [line]}
