@@ -487,6 +487,11 @@ def run_calibration(args: argparse.Namespace, manager: CalibrationManager, threa
         if truth.get("true_post_rms_mm") is not None:
             print(f"true error after (simulation ground truth): RMS {truth['true_post_rms_mm']:.4f} mm, "
                   f"max {truth['true_post_max_mm']:.4f} mm")
+        if truth.get("certificate_u95_median_mm") is not None:
+            covered = truth.get("certificate_coverage")
+            print(f"certificate U (95 % radius): median {truth['certificate_u95_median_mm']:.4f} mm, largest "
+                  f"{truth['certificate_u95_full_mm']:.4f} mm"
+                  + (f"; TRUE landings within U {covered:.1%}" if covered is not None else ""))
         at_validation = validation_mark.at_validation_s if request.validate else None
         print(write_time_budget(Path(response.report_dir), truth, cpu_s(), at_validation))
     if not response.success:
