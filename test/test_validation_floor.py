@@ -139,3 +139,28 @@ def test_the_calibrate_flow_activates_the_candidate_certify_returns(tmp_path):
                                                   want_truth=True, progress=lambda *_: None, save_candidate=save,
                                                   certify=certify))
     assert calls == [] and math.isnan(summarise(unvalidated, check).certificate_validation_mm)
+
+
+def test_a_raised_certificate_that_cannot_be_written_fails_the_run_and_activates_nothing(tmp_path, monkeypatch):
+    from gls_calibration.calibration import procedure
+    from gls_calibration.calibration.record import build_record, certified_candidate, save_candidate
+    from test_procedure import FAST, new_cell
+
+    cell = new_cell(tmp_path)
+    settings = cell.settings(**FAST)
+    geometry = cell.sim.config.geometry
+    check = ChainCheck((0.002, 0.002), "0+", "pose", "plate A", 100)
+
+    def save(runs, models):
+        return save_candidate(cell.store, build_record(geometry, settings, runs, models, [], check), geometry)
+
+    def certify(candidate, validation):
+        def full_disk(*args, **kwargs):
+            raise OSError(28, "No space left on device")
+        monkeypatch.setattr(cell.store, "save", full_disk)
+        return certified_candidate(cell.store, candidate, geometry, 0.05, check, True)
+
+    with pytest.raises(OSError, match="No space left on device"):
+        asyncio.run(procedure.calibrate(cell, settings, iterations=1, validate=True, force=True, want_truth=True,
+                                        progress=lambda *_: None, save_candidate=save, certify=certify))
+    assert cell.store.active_path() is None and len(cell.store.history()) == 1
