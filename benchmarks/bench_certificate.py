@@ -7,7 +7,10 @@ first plate, the trained model and the check -- nothing of the ground truth ente
 validation fiducial's TRUE landing error (after the best rigid alignment of the whole true field,
 as every figure of the package) is compared with U at its target. Prints per seed and pooled per
 preset: coverage (fraction with |true error| <= U; target 0.92-0.985), median U, TRUE RMS and
-median U / TRUE RMS (target <= 3), and the budget's contributions (per-axis k = 1 RMS over the field).
+median U / TRUE RMS (target <= 3), and the budget's contributions (per-axis k = 1 RMS over the field);
+each for the budget as trained (what a calibration without a validation plate serves) and with the
+validation floor (``uncertainty.with_validation_floor``: what the calibrate flow activates after its
+validation plate), with the validation's MEASURED RMS and the per-axis term the floor added.
 
 ``--cost`` / ``--cost-ros``: what serving U costs (issue 30: at most 10 % more time), in process and
 through the correction node in a process of its own; with and without U timed in alternating pairs,
