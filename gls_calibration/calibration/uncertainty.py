@@ -319,8 +319,23 @@ def with_validation_floor_stored(stored: Mapping[str, Any], post_rms_mm: float, 
                                  check_matches: bool) -> Optional[dict]:
     """Return a record's ``uncertainty`` mapping raised as :func:`with_validation_floor` does; None: unchanged.
 
-    The mapping as :meth:`UncertaintyBudget.to_dict` wrote it (a calibration file's ``uncertainty``);
-    ValueError if it is not one.
+    Parameters
+    ----------
+    stored : mapping
+        The mapping as :meth:`UncertaintyBudget.to_dict` wrote it (a calibration file's ``uncertainty``).
+    post_rms_mm, check, check_matches
+        As for :func:`with_validation_floor`.
+
+    Returns
+    -------
+    dict or None
+        The raised mapping (grid, field figures, the ``validation`` line appended to ``budget``), or
+        None where there is no floor above the budget.
+
+    Raises
+    ------
+    ValueError
+        If ``stored`` holds no valid grid, or ``post_rms_mm`` is negative.
     """
     grid = UncertaintyGrid.from_dict(stored)
     floor = _validation_floor(grid, float(stored.get("coverage_factor", COVERAGE_FACTOR)), post_rms_mm, check,
@@ -488,7 +503,22 @@ def run_sigma_mm(sigma: Optional[np.ndarray], count: int, floor_mm: float) -> np
 
 
 def check_matches_run(check: Optional[ChainCheck], run: Any, settings: Any) -> bool:
-    """Whether the reference ``check`` was made with ``run``'s plan, placement and chain map (a ``PlateRun``)."""
+    """Whether the reference ``check`` was made with ``run``'s plan, placement and chain map.
+
+    Parameters
+    ----------
+    check : ChainCheck or None
+        The reference check of the chain.
+    run : PlateRun
+        A plate of the calibration (its ``sweep_plan`` and ``chain_map``).
+    settings : ProcedureSettings
+        The run's settings (how profiles were placed).
+
+    Returns
+    -------
+    bool
+        True when all three match; False without a check.
+    """
     if check is None:
         return False
     return (check.plan == run.sweep_plan and check.placement == placement_name(settings.profiles_placed_by_pose)
