@@ -93,6 +93,15 @@ class Contribution:
     max_mm: float
     basis: str
 
+    def to_dict(self) -> dict:
+        """Return the line as the record's ``uncertainty.budget`` holds it."""
+        return {"name": self.name, "rms_mm": self.rms_mm, "max_mm": self.max_mm, "basis": self.basis}
+
+
+def _field_keys(full_mm: float, central_mm: float, median_mm: float) -> dict:
+    """Return the record's keys of U's field figures (``UncertaintyGrid.field_figures``' order)."""
+    return {"u95_full_mm": full_mm, "u95_central_150_mm": central_mm, "u95_median_mm": median_mm}
+
 
 @dataclass(frozen=True)
 class TrainingData:
@@ -136,10 +145,8 @@ class UncertaintyBudget:
         """Return the record's ``uncertainty`` mapping: the grid and the budget (plain numbers)."""
         return {**self.grid.to_dict(),
                 "position_relative_to": "best-fit rigid frame of the field",
-                "u95_full_mm": self.u95_full_mm, "u95_central_150_mm": self.u95_central_mm,
-                "u95_median_mm": self.u95_median_mm,
-                "budget": [{"name": item.name, "rms_mm": item.rms_mm, "max_mm": item.max_mm, "basis": item.basis}
-                           for item in self.contributions]}
+                **_field_keys(self.u95_full_mm, self.u95_central_mm, self.u95_median_mm),
+                "budget": [item.to_dict() for item in self.contributions]}
 
 
 def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, float], working_distance_mm: float,
@@ -237,8 +244,9 @@ def uncertainty_budget(trainings: Sequence[TrainingData], region: Mapping[str, f
 
 
 def _validation_floor(grid: UncertaintyGrid, coverage_factor: float, post_rms_mm: float,
-                      check: Optional[ChainCheck], check_matches: bool) -> Optional[tuple[np.ndarray, float, str]]:
-    """Return the raised U grid, the added per-axis standard uncertainty and its basis; None: no floor."""
+                      check: Optional[ChainCheck],
+                      check_matches: bool) -> Optional[tuple[UncertaintyGrid, Contribution]]:
+    """Return the raised U grid and the budget line of what was added; None: no floor above the budget."""
     post_rms_mm = float(post_rms_mm)
     if post_rms_mm < 0.0:
         raise ValueError(f"post_rms_mm must be non-negative, got {post_rms_mm!r}")
@@ -246,13 +254,15 @@ def _validation_floor(grid: UncertaintyGrid, coverage_factor: float, post_rms_mm
         return None
     floor_2d = math.sqrt(post_rms_mm ** 2 + float(np.sum(np.square(check.sigma_mm))))
     per_axis_var = np.square(grid.u_k2_mm / coverage_factor)
-    extra = floor_2d ** 2 / 2.0 - float(np.mean(per_axis_var))
+    mean_var = float(np.mean(per_axis_var))
+    extra = floor_2d ** 2 / 2.0 - mean_var
     if not extra > 0.0:
         return None
     basis = (f"the validation plate's {post_rms_mm:.4f} mm RMS in quadrature with the reference check's "
              f"{check.sigma_mm[0]:.4f} / {check.sigma_mm[1]:.4f} mm: {floor_2d:.4f} mm 2-D, above the budget's "
-             f"{math.sqrt(2.0 * float(np.mean(per_axis_var))):.4f} mm; the difference added uniformly")
-    return coverage_factor * np.sqrt(per_axis_var + extra), math.sqrt(extra), basis
+             f"{math.sqrt(2.0 * mean_var):.4f} mm; the difference added uniformly")
+    raised = UncertaintyGrid(grid.x_mm, grid.y_mm, coverage_factor * np.sqrt(per_axis_var + extra))
+    return raised, Contribution(VALIDATION_FLOOR, math.sqrt(extra), math.sqrt(extra), basis)
 
 
 def with_validation_floor(budget: UncertaintyBudget, post_rms_mm: float, check: Optional[ChainCheck],
@@ -307,12 +317,10 @@ def with_validation_floor(budget: UncertaintyBudget, post_rms_mm: float, check: 
     floor = _validation_floor(budget.grid, budget.coverage_factor, post_rms_mm, check, check_matches)
     if floor is None:
         return budget
-    u_grid, added_mm, basis = floor
-    grid = UncertaintyGrid(budget.grid.x_mm, budget.grid.y_mm, u_grid)
+    grid, line = floor
     full, central, median = grid.field_figures()
-    return replace(budget, contributions=budget.contributions + (
-                       Contribution(VALIDATION_FLOOR, added_mm, added_mm, basis),),
-                   grid=grid, u95_full_mm=full, u95_central_mm=central, u95_median_mm=median)
+    return replace(budget, contributions=budget.contributions + (line,), grid=grid, u95_full_mm=full,
+                   u95_central_mm=central, u95_median_mm=median)
 
 
 def with_validation_floor_stored(stored: Mapping[str, Any], post_rms_mm: float, check: Optional[ChainCheck],
@@ -342,12 +350,9 @@ def with_validation_floor_stored(stored: Mapping[str, Any], post_rms_mm: float, 
                               check_matches)
     if floor is None:
         return None
-    u_grid, added_mm, basis = floor
-    raised = UncertaintyGrid(grid.x_mm, grid.y_mm, u_grid)
-    full, central, median = raised.field_figures()
-    line = {"name": VALIDATION_FLOOR, "rms_mm": added_mm, "max_mm": added_mm, "basis": basis}
-    return {**stored, **raised.to_dict(), "u95_full_mm": full, "u95_central_150_mm": central, "u95_median_mm": median,
-            "budget": list(stored.get("budget", [])) + [line]}
+    raised, line = floor
+    return {**stored, **raised.to_dict(), **_field_keys(*raised.field_figures()),
+            "budget": list(stored.get("budget", [])) + [line.to_dict()]}
 
 
 def blocked_cv_model_error(landed: np.ndarray, corrections: np.ndarray, sigma: np.ndarray,
