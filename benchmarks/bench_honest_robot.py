@@ -13,7 +13,7 @@ existed, for the "no loss" comparison); ``--along-prior MM`` sets the separation
 (the robot's along-track accuracy; default: the code's default).
 
 ``--sweep-plan PLAN`` replaces the plan's passes over the marked plates (and the lines of the chain
-map) by PLAN, e.g. ``0+,90+,45+``.
+map) by PLAN, e.g. ``0+,90+,45+``; ``--plain-sweeps N`` the plan's number of plain-plate sweeps.
 
 ``--chain-map`` runs every calibration twice on the same cell: without and with a chain map
 (``registration/chain_map.py``), measured before the calibration on the certified plate over the whole field
@@ -21,7 +21,7 @@ map) by PLAN, e.g. ``0+,90+,45+``.
 (default 2), and prints the figures side by side with the map's cell time.
 
 Run: .venv/bin/python benchmarks/bench_honest_robot.py [--presets paper_like careful] [--seeds 1 2 3 4 5]
-     [--chain-map [--map-repeats 2]] [--sweep-plan PLAN]
+     [--chain-map [--map-repeats 2]] [--sweep-plan PLAN] [--plain-sweeps N]
 """
 from __future__ import annotations
 
@@ -57,11 +57,14 @@ def map_cell_time_s(repeats: int, plan=None) -> float:
 
 
 def calibrate_once(preset: str, seed: int, robot: bool, separation: SeparationSettings | None, store_dir: Path,
-                   chain_map: ChainMap | None = None, sweep_plan: tuple[SweepPass, ...] | None = None) -> dict:
+                   chain_map: ChainMap | None = None, sweep_plan: tuple[SweepPass, ...] | None = None,
+                   plain_sweeps: int | None = None) -> dict:
     cell = direct_cell(cell_config(preset, seed, robot), store_dir)
     settings = plan_settings(cell, chain_map=chain_map)
     if sweep_plan is not None:
         settings = dataclasses.replace(settings, sweep_plan=sweep_plan)
+    if plain_sweeps is not None:
+        settings = dataclasses.replace(settings, plain_sweeps=plain_sweeps)
     if separation is not None:
         settings = dataclasses.replace(settings, separation=separation)
     began = time.perf_counter()
@@ -82,7 +85,11 @@ def main() -> None:
     parser.add_argument("--map-repeats", type=int, default=2, help="sweeps per line of the chain map (default 2)")
     parser.add_argument("--sweep-plan", default=None, metavar="PLAN",
                         help="passes over the marked plates instead of config/gls.yaml's, e.g. 0+,90+,45+")
+    parser.add_argument("--plain-sweeps", type=int, default=None, metavar="N",
+                        help="plain-plate sweeps instead of config/gls.yaml's sweep.plain_repeats")
     args = parser.parse_args()
+    if args.plain_sweeps is not None and args.plain_sweeps < 1:
+        parser.error("--plain-sweeps must be at least 1")
     if args.sweep_plan is not None:
         try:
             args.sweep_plan = parse_plan(args.sweep_plan)      # parsed once: the passes from here on
@@ -92,8 +99,9 @@ def main() -> None:
         parser.error("--map-repeats must be at least 1")
     separation = None if args.along_prior is None else SeparationSettings(along_prior_sigma_mm=args.along_prior)
     along_prior_mm = SeparationSettings().along_prior_sigma_mm if args.along_prior is None else args.along_prior
-    print(f"plan {plan_label(args.sweep_plan or calibration_plan().passes)}; robot repeating errors {args.robot}; "
-          f"along prior {along_prior_mm} mm")
+    plain_sweeps = calibration_plan().plain_sweeps if args.plain_sweeps is None else args.plain_sweeps
+    print(f"plan {plan_label(args.sweep_plan or calibration_plan().passes)}, {plain_sweeps} plain sweep(s); "
+          f"robot repeating errors {args.robot}; along prior {along_prior_mm} mm")
     if args.chain_map:
         compare_chain_map(args, separation)
         return
@@ -104,7 +112,7 @@ def main() -> None:
         for seed in args.seeds:
             with tempfile.TemporaryDirectory() as folder:
                 row = calibrate_once(preset, seed, args.robot == "on", separation, Path(folder),
-                                     sweep_plan=args.sweep_plan)
+                                     sweep_plan=args.sweep_plan, plain_sweeps=args.plain_sweeps)
             rows.append(row)
             print(f"{preset:11s} {seed:4d} {row['pre_rms']:7.4f} {row['measured_rms']:9.4f} {row['measured_max']:9.4f} "
                   f"{row['true_rms']:9.4f} {row['true_max']:9.4f} {row['true_rms'] / row['measured_rms']:9.2f} "
@@ -134,7 +142,7 @@ def compare_chain_map(args: argparse.Namespace, separation: SeparationSettings |
             for suffix, used in (("", None), ("_map", chain_map)):
                 with tempfile.TemporaryDirectory() as folder:
                     result = calibrate_once(preset, seed, args.robot == "on", separation, Path(folder), used,
-                                            args.sweep_plan)
+                                            args.sweep_plan, args.plain_sweeps)
                 row.update({f"{key}{suffix}": value for key, value in result.items()})
             rows.append(row)
             fit = chain_map.residual_rms_mm
