@@ -263,16 +263,19 @@ def test_a_failed_recording_leaves_nothing(tmp_path):
 @pytest.mark.slow
 def test_gls_sim_cell_records_a_bag_that_replays(tmp_path, capsys):
     from gls_calibration.cli.sim_cell import main as sim_cell_main
+    from gls_calibration.simulation.reference_plate import calibration_plan
 
     bag = tmp_path / "bag"
     assert sim_cell_main(["--out", str(tmp_path / "out"), "--record", str(bag), "--grid", "3", "--no-validate",
                           "--sweep-plan", "0+", "--measurement", "ideal"]) == 0, capsys.readouterr().err
-    # 4 plain (config/gls.yaml), the stand-still and 1 marked
-    assert "recorded 5 sweep(s) and 1 stand-still(s)" in capsys.readouterr().out
+    plain = calibration_plan().plain_sweeps     # sweep.plain_repeats of config/gls.yaml, as the cell reads it
+    assert plain >= 1
+    # the plain sweeps, the stand-still and 1 marked
+    assert f"recorded {plain + 1} sweep(s) and 1 stand-still(s)" in capsys.readouterr().out
     sweeps = read_sweeps(bag)
     # 200 mm sweeps (config/sim.yaml): plain at 1 mm, marked at 0.1 mm (config/gls.yaml); 20 profiles standing
-    assert [sweep.xyz_mm.shape[0] for sweep in sweeps] == [201] * 4 + [20] + [2001]
-    assert [sweep.standstill for sweep in sweeps] == [False] * 4 + [True, False]
+    assert [sweep.xyz_mm.shape[0] for sweep in sweeps] == [201] * plain + [20] + [2001]
+    assert [sweep.standstill for sweep in sweeps] == [False] * plain + [True, False]
 
 
 @pytest.mark.parametrize("extra, message", [

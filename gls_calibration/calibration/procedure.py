@@ -175,8 +175,9 @@ class ProcedureSettings:
         Ring radii of a fiducial, increasing, mm (marked and sent with every measurement).
     plain_sweep_step_mm : float, default 1.0
         Profile step of the plain-plate sweeps, mm.
-    plain_sweeps : int, default 4
-        Plain-plate sweeps averaged: the plate height error of one sweep sets the field's scale.
+    plain_sweeps : int, default 2
+        Plain-plate sweeps, their poses averaged: with ``standstill_height`` they give the tilt only;
+        without it one sweep's height error sets the field's scale, and more sweeps average it.
     standstill_height : bool, default True
         Take the plate height from profiles taken standing at the marking pose ...
     standstill_profiles : int, default 20
@@ -230,7 +231,7 @@ class ProcedureSettings:
     grid_size_mm: float = 190.0
     ring_radii_mm: tuple[float, float] = grid.RING_RADII_MM
     plain_sweep_step_mm: float = 1.0
-    plain_sweeps: int = 4               # averaged: the plate height error of one sweep sets the field's scale
+    plain_sweeps: int = 2               # averaged: one sweep's path error tilts the plane (the height: stand-still)
     standstill_height: bool = True      # the plate height from profiles taken standing at the marking pose
     standstill_profiles: int = 20       # ... this many (the height of one is already ~2000 points)
     marked_sweep_step_mm: float = 0.1

@@ -91,7 +91,8 @@ MANAGER_PARAMETERS: tuple[ManagerParameter, ...] = (
     ManagerParameter("sweep.plain_step_mm", _SETTINGS.plain_sweep_step_mm, "profile spacing of the sweep of the "
                      "plain plate (mm)", minimum=0.01, maximum=10.0),
     ManagerParameter("sweep.plain_repeats", _SETTINGS.plain_sweeps, "sweeps of the plain plate whose poses are "
-                     "averaged: the robot's path error in each sets the plate height, hence the field's scale",
+                     "averaged: the robot's path error in each tilts the plane (and, without sweep.standstill_height, "
+                     "sets the plate height, hence the field's scale)",
                      "integer", 1, 20),
     ManagerParameter("sweep.standstill_height", _SETTINGS.standstill_height, "take the plate height from profiles "
                      "taken with the robot standing still at the marking pose (scan/acquire_standstill), not from "
