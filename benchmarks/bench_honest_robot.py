@@ -60,13 +60,9 @@ def calibrate_once(preset: str, seed: int, robot: bool, separation: SeparationSe
                    chain_map: ChainMap | None = None, sweep_plan: tuple[SweepPass, ...] | None = None,
                    plain_sweeps: int | None = None) -> dict:
     cell = direct_cell(cell_config(preset, seed, robot), store_dir)
-    settings = plan_settings(cell, chain_map=chain_map)
-    if sweep_plan is not None:
-        settings = dataclasses.replace(settings, sweep_plan=sweep_plan)
-    if plain_sweeps is not None:
-        settings = dataclasses.replace(settings, plain_sweeps=plain_sweeps)
-    if separation is not None:
-        settings = dataclasses.replace(settings, separation=separation)
+    varied = dict(sweep_plan=sweep_plan, plain_sweeps=plain_sweeps, separation=separation)
+    given = {key: value for key, value in varied.items() if value is not None}    # None: the plan's own
+    settings = plan_settings(cell, chain_map=chain_map, **given)
     began = time.perf_counter()
     outcome = calibrate_validated(cell, settings)
     validation = outcome.validation
@@ -99,8 +95,9 @@ def main() -> None:
         parser.error("--map-repeats must be at least 1")
     separation = None if args.along_prior is None else SeparationSettings(along_prior_sigma_mm=args.along_prior)
     along_prior_mm = SeparationSettings().along_prior_sigma_mm if args.along_prior is None else args.along_prior
-    plain_sweeps = calibration_plan().plain_sweeps if args.plain_sweeps is None else args.plain_sweeps
-    print(f"plan {plan_label(args.sweep_plan or calibration_plan().passes)}, {plain_sweeps} plain sweep(s); "
+    plan = calibration_plan()
+    plain_sweeps = plan.plain_sweeps if args.plain_sweeps is None else args.plain_sweeps
+    print(f"plan {plan_label(args.sweep_plan or plan.passes)}, {plain_sweeps} plain sweep(s); "
           f"robot repeating errors {args.robot}; along prior {along_prior_mm} mm")
     if args.chain_map:
         compare_chain_map(args, separation)
