@@ -139,9 +139,9 @@ def cell_ros_arguments(calibration_dir: Path, report_dir: Path, *, grid: int = 3
         command_line += ["--sim-config", str(sim_config)]
     cell_args = sim_cell.parse_args(command_line)
     ros_args = sim_cell.ros_arguments(cell_args, calibration_dir, report_dir)
-    # One pass over the marked plate unless a test says otherwise: these cells test the nodes, on small
-    # grids that need every fiducial, and a turned pass can miss a corner ring 2.3 mm inside the 200 mm
-    # sweep (a known limit, docs/method-and-results.md); the sweep plan has its own tests (test_sweep_plan.py).
+    # One pass over the marked plate unless a test says otherwise: these cells test the nodes, and one
+    # pass takes a third of the default plan's time; the plan has its own tests (test_sweep_plan.py,
+    # and test_cross_process.py serves a 3x3 cell with the default plan).
     parameters = {"sweep.plan": "0+"} | dict(parameters or {})
     kept: list[str] = []
     index = 0

@@ -59,7 +59,8 @@ def test_the_cluster_evidence_finds_one_fiducial_the_global_count_misses():
     clean_points, clean_intensity = plain_sweep(0, 1, "paper_like")
     clean = existing_marks(clean_intensity, points=clean_points, cluster_radius_mm=5.9)
     assert clean.largest_cluster <= 2
-    with pytest.raises(ValueError, match=r"points must have the intensity's shape \(201, 2101\) \+ \(3,\)"):
+    rows, columns = intensity.shape
+    with pytest.raises(ValueError, match=rf"points must have the intensity's shape \({rows}, {columns}\) \+ \(3,\)"):
         existing_marks(intensity, points=points[:, :5])
 
 

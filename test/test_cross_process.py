@@ -38,14 +38,12 @@ def start_serving_cell(out: Path, log_path: Path) -> subprocess.Popen:
     """``gls-sim-cell --serve`` on a 3x3 grid in another process, its store in ``out``/calibrations.
 
     ``--out`` is given relative to the child's working directory, as ``make sim`` gives it: a store
-    opened by a relative directory once made every calibration fail after training. One pass over the
-    marked plate, as the in-process cells of ``ros_helpers.start_cell``: a 3x3 grid needs every
-    fiducial, and a turned pass can miss a corner ring 2.3 mm inside the 200 mm sweep (a known limit,
-    docs/method-and-results.md; with the default plan it did on this test's draws once the plain
-    sweeps went from four to two)."""
+    opened by a relative directory once made every calibration fail after training. The default sweep
+    plan of config/gls.yaml: a 3x3 grid needs every fiducial, and its turned pass lost a corner ring
+    with the 200 mm sweep and the 0.12 mm radius tolerance (docs/method-and-results.md)."""
     with open(log_path, "w") as log:
         return subprocess.Popen([sys.executable, "-m", "gls_calibration.cli.sim_cell", "--serve", "--grid", "3",
-                                 "--sweep-plan", "0+", "--out", out.name], cwd=out.parent, stdout=log,
+                                 "--out", out.name], cwd=out.parent, stdout=log,
                                 stderr=subprocess.STDOUT, preexec_fn=default_sigint)
 
 

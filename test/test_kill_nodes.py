@@ -43,8 +43,7 @@ GRID = 3
 # One plain sweep per run: the test is about faults, not accuracy. A 3x3 grid recalibrated on the
 # paper_like measurement chain leaves a CV error above half its deviations: the "model cannot
 # explain the measurement" check is made inert here (it has its own tests). One pass over the marked
-# plate for the same reason (the sweep plan has its own tests); a turned pass over the 3x3 grid's corner
-# rings, 2.3 mm inside the 200 mm sweep, can miss one, and a 3x3 grid needs all nine.
+# plate for the same reason (the sweep plan has its own tests).
 PARAMETERS = {"sweep.plain_repeats": 1, "max_cv_fraction": 100.0, "sweep.plan": "0+"}
 
 

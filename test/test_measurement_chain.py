@@ -13,6 +13,7 @@ from gls_calibration.fiducials import targets
 from gls_calibration.fiducials.measure import measure_fiducials
 from gls_calibration.geometry.kinematics import HeadGeometry
 from gls_calibration.scan.plate_pose import estimate_plate_pose
+from gls_calibration.scan.sweep import SWEEP_LENGTH_MM
 from gls_calibration.simulation.head import TruthHead
 from gls_calibration.simulation.measurement import (PRESET_CHAINS, MeasurementChain, lateral_linearity_shape,
                                                     measurement_from_mapping, smooth_process)
@@ -26,8 +27,9 @@ QUIET = ScannerSettings(line_length_mm=60.0, z_noise_mm=0.0, linearity_mm=0.0, s
 FLAT = PlateSettings(texture_std=0.0)
 LENGTH = 60.0
 # fiducials at these base-frame positions (x along the line, y along the travel); the default
-# scanner maps base (x, y) to plate (x, 100 - y)
+# scanner maps base (x, y) to plate (x, START_Y - y), its start above plate y = START_Y
 CENTRES_B = np.array([(x, y) for y in (12.0, 30.0, 48.0) for x in (-18.0, 0.0, 18.0)])
+START_Y = 0.5 * SWEEP_LENGTH_MM
 
 
 def chain(**values) -> MeasurementChain:
@@ -36,7 +38,7 @@ def chain(**values) -> MeasurementChain:
 
 def marked_plate(plate_chain: MeasurementChain | None = None, settings: PlateSettings = FLAT) -> Plate:
     plate = Plate(settings, seed=4, chain=plate_chain)
-    uv = np.column_stack([CENTRES_B[:, 0], 100.0 - CENTRES_B[:, 1]])
+    uv = np.column_stack([CENTRES_B[:, 0], START_Y - CENTRES_B[:, 1]])
     for ring in targets.rings_polylines(uv, (2.5, 2.7)):
         plate.add_mark_plate(ring)
     return plate
@@ -174,8 +176,8 @@ def test_blooming_spills_saturated_light_into_dark_marks_without_moving_centres(
 # ---------------------------------------------------------------- e. marks
 def test_mark_blobs_darken_where_rings_start_but_sit_on_the_path(reference):
     plate = marked_plate(chain(mark_blob_mm=0.1))
-    start = np.array([[CENTRES_B[0, 0] + 2.5 - 0.12, 100.0 - CENTRES_B[0, 1]]])   # beside the ring's start
-    opposite = np.array([[CENTRES_B[0, 0] - 2.5 + 0.12, 100.0 - CENTRES_B[0, 1]]])
+    start = np.array([[CENTRES_B[0, 0] + 2.5 - 0.12, START_Y - CENTRES_B[0, 1]]])   # beside the ring's start
+    opposite = np.array([[CENTRES_B[0, 0] - 2.5 + 0.12, START_Y - CENTRES_B[0, 1]]])
     assert plate.mark_darkening(start)[0] > 0.3 and plate.mark_darkening(opposite)[0] < 0.05
     # a blob is centred on the path: it does not move the ring's centre (expected shift 0)
     measured = centres_b(MeasurementChain(), plate=plate)
@@ -237,7 +239,7 @@ def test_plate_warp_raises_the_surface_for_the_scanner_and_the_beam():
     assert np.allclose(plate.marks[0], uv * (1.0 - height / plate.beam_distance_mm))
     flat = LaserLineScanner(QUIET).sweep_cloud(Plate(FLAT, seed=5), 2.0)[0][..., 2]
     warped = LaserLineScanner(QUIET).sweep_cloud(plate, 2.0)[0][..., 2]
-    expected = plate.warp(np.column_stack([LaserLineScanner(QUIET).line_x(), np.full(601, 100.0)]))
+    expected = plate.warp(np.column_stack([LaserLineScanner(QUIET).line_x(), np.full(601, START_Y)]))
     # the surface is closer to the scanner where it is raised
     assert np.allclose(flat[0] - warped[0], expected, atol=1e-4)
 

@@ -7,6 +7,7 @@ import pytest
 
 from gls_calibration.geometry.kinematics import HeadGeometry, inverse
 from gls_calibration.geometry.optics import PhysicalHead
+from gls_calibration.scan.sweep import SWEEP_LENGTH_MM
 from gls_calibration.simulation.head import TruthHead
 from gls_calibration.simulation.plate import Plate, PlateSettings
 from gls_calibration.simulation.scanner import LaserLineScanner, ScannerSettings, pose_matrix
@@ -182,7 +183,7 @@ def test_sweep_profile_count_spacing_and_stamps():
 def test_sweep_measures_the_plate_plane_in_the_gls_frame():
     plate = Plate(PlateSettings(tilt_x_rad=0.01, tilt_y_rad=0.02, delta_d_mm=2.0))
     scanner = LaserLineScanner(QUIET)
-    xyz, _ = scanner.sweep_cloud(plate, length_mm=200.0, step_mm=2.0)
+    xyz, _ = scanner.sweep_cloud(plate, length_mm=SWEEP_LENGTH_MM, step_mm=2.0)      # the default mounting's
     assert 320.0 < np.nanmean(xyz[..., 2]) < 331.0
     gls = scanner.to_gls(xyz.reshape(-1, 3).astype(float))
     gls = gls[np.all(np.isfinite(gls), axis=1)]

@@ -54,7 +54,7 @@ from gls_calibration.ros.service_errors import ServiceCallError
 from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC, line_msg, static_qos, stamp_ns, stream_qos, time_msg
 from gls_calibration.scan.bag_io import BagLayout, ReplayLimits, StreamAssembler, SweepPlacement, max_pose_age_ns
 from gls_calibration.scan.cell_frames import load_cell_frames
-from gls_calibration.scan.sweep import nominal_start_pose
+from gls_calibration.scan.sweep import SWEEP_LENGTH_MM, nominal_start_pose
 from gls_calibration_msgs.srv import AcquireSweep
 
 ROBOT_WAIT_S = 5.0     # how long to wait for the robot's command subscription to match before commanding
@@ -94,7 +94,7 @@ class StreamAcquisitionNode(GlsNode):
         scan_topic = self.declare("scan_topic", LAYOUT.scan_topic, "the scanner driver's profile topic")
         self.rate_hz = self.declare("profile_rate_hz", 150.0, "the scanner driver's profile rate (Hz)",
                                     minimum=0.1, maximum=100000.0)
-        self.default_length_mm = self.declare("default_length_mm", 200.0, "sweep length when a request says 0",
+        self.default_length_mm = self.declare("default_length_mm", SWEEP_LENGTH_MM, "sweep length when a request says 0",
                                               minimum=0.1, maximum=10000.0)
         self.default_speed_mm_s = self.declare("default_speed_mm_s", 15.0, "speed when a request gives neither "
                                                "step nor speed", minimum=0.01, maximum=10000.0)

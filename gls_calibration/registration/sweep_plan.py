@@ -16,7 +16,7 @@ import numpy as np
 from gls_calibration.fiducials.measure import FiducialMeasurement
 from gls_calibration.registration.rigid import RigidTransform, pair_with_targets
 from gls_calibration.registration.separation import TIME_PLACED, Separation, SeparationSettings, separate
-from gls_calibration.scan.sweep import nominal_start_pose, sweep_middle_mm
+from gls_calibration.scan.sweep import SWEEP_LENGTH_MM, nominal_start_pose, sweep_middle_mm
 
 ORIENTATIONS_DEG = (0.0, 45.0, 90.0)
 """Turns of the sensor a pass may take, degrees. At 0 and 90 the sweep covers the whole grid; the
@@ -156,15 +156,15 @@ class CellTimeModel:
 
     Parameters
     ----------
-    sweep_length_mm : float, default 200.0
-        Length of one sweep, mm.
+    sweep_length_mm : float, default SWEEP_LENGTH_MM
+        Length of one sweep, mm (210).
     sweep_speed_mm_s : float, default 15.0
         The scanner's travel speed, mm/s.
     robot_move_s : float, default 4.0
         Moving back to a sweep's start (and turning the sensor) between sweeps, s.
     """
 
-    sweep_length_mm: float = 200.0
+    sweep_length_mm: float = SWEEP_LENGTH_MM
     sweep_speed_mm_s: float = 15.0
     robot_move_s: float = 4.0          # back to a sweep's start (and turning the sensor) between sweeps
 

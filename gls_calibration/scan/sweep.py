@@ -258,6 +258,13 @@ def unit_check_distance(xyz: np.ndarray, low: float, high: float) -> float:
     return median_point_distance(xyz)
 
 
+SWEEP_LENGTH_MM = 210.0
+"""Default length of a sweep, mm: the 190 mm grid, its 2.7 mm outer rings and
+``procedure.SWEEP_END_MARGIN_MM`` at each end need 203.4 mm; 210 mm is also the simulated
+scanner's line, so the 0 and 90 deg passes cover the same square (the 200 mm sweep cut corner
+rings: 8 of 9 found on 3x3 grids)."""
+
+
 def stamp_window_s(profiles: int, step_mm: float, speed_mm_s: float, rules: ProfileRules = ProfileRules()) -> float:
     """Length (s) of the time window that holds every profile of a sweep (see :class:`ProfileRules`)."""
     return rules.stamp_window_s(profiles, step_mm, speed_mm_s)

@@ -52,6 +52,7 @@ from gls_calibration.simulation.measurement import (MeasurementChain, lateral_li
 from gls_calibration.common.validation import as_finite_array, as_non_negative_number, as_positive_number
 from gls_calibration.geometry.optics import plate_frame
 from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG, ORIENTATIONS_TEXT
+from gls_calibration.scan.sweep import SWEEP_LENGTH_MM
 from gls_calibration.simulation.plate import Plate
 
 PROFILE_DTYPE = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32), ("intensity", np.float32)])
@@ -178,7 +179,7 @@ class LaserLineScanner:
         self._robot_fields: dict[tuple, object] = {}
         if scanner_to_gls is None:
             # looking straight down from the standoff, travelling towards -y of the head
-            scanner_to_gls = pose_matrix([0.0, 100.0, self.settings.standoff_mm], [math.pi, 0.0, 0.0])
+            scanner_to_gls = pose_matrix([0.0, 0.5 * SWEEP_LENGTH_MM, self.settings.standoff_mm], [math.pi, 0.0, 0.0])
         self.scanner_to_gls = self._check_pose(scanner_to_gls, "scanner_to_gls")
         self.mounting_error = self._check_pose(np.eye(4) if mounting_error is None else mounting_error,
                                                "mounting_error")
@@ -386,7 +387,7 @@ class LaserLineScanner:
             reported[:, :3, 3] += (direction * placement[0][first:first + count])[:, None] * start[:3, 1]
             yield first, step / speed, xyz, intensity, reported
 
-    def standstill_data(self, plate: Plate, profiles: int, seed: int = 0, position_mm=(0.0, 100.0, 0.0),
+    def standstill_data(self, plate: Plate, profiles: int, seed: int = 0, position_mm=(0.0, 0.5 * SWEEP_LENGTH_MM, 0.0),
                         marking_pose_error: tuple[float, float, float] = (0.0, 0.0, 0.0),
                         period_s: float | None = None) -> SweepData:
         """Take ``profiles`` profiles with the robot standing still at the marking pose.
@@ -424,7 +425,7 @@ class LaserLineScanner:
         return SweepData(xyz, intensity, np.arange(profiles) * period_s, np.repeat(start[None], profiles, axis=0),
                          start, 1, 0.0, 0.0)
 
-    def standstill(self, plate: Plate, profiles: int, seed: int = 0, position_mm=(0.0, 100.0, 0.0),
+    def standstill(self, plate: Plate, profiles: int, seed: int = 0, position_mm=(0.0, 0.5 * SWEEP_LENGTH_MM, 0.0),
                    marking_pose_error: tuple[float, float, float] = (0.0, 0.0, 0.0),
                    period_s: float | None = None) -> Iterator[Profile]:
         """Yield the profiles of :meth:`standstill_data` one by one.
@@ -438,7 +439,7 @@ class LaserLineScanner:
             points["intensity"] = data.intensity[row]
             yield Profile(row, float(data.stamps_s[row]), points, data.reported_poses[row])
 
-    def sweep(self, plate: Plate, length_mm: float = 200.0, speed_mm_s: float | None = None,
+    def sweep(self, plate: Plate, length_mm: float = SWEEP_LENGTH_MM, speed_mm_s: float | None = None,
               step_mm: float | None = None, seed: int = 0, direction: int = 1,
               orientation_deg: float = 0.0) -> Iterator[Profile]:
         """Profiles of one sweep over ``length_mm`` at ``speed_mm_s``, one every ``step_mm``, in order."""
@@ -450,7 +451,7 @@ class LaserLineScanner:
                 points["intensity"] = intensity[row]
                 yield Profile(first + row, (first + row) * period, points, reported[row])
 
-    def sweep_cloud(self, plate: Plate, length_mm: float = 200.0, speed_mm_s: float | None = None,
+    def sweep_cloud(self, plate: Plate, length_mm: float = SWEEP_LENGTH_MM, speed_mm_s: float | None = None,
                     step_mm: float | None = None, seed: int = 0, direction: int = 1,
                     orientation_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Return the whole sweep as an organized cloud placed by time.
@@ -461,7 +462,7 @@ class LaserLineScanner:
         data = self.sweep_data(plate, length_mm, speed_mm_s, step_mm, seed, direction, orientation_deg)
         return data.xyz, data.intensity
 
-    def sweep_data(self, plate: Plate, length_mm: float = 200.0, speed_mm_s: float | None = None,
+    def sweep_data(self, plate: Plate, length_mm: float = SWEEP_LENGTH_MM, speed_mm_s: float | None = None,
                    step_mm: float | None = None, seed: int = 0, direction: int = 1,
                    orientation_deg: float = 0.0, *, line_offset_mm=None, plate_moved: bool = False) -> SweepData:
         """Return the whole sweep with its stamps and reported poses (see :class:`SweepData`).

@@ -11,7 +11,7 @@ The file is a ROS 2 parameter file; nested blocks are the dotted parameter names
         plate: {size_mm: 250.0, ...}                # pose comes from effects.plate_tilt / working_distance
         scanner: {standoff_mm: 325.0, ..., mounting_xyz_mm: [...], mounting_rpy_rad: [...],
                   mounting_error_xyz_mm: [...], mounting_error_rpy_rad: [...]}
-        sweep: {length_mm: 200.0}
+        sweep: {length_mm: 210.0}
         measurement: {preset: paper_like}          # the measurement chain (simulation.measurement)
 
 ``measurement.preset`` is one of ``ideal``, ``careful``, ``paper_like`` (default) or ``custom``;
@@ -30,6 +30,7 @@ from gls_calibration.common.config_files import config_path, read_config_file
 from gls_calibration.geometry.head_config import effects_from_mapping, head_config_from_dict, parameters_block
 from gls_calibration.geometry.kinematics import HeadGeometry, inverse
 from gls_calibration.geometry.optics import HeadEffects
+from gls_calibration.scan.sweep import SWEEP_LENGTH_MM
 from gls_calibration.simulation.head import TruthHead
 from gls_calibration.simulation.measurement import PRESET_CHAINS, MeasurementChain, measurement_from_mapping
 from gls_calibration.simulation.plate import Plate, PlateSettings
@@ -66,7 +67,7 @@ class SimConfig:
         The CAD mounting, scanner -> gls, mm; default: the scanner above the plate's centre.
     mounting_error : numpy.ndarray, shape (4, 4), optional
         The unknown mounting error in the scanner frame; default: none.
-    sweep_length_mm : float, default 200.0
+    sweep_length_mm : float, default SWEEP_LENGTH_MM
         Length of a sweep, mm; positive.
     measurement_preset : str, default "ideal"
         Name of the measurement chain's preset.
@@ -88,7 +89,7 @@ class SimConfig:
     scanner: ScannerSettings = ScannerSettings()
     scanner_to_gls: np.ndarray = None          # 4x4 CAD mounting, scanner -> gls
     mounting_error: np.ndarray = None          # 4x4 unknown error in the scanner frame
-    sweep_length_mm: float = 200.0
+    sweep_length_mm: float = SWEEP_LENGTH_MM
     measurement_preset: str = "ideal"
     measurement: MeasurementChain = PRESET_CHAINS["ideal"]
 
@@ -205,7 +206,7 @@ def sim_config_from_dict(document: Any, preset: str | None = None) -> SimConfig:
                       for key, value in scanner.items()}
     scanner = ScannerSettings(**scanner_values)
     sweep = {key: _number(value, f"sweep.{key}") for key, value in _block(parameters, "sweep", _SWEEP_KEYS).items()}
-    length = sweep.get("length_mm", 200.0)
+    length = sweep.get("length_mm", SWEEP_LENGTH_MM)
     preset, chain = measurement_from_mapping(parameters.get("measurement"), preset)
 
     cad = None
