@@ -94,8 +94,8 @@ class StreamAcquisitionNode(GlsNode):
         scan_topic = self.declare("scan_topic", LAYOUT.scan_topic, "the scanner driver's profile topic")
         self.rate_hz = self.declare("profile_rate_hz", 150.0, "the scanner driver's profile rate (Hz)",
                                     minimum=0.1, maximum=100000.0)
-        self.default_length_mm = self.declare("default_length_mm", SWEEP_LENGTH_MM, "sweep length when a request says 0",
-                                              minimum=0.1, maximum=10000.0)
+        self.default_length_mm = self.declare("default_length_mm", SWEEP_LENGTH_MM,
+                                              "sweep length when a request says 0", minimum=0.1, maximum=10000.0)
         self.default_speed_mm_s = self.declare("default_speed_mm_s", 15.0, "speed when a request gives neither "
                                                "step nor speed", minimum=0.01, maximum=10000.0)
         self.default_timeout_s = self.declare("default_timeout_s", 120.0, "time limit of a sweep when a request "
