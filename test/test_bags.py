@@ -273,8 +273,10 @@ def test_gls_sim_cell_records_a_bag_that_replays(tmp_path, capsys):
     # the plain sweeps, the stand-still and 1 marked
     assert f"recorded {plain + 1} sweep(s) and 1 stand-still(s)" in capsys.readouterr().out
     sweeps = read_sweeps(bag)
-    # 200 mm sweeps (config/sim.yaml): plain at 1 mm, marked at 0.1 mm (config/gls.yaml); 20 profiles standing
-    assert [sweep.xyz_mm.shape[0] for sweep in sweeps] == [201] * plain + [20] + [2001]
+    # sweeps of sweep.length_mm (config/gls.yaml): plain at 1 mm, marked at 0.1 mm; 20 profiles standing
+    length = sweep_length_mm()
+    profiles = [round(length) + 1] * plain + [20] + [round(length / 0.1) + 1]
+    assert [sweep.xyz_mm.shape[0] for sweep in sweeps] == profiles
     assert [sweep.standstill for sweep in sweeps] == [False] * plain + [True, False]
 
 

@@ -511,7 +511,7 @@ def start_manager(ros_context, add_node, tmp_path, sweep_timeout_s: float, store
         Parameter("calibration_dir", value=str(store_dir)),
         Parameter("report_dir", value=str(tmp_path / "reports")),
         # sweep time limit = factor x length / speed + margin = sweep_timeout_s (a sweep that covers the grid)
-        Parameter("sweep.length_mm", value=200.0), Parameter("sweep.speed_mm_s", value=400.0),
+        Parameter("sweep.length_mm", value=210.0), Parameter("sweep.speed_mm_s", value=420.0),
         Parameter("deadline_factor", value=1.0), Parameter("deadline_margin_s", value=sweep_timeout_s - 0.5),
         Parameter("service_timeout_s", value=5.0)]))
     add_node(ScanAcquisitionNode(context=ros_context))

@@ -68,11 +68,11 @@ def nominal(cell: DirectCell) -> bool:
 def test_fiducials_found_counts_every_fiducial_some_pass_measured(tmp_path):
     """Report as found every fiducial with a measured centre, not the fewest of one sweep.
 
-    A 45 deg pass sees the grid's middle band only: on a 5 x 5 grid over 100 mm of the small cell it
+    A 45 deg pass sees the grid's middle band only: on a 5 x 5 grid over 96 mm of the small cell it
     misses the corners' fiducials, which the 0 and 90 deg passes see.
     """
     cell = new_cell(tmp_path)
-    settings = cell.settings(**{**FAST, "grid_size_mm": 100.0}, sweep_plan=parse_plan("0+,90+,45+"))
+    settings = cell.settings(**{**FAST, "grid_size_mm": 96.0}, sweep_plan=parse_plan("0+,90+,45+"))
     per_sweep = []
     combine = procedure.combine_sweeps
 
@@ -81,7 +81,7 @@ def test_fiducials_found_counts_every_fiducial_some_pass_measured(tmp_path):
         return combine(measurements, *args, **kwargs)
 
     with mock.patch.object(procedure, "combine_sweeps", spy):
-        run = asyncio.run(procedure.run_plate(cell, settings, grid_targets(5, 100.0), lambda *_: None,
+        run = asyncio.run(procedure.run_plate(cell, settings, grid_targets(5, 96.0), lambda *_: None,
                                               (0.0, 1.0), True))
     assert per_sweep[0][:2] == [25, 25] and per_sweep[0][2] < 25, per_sweep
     assert run.fiducials_found == len(run.deviations) == 25
@@ -125,7 +125,7 @@ def test_too_few_fiducials_fail_before_anything_is_saved(tmp_path):
     with pytest.raises(procedure.CalibrationError, match=r"found \d of 9 fiducials; at least 9 \(90%\) are needed"):
         # (settings that claim a sweep long enough for the grid: a shorter one is refused first)
         run_calibrate(cell, cell.settings(**{**FAST, "grid_per_side": 3, "grid_size_mm": 190.0,
-                                             "cell_time": CellTimeModel(sweep_length_mm=200.0)}))
+                                             "cell_time": CellTimeModel(sweep_length_mm=210.0)}))
     assert cell.store.history() == [] and nominal(cell)
 
 

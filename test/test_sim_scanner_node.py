@@ -86,8 +86,9 @@ def test_a_standstill_is_placed_where_the_sensor_stands_and_leaves_the_sweep_ids
     points, intensity = conversions.cloud_arrays_from_msg(still.cloud)
     assert points.shape[0] == 21
     finite = np.all(np.isfinite(points), axis=-1)
-    # no travel: every profile on the line over the middle of the 200 mm sweep (scanner base frame, mm)
-    assert finite.sum() > 1000 and np.allclose(points[finite][:, 1], 100.0, atol=1e-3)
+    # no travel: every profile on the line over the middle of the sweep (scanner base frame, mm)
+    middle_mm = 0.5 * load_sim_config().sweep_length_mm
+    assert finite.sum() > 1000 and np.allclose(points[finite][:, 1], middle_mm, atol=1e-3)
     refused = cell.call(StartSweep, "scanner/start_standstill", StartSweep.Request(length_mm=2.0, orientation_deg=90.0),
                         10.0)
     assert not refused.success and "a stand-still is taken at orientation 0" in refused.message

@@ -64,17 +64,19 @@ def test_streaming_cell_gives_the_direct_cells_clouds(stream_cell, tmp_path):
     config = load_sim_config(preset=PRESET)
     assert config.seed == SEED
     direct = DirectCell(SimulatedCell(config), CalibrationStore(tmp_path / "direct"))
+    profiles = round(config.sweep_length_mm / STEP_MM) + 1       # the sweeps of config/sim.yaml
     with BagRecorder(tmp_path / "bag", SIM_FLANGE_TO_SENSOR, base_to_gls(config)) as recorder:
         recording = RecordingCell(SimulatedCell(config), CalibrationStore(tmp_path / "recording"), recorder=recorder)
         for direction, orientation in ((1, 0.0), (-1, 90.0), (0, None)):
-            if orientation is None:          # a stand-still: as many profiles as a sweep of 200 mm at 1 mm
+            if orientation is None:          # a stand-still: as many profiles as a sweep of its length
                 answer = _call(client_node, "scan/acquire_standstill",
-                               AcquireSweep.Request(length_mm=200.0, step_mm=STEP_MM))
-                expected, _ = asyncio.run(recording.acquire_standstill(201))
-                reference, _ = asyncio.run(direct.acquire_standstill(201))
+                               AcquireSweep.Request(length_mm=config.sweep_length_mm, step_mm=STEP_MM))
+                expected, _ = asyncio.run(recording.acquire_standstill(profiles))
+                reference, _ = asyncio.run(direct.acquire_standstill(profiles))
             else:
                 answer = _call(client_node, "scan/acquire", AcquireSweep.Request(
-                    length_mm=200.0, step_mm=STEP_MM, direction=direction, orientation_deg=orientation))
+                    length_mm=config.sweep_length_mm, step_mm=STEP_MM, direction=direction,
+                    orientation_deg=orientation))
                 expected, _ = asyncio.run(recording.acquire_sweep(STEP_MM, direction, orientation))
                 reference, _ = asyncio.run(direct.acquire_sweep(STEP_MM, direction, orientation))
             assert answer.success, answer.message
@@ -83,7 +85,7 @@ def test_streaming_cell_gives_the_direct_cells_clouds(stream_cell, tmp_path):
             expected_wire = conversions.cloud_to_msg(conversions.xyzi_array(expected, np.zeros(expected.shape[:2])),
                                                      "robot_base")
             expected, _ = conversions.cloud_arrays_from_msg(expected_wire)
-            assert answered.shape == expected.shape == (201, 2101, 3)
+            assert answered.shape == expected.shape == (profiles, 2101, 3)
             assert np.array_equal(np.isnan(answered), np.isnan(expected))
             assert np.nanmax(np.abs(answered - expected)) <= 1e-6
             assert np.array_equal(np.isnan(answered), np.isnan(reference))
