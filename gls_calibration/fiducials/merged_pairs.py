@@ -78,7 +78,7 @@ class _LinearLookup:
     """
 
     def __init__(self, abscissae: np.ndarray, tables: tuple[np.ndarray, ...]):
-        """Keep the tables' slopes and values per interval, a last zero interval for unused positions.
+        """Keep the tables' slopes and values per interval, with constant ones beyond either end and 0 for unused.
 
         Parameters
         ----------
@@ -89,8 +89,9 @@ class _LinearLookup:
         """
         self.abscissae = abscissae
         width = np.diff(abscissae)
-        self.slopes = [np.append((table[1:] - table[:-1]) / width, 0.0) for table in tables]
-        self.values = [np.append(table[:-1], 0.0) for table in tables]
+        # Intervals 0..B-2, then B-1 (at or beyond the last abscissa), B (before the first), B + 1 (unused).
+        self.slopes = [np.concatenate([(table[1:] - table[:-1]) / width, np.zeros(3)]) for table in tables]
+        self.values = [np.concatenate([table[:-1], [table[-1], table[0], 0.0]]) for table in tables]
 
     def __call__(self, position: np.ndarray, used: np.ndarray) -> list[np.ndarray]:
         """Return every table at ``position`` where ``used``, 0 elsewhere.
@@ -108,9 +109,16 @@ class _LinearLookup:
             One array per table, shaped as ``position``.
         """
         last = len(self.abscissae) - 1
-        interval = np.searchsorted(self.abscissae, position, side="right") - 1
-        interval = np.where(used, np.clip(interval, 0, last - 1), last)
-        offset = position - self.abscissae[interval]
+        # The interval from the (even) spacing, then moved by one where rounding put it next door: the
+        # interval a search finds (abscissae[i] <= position < abscissae[i + 1]) without a binary search per pixel.
+        first, spacing = self.abscissae[0], (self.abscissae[-1] - self.abscissae[0]) / last
+        guess = np.clip(np.nan_to_num((position - first) / spacing), 0, last - 1).astype(int)
+        guess -= (position < self.abscissae[guess]) & (guess > 0)
+        guess += (position >= self.abscissae[guess + 1]) & (guess < last - 1)
+        guess[position >= self.abscissae[-1]] = last
+        guess[position < first] = last + 1
+        interval = np.where(used, guess, last + 2)
+        offset = position - self.abscissae[np.minimum(interval, last)]
         return [slope[interval] * offset + value[interval] for slope, value in zip(self.slopes, self.values)]
 
 
