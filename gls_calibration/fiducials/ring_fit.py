@@ -136,6 +136,19 @@ def _row_nanquantile(values: np.ndarray, quantile: float) -> np.ndarray:
     return np.where(last >= 0, lower + (upper - lower) * (position - low), np.nan)
 
 
+def _row_median(values: np.ndarray) -> np.ndarray:
+    """Return ``np.median(values, axis=-1)``: the same values from one sort of the short last axis.
+
+    ``np.median`` partitions each of the ~10^5 short rows in its own call; a sort along the axis
+    does them all at once (NaN sorts last, and a row holding one has a NaN median, as in numpy).
+    """
+    ordered = np.sort(values, axis=-1)
+    count = ordered.shape[-1]
+    middle = (ordered[..., count // 2] if count % 2
+              else np.mean(ordered[..., count // 2 - 1:count // 2 + 1], axis=-1))
+    return np.where(np.isnan(ordered[..., -1]), ordered[..., -1], middle)
+
+
 def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, usable: np.ndarray, strength: np.ndarray | None = None):
     """Fit the radial model to edge radii (M, A) by weighted least squares over the usable rays.
 
@@ -231,7 +244,9 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
         profiles = _ray_profiles(pass_image, centres, offset, inverse, directions[rays], radial)
         finite = np.isfinite(profiles)
         inside = finite.all(axis=2)
-        np.copyto(profiles, np.float32(0.0), where=~finite)      # in place: a fresh array of this pass
+        if not inside.all():
+            # Only rays leaving the image hold NaN: zeroed in place (a fresh array of this pass).
+            profiles[~inside] = np.where(finite[~inside], profiles[~inside], np.float32(0.0))
         score = _correlate_rows(profiles, pair_template)
         # Search window (indices along the ray): +- margin about the nominal mid radius, then about
         # the last fitted one (rings of the wrong size stay in view and fail the radius check).
@@ -281,7 +296,7 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
     ring_radii = np.full((count, len(radii_nominal)), np.nan)
     gap = float(np.min(np.diff(radii_nominal))) if len(radii_nominal) > 1 else 4 * pitch_mm
     outside = np.abs(radial - mid) > half + margin
-    background = np.median(profiles[:, :, outside], axis=2) if outside.any() else np.zeros(profiles.shape[:2])
+    background = _row_median(profiles[:, :, outside]) if outside.any() else np.zeros(profiles.shape[:2])
     at = at.astype(np.float32)
     # The window is zero beyond half the gap and half a sample from the expected radius: only the
     # ``span`` samples from ``first`` on each ray enter, gathered from sliding-window views.
