@@ -59,7 +59,7 @@ def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm:
     neighbours' values.
     """
     edges = np.arange(-band_mm - 3 * bin_mm, band_mm + 3 * bin_mm + 0.5 * bin_mm, bin_mm)
-    index = np.digitize(rho, edges)
+    index = _even_interval(rho, edges) + 1         # np.digitize(rho, edges)
     counts = np.bincount(index, minlength=len(edges) + 1)[1:-1]
     sums = np.bincount(index, values, minlength=len(edges) + 1)[1:-1]
     centres = 0.5 * (edges[1:] + edges[:-1])
@@ -68,6 +68,35 @@ def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm:
     window = 7
     return (centres, savgol_filter(profile, window, 3), savgol_filter(profile, window, 3, deriv=1, delta=bin_mm),
             savgol_filter(profile, window + 2, 3, deriv=2, delta=bin_mm))
+
+
+def _even_interval(position: np.ndarray, abscissae: np.ndarray) -> np.ndarray:
+    """Return ``np.searchsorted(abscissae, position, side="right") - 1`` for evenly spaced abscissae.
+
+    The interval from the spacing, then moved by one where rounding put it next door: the interval
+    a search finds (abscissae[i] <= position < abscissae[i + 1]; -1 before the first, B - 1 at or
+    beyond the last or NaN) without a binary search per position, which in no order costs a full one.
+
+    Parameters
+    ----------
+    position : numpy.ndarray
+        Positions to place.
+    abscissae : numpy.ndarray, shape (B,)
+        Increasing, evenly spaced (to well within a spacing) positions, B >= 2.
+
+    Returns
+    -------
+    numpy.ndarray of int, shaped as ``position``
+        The interval of every position.
+    """
+    last = len(abscissae) - 1
+    first, spacing = abscissae[0], (abscissae[-1] - abscissae[0]) / last
+    guess = np.clip(np.nan_to_num((position - first) / spacing), 0, last - 1).astype(int)
+    guess -= (position < abscissae[guess]) & (guess > 0)
+    guess += (position >= abscissae[guess + 1]) & (guess < last - 1)
+    guess[(position >= abscissae[-1]) | np.isnan(position)] = last
+    guess[position < first] = -1
+    return guess
 
 
 class _LinearLookup:
@@ -109,15 +138,9 @@ class _LinearLookup:
             One array per table, shaped as ``position``.
         """
         last = len(self.abscissae) - 1
-        # The interval from the (even) spacing, then moved by one where rounding put it next door: the
-        # interval a search finds (abscissae[i] <= position < abscissae[i + 1]) without a binary search per pixel.
-        first, spacing = self.abscissae[0], (self.abscissae[-1] - self.abscissae[0]) / last
-        guess = np.clip(np.nan_to_num((position - first) / spacing), 0, last - 1).astype(int)
-        guess -= (position < self.abscissae[guess]) & (guess > 0)
-        guess += (position >= self.abscissae[guess + 1]) & (guess < last - 1)
-        guess[position >= self.abscissae[-1]] = last
-        guess[position < first] = last + 1
-        interval = np.where(used, guess, last + 2)
+        interval = _even_interval(position, self.abscissae)
+        interval[interval < 0] = last + 1
+        interval = np.where(used, interval, last + 2)
         offset = position - self.abscissae[np.minimum(interval, last)]
         return [slope[interval] * offset + value[interval] for slope, value in zip(self.slopes, self.values)]
 
