@@ -10,6 +10,7 @@ import numpy as np
 
 from gls_calibration.common.robust import NORMAL_MAD_SCALE
 from gls_calibration.fiducials.centre_uncertainty import SECTORS, centre_covariance, harmonic_design, sector_sums
+from gls_calibration.fiducials.sector_jackknife import well_conditioned
 
 
 RAY_COUNT = 256
@@ -164,7 +165,7 @@ def _fit_ring(edge_radius: np.ndarray, design: np.ndarray, usable: np.ndarray, s
         w = used * (1.0 if strength is None else strength)
         normal_matrix = np.einsum("ai,ma,aj->mij", design, w, design)
         right = np.einsum("ai,ma->mi", design, w * edge_radius)
-        well_posed = np.linalg.cond(normal_matrix) < 1e10
+        well_posed = well_conditioned(normal_matrix, 1e10)
         normal_matrix[~well_posed] = np.eye(parameters)
         solution = np.linalg.solve(normal_matrix, right[..., None])[..., 0]
         residual = edge_radius - solution @ design.T

@@ -1,10 +1,44 @@
-"""Delete-one-sector jackknife of least-squares fits around a ring, many candidates at once."""
+"""Delete-one-sector jackknife of least-squares fits around a ring, many candidates at once, and the
+conditioning check of such fits' normal equations."""
 from __future__ import annotations
 
 import numpy as np
 
 MIN_EIGENVALUE_RATIO = 1e-10
 """A left-out system is solved when its smallest eigenvalue exceeds this share of its largest."""
+
+
+def well_conditioned(normal: np.ndarray, limit: float) -> np.ndarray:
+    """Return ``np.linalg.cond(normal) < limit`` for positive semi-definite normal matrices, mostly without an SVD.
+
+    The eigenvalues of a positive semi-definite P x P matrix are its singular values, the largest
+    at most its trace t and the smallest at least det / t^(P - 1); so t^P / det bounds its condition
+    number from above. Where that bound is below half the limit (det's rounding is far smaller) the
+    matrix passes; the rest (ill-conditioned, singular, non-finite) get ``np.linalg.cond`` as before.
+    Meant for small P (a handful of parameters), where the bound is seldom loose by more than 10^4.
+
+    Parameters
+    ----------
+    normal : numpy.ndarray, shape (M, P, P)
+        Positive semi-definite matrices (weighted normal matrices, weights non-negative).
+    limit : float
+        Largest condition number (2-norm) accepted, exclusive.
+
+    Returns
+    -------
+    numpy.ndarray of bool, shape (M,)
+        True where the condition number is below ``limit``.
+    """
+    parameters = normal.shape[-1]
+    trace = np.trace(normal, axis1=-2, axis2=-1)
+    determinant = np.linalg.det(normal)
+    with np.errstate(invalid="ignore", over="ignore"):
+        passed = (determinant > 0) & (trace**parameters < 0.5 * limit * determinant)
+    unproven = ~passed
+    if unproven.any():
+        with np.errstate(divide="ignore", invalid="ignore"):    # a singular matrix's condition is inf
+            passed[unproven] = np.linalg.cond(normal[unproven]) < limit
+    return passed
 
 
 def _well_posed(total_normal: np.ndarray, sector_normal: np.ndarray, left_out: np.ndarray) -> np.ndarray:
