@@ -101,6 +101,18 @@ def _correlate_rows(profiles: np.ndarray, template: np.ndarray) -> np.ndarray:
     return out.reshape(shape)
 
 
+def _along_last(values: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Return ``values`` (..., S) at ``index`` (...; 0 <= index < S) along the last axis.
+
+    ``np.take_along_axis(values, index[..., None], -1)[..., 0]`` as one gather at flat positions:
+    take_along_axis builds an index array per axis and costs several times as much.
+    """
+    values = np.ascontiguousarray(values)
+    length = values.shape[-1]
+    flat = np.arange(0, index.size * length, length).reshape(index.shape) + index
+    return np.take(values.reshape(-1), flat)
+
+
 def _peak(score: np.ndarray, low: np.ndarray, width: int):
     """Sub-sample argmax of ``score`` (M, A, S) within sample indices [low, low + width) per candidate.
 
@@ -115,7 +127,7 @@ def _peak(score: np.ndarray, low: np.ndarray, width: int):
     best = np.argmax(padded[..., 1:-1], axis=-1)
     interior = (best > 0) & (best < width - 1)
     at = low[:, None] + best
-    left, centre, right = np.moveaxis(np.take_along_axis(padded, best[..., None] + np.arange(3), -1), -1, 0)
+    left, centre, right = (_along_last(padded, best + k) for k in range(3))
     curvature = left - 2 * centre + right
     delta = np.where(curvature < 0, 0.5 * (left - right) / np.where(curvature < 0, curvature, -1.0), 0.0)
     return at + np.clip(delta, -0.5, 0.5), interior & (curvature < 0)
@@ -258,7 +270,7 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
         index, peak_ok = _peak(score, low, width)
         edge = radial[0] + index * step
         ray_ok = inside & peak_ok & (visible[:, rays] if refinement >= 2 else True)
-        strength = _edge_weights(np.take_along_axis(score, np.rint(index).astype(int)[..., None], -1)[..., 0],
+        strength = _edge_weights(_along_last(score, np.rint(index).astype(int)),
                                  ray_ok)
         shift, radius, at, residual, used, ok = _fit_ring(edge, design[rays], ray_ok, strength)
         ok &= ray_ok.mean(axis=1) >= MIN_VALID_RAY_FRACTION * (coverage if refinement >= 2 else 1.0)
@@ -269,7 +281,7 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
             continue
         # Ring amplitude of every ray at the fitted circle: erased arcs read about zero there.
         position = np.clip(np.rint((at - radial[0]) / step).astype(int), 0, len(radial) - 1)
-        amplitude = np.where(inside, np.take_along_axis(score, position[..., None], -1)[..., 0], np.nan)
+        amplitude = np.where(inside, _along_last(score, position), np.nan)
         sector_sum = sector_sums(np.where(np.isfinite(amplitude), amplitude, 0.0), sector_of_ray)
         sector_n = sector_sums(np.isfinite(amplitude).astype(float), sector_of_ray)
         with np.errstate(invalid="ignore", divide="ignore"):
