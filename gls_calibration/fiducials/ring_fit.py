@@ -59,18 +59,24 @@ start is within about 20 um, where the ring model's first-order centre is exact 
 (a second pass changed the 19x19 speckle plate's RMS by 0.04 um)."""
 
 
-def _sample_bicubic(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+RAY_PROFILE_CHUNK = 16
+"""Candidates whose sample positions are built and sampled at a time (``_ray_profiles``): their maps,
+about a megabyte, are still in the cache when ``cv2.remap`` reads them (about 10 % faster than all at once)."""
+
+
+def _sample_bicubic(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray,
+                    out: np.ndarray | None = None) -> np.ndarray:
     """Sample ``image`` bicubically at float32 (column, row) positions (M, ...); NaN outside.
 
     Bicubic samples (``cv2.INTER_CUBIC``) of ``image`` at float32 (column, row) positions (M, ...);
-    NaN outside.
+    NaN outside. Written into ``out`` (contiguous float32, the maps' shape) when given.
     """
     count = len(map_x)
     shape = map_x.shape
     map_x, map_y = map_x.reshape(count, -1), map_y.reshape(count, -1)
     # cv2.remap limits every image side to SHRT_MAX: one row per candidate, in blocks of rows.
     block = 16_384
-    samples = np.empty(map_x.shape, np.float32)
+    samples = np.empty(map_x.shape, np.float32) if out is None else out.reshape(map_x.shape)
     for start in range(0, count, block):
         rows = slice(start, start + block)
         # Written in place (``dst``): no copy of each block's samples into the result.
@@ -347,13 +353,19 @@ def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, in
     Rays map to pixels through each candidate's inverse affine map (pixel = J^-1 (uv - offset)).
     """
     start = np.einsum("mij,mj->mi", inverse, centres - offset).astype(np.float32)      # (M, 2)
-    # Built in place (heading times radius, plus the start): the same float32 values, fewer temporaries.
-    maps = []
-    for axis in range(2):
-        # Heading of every ray along this pixel axis (M, A), contiguous: J^-1 times the ray's direction.
-        heading = (inverse[:, axis, 0, None] * directions[:, 0] + inverse[:, axis, 1, None] * directions[:, 1]
-                   ).astype(np.float32)
-        positions = np.multiply(heading[..., None], radial)                             # (M, A, S)
-        positions += start[:, None, None, axis]
-        maps.append(positions)
-    return _sample_bicubic(image, *maps)
+    # Heading of every ray along each pixel axis (M, A), contiguous: J^-1 times the ray's direction.
+    headings = [(inverse[:, axis, 0, None] * directions[:, 0] + inverse[:, axis, 1, None] * directions[:, 1]
+                 ).astype(np.float32) for axis in range(2)]
+    count = len(centres)
+    samples = np.empty((count, len(directions), len(radial)), np.float32)
+    # A few candidates at a time, their maps built in place (heading times radius, plus the start:
+    # the same float32 values) and sampled while they are still in the cache.
+    maps = np.empty((2, min(count, RAY_PROFILE_CHUNK), len(directions), len(radial)), np.float32)
+    for first in range(0, count, RAY_PROFILE_CHUNK):
+        rows = slice(first, min(first + RAY_PROFILE_CHUNK, count))
+        chunk = maps[:, :rows.stop - first]
+        for axis in range(2):
+            np.multiply(headings[axis][rows, :, None], radial, out=chunk[axis])          # (m, A, S)
+            chunk[axis] += start[rows, None, None, axis]
+        _sample_bicubic(image, chunk[0], chunk[1], out=samples[rows])
+    return samples
