@@ -102,8 +102,9 @@ def _correlate_rows(profiles: np.ndarray, template: np.ndarray) -> np.ndarray:
     # cv2.filter2D correlates (no flip) with the anchor at the kernel centre; limited to 32767 rows.
     block = 32_000
     for start in range(0, len(flat), block):
-        out[start:start + block] = cv2.filter2D(flat[start:start + block], cv2.CV_32F, template[None, :],
-                                                borderType=cv2.BORDER_REPLICATE)
+        # Written in place (``dst``, same shape and type): no copy of each block's result.
+        cv2.filter2D(flat[start:start + block], cv2.CV_32F, template[None, :], dst=out[start:start + block],
+                     borderType=cv2.BORDER_REPLICATE)
     return out.reshape(shape)
 
 
