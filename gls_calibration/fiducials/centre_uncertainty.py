@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import optimize, special
 
-from gls_calibration.fiducials.sector_jackknife import sector_jackknife
+from gls_calibration.fiducials.sector_jackknife import sector_jackknife, well_conditioned
 from gls_calibration.scan.plate_pose import PlatePose
 
 
@@ -70,7 +70,8 @@ def centre_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndarray
     parameters = design.shape[-1]
     u = np.asarray(used, dtype=float)       # the fit's weight per ray, 0 where unused
     full_design = np.broadcast_to(design, (count, rays, parameters))
-    sector_normal = sector_sums(np.einsum("mai,ma,maj->maij", full_design, u, full_design), sector_of_ray)
+    # Every ray's weighted outer product as (x_i u) x_j, the order einsum multiplies in: the same values.
+    sector_normal = sector_sums((design * u[..., None])[..., :, None] * design[:, None, :], sector_of_ray)
     sector_score = sector_sums(full_design * (u * np.where(u > 0, residual, 0.0))[..., None], sector_of_ray)
     jackknife, groups = sector_jackknife(sector_normal, sector_score, sector_sums(u, sector_of_ray) > 0,
                                          total_right=np.zeros((count, parameters)))
@@ -119,7 +120,7 @@ def _spectral_covariance(design: np.ndarray, residual: np.ndarray, used: np.ndar
     transposed = np.swapaxes(weighted, 1, 2)                                            # (M, P, A)
     meat = variance[:, None, None] * (transposed @ correlated)
     normal = transposed @ design
-    normal[~(np.linalg.cond(normal) < 1e10)] = np.eye(design.shape[-1])
+    normal[~well_conditioned(normal, 1e10)] = np.eye(design.shape[-1])
     inverse = np.linalg.inv(normal)
     covariance = inverse @ meat @ inverse
     # The mean over all A harmonics of the symmetric spectrum, from its half.

@@ -59,7 +59,7 @@ def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm:
     neighbours' values.
     """
     edges = np.arange(-band_mm - 3 * bin_mm, band_mm + 3 * bin_mm + 0.5 * bin_mm, bin_mm)
-    index = np.digitize(rho, edges)
+    index = _even_interval(rho, edges) + 1         # np.digitize(rho, edges)
     counts = np.bincount(index, minlength=len(edges) + 1)[1:-1]
     sums = np.bincount(index, values, minlength=len(edges) + 1)[1:-1]
     centres = 0.5 * (edges[1:] + edges[:-1])
@@ -68,6 +68,81 @@ def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm:
     window = 7
     return (centres, savgol_filter(profile, window, 3), savgol_filter(profile, window, 3, deriv=1, delta=bin_mm),
             savgol_filter(profile, window + 2, 3, deriv=2, delta=bin_mm))
+
+
+def _even_interval(position: np.ndarray, abscissae: np.ndarray) -> np.ndarray:
+    """Return ``np.searchsorted(abscissae, position, side="right") - 1`` for evenly spaced abscissae.
+
+    The interval from the spacing, then moved by one where rounding put it next door: the interval
+    a search finds (abscissae[i] <= position < abscissae[i + 1]; -1 before the first, B - 1 at or
+    beyond the last or NaN) without a binary search per position, which in no order costs a full one.
+
+    Parameters
+    ----------
+    position : numpy.ndarray
+        Positions to place.
+    abscissae : numpy.ndarray, shape (B,)
+        Increasing, evenly spaced (to well within a spacing) positions, B >= 2.
+
+    Returns
+    -------
+    numpy.ndarray of int, shaped as ``position``
+        The interval of every position.
+    """
+    last = len(abscissae) - 1
+    first, spacing = abscissae[0], (abscissae[-1] - abscissae[0]) / last
+    guess = np.clip(np.nan_to_num((position - first) / spacing), 0, last - 1).astype(int)
+    guess -= (position < abscissae[guess]) & (guess > 0)
+    guess += (position >= abscissae[guess + 1]) & (guess < last - 1)
+    guess[(position >= abscissae[-1]) | np.isnan(position)] = last
+    guess[position < first] = -1
+    return guess
+
+
+class _LinearLookup:
+    """``np.interp`` of several tables on the same abscissae, the interval found once for all of them.
+
+    Each value is ``np.interp``'s own (the same slope per interval, the same expression), so the
+    results are identical; positions not ``used`` read 0 instead of being multiplied by 0 afterwards.
+    """
+
+    def __init__(self, abscissae: np.ndarray, tables: tuple[np.ndarray, ...]):
+        """Keep the tables' slopes and values per interval, with constant ones beyond either end and 0 for unused.
+
+        Parameters
+        ----------
+        abscissae : numpy.ndarray, shape (B,)
+            Increasing positions of the tables' entries.
+        tables : tuple of numpy.ndarray, each shape (B,)
+            Values at ``abscissae``.
+        """
+        self.abscissae = abscissae
+        width = np.diff(abscissae)
+        # Intervals 0..B-2, then B-1 (at or beyond the last abscissa), B (before the first), B + 1 (unused).
+        self.slopes = [np.concatenate([(table[1:] - table[:-1]) / width, np.zeros(3)]) for table in tables]
+        self.values = [np.concatenate([table[:-1], [table[-1], table[0], 0.0]]) for table in tables]
+
+    def __call__(self, position: np.ndarray, used: np.ndarray) -> list[np.ndarray]:
+        """Return every table at ``position`` where ``used``, 0 elsewhere.
+
+        Parameters
+        ----------
+        position : numpy.ndarray
+            Where to interpolate, within the abscissae wherever ``used``.
+        used : numpy.ndarray of bool, same shape
+            The positions that read the tables.
+
+        Returns
+        -------
+        list of numpy.ndarray
+            One array per table, shaped as ``position``.
+        """
+        last = len(self.abscissae) - 1
+        interval = _even_interval(position, self.abscissae)
+        interval[interval < 0] = last + 1
+        interval = np.where(used, interval, last + 2)
+        offset = position - self.abscissae[np.minimum(interval, last)]
+        return [slope[interval] * offset + value[interval] for slope, value in zip(self.slopes, self.values)]
 
 
 def _window(pitch_mm: tuple[float, float], jacobian: np.ndarray, inner_mm: float, outer_mm: float):
@@ -128,7 +203,8 @@ def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray
     col = centre_px[:, 0, None] + offsets[:, 0]                                              # (M, N)
     row = centre_px[:, 1, None] + offsets[:, 1]
     inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
-    values = image[np.clip(row, 0, height - 1), np.clip(col, 0, width - 1)].astype(float)
+    # One flat index per pixel: a single gather instead of numpy's two-axis fancy indexing.
+    values = np.take(image, np.clip(row, 0, height - 1) * width + np.clip(col, 0, width - 1)).astype(float)
     relative = np.matmul(offsets.astype(float), np.swapaxes(jacobian, 1, 2)) + (
         offset - centres_uv + np.einsum("mij,mj->mi", jacobian, centre_px.astype(float)))[:, None, :]
     # The angle's cosines and sines from the coordinates (no trigonometric calls on ~10^6 pixels).
@@ -150,6 +226,7 @@ def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray
     # the design is built in that layout, a row per parameter: one gather of five arrays instead of
     # one of the fourteen columns, no copy of the design to transpose.
     padding = by_sector >= offsets.shape[0]
+    lookup = _LinearLookup(centres, (g0, g1, g2))
     for start in range(0, count, CANDIDATE_BLOCK):
         block = slice(start, min(start + CANDIDATE_BLOCK, count))
         use_s = _by_sector(usable[block], by_sector) & ~padding                              # (m, S, L)
@@ -158,11 +235,18 @@ def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray
         c2, s2 = c1 * c1 - s1 * s1, 2 * c1 * s1
         target = np.where(use_s, _by_sector(values[block], by_sector), 0.0)
         # Every column has one of these four factors: zeroed there, a pixel left out weighs nothing.
-        profile, slope, bend = (np.interp(rho_s, centres, table) * use_s for table in (g0, g1, g2))
-        design = np.stack([profile, slope * c1, slope * s1, slope, slope * c2, slope * s2,
-                           profile * c1, profile * s1, use_s.astype(float), bend,
-                           bend * c2, bend * s2, profile * c2, profile * s2], 2)               # (m, S, P, L)
-        parameters = design.shape[2]
+        profile, slope, bend = lookup(rho_s, use_s)
+        columns = ((profile, None), (slope, c1), (slope, s1), (slope, None), (slope, c2), (slope, s2),
+                   (profile, c1), (profile, s1), (use_s, None), (bend, None),
+                   (bend, c2), (bend, s2), (profile, c2), (profile, s2))
+        parameters = len(columns)
+        # Each product written straight into its row of the design: no temporaries stacked after.
+        design = np.empty(profile.shape[:2] + (parameters,) + profile.shape[2:])              # (m, S, P, L)
+        for column, (factor, angle) in enumerate(columns):
+            if angle is None:
+                design[:, :, column] = factor
+            else:
+                np.multiply(factor, angle, out=design[:, :, column])
         sector_normal = np.matmul(design, np.swapaxes(design, 2, 3))                           # (m, S, P, P)
         sector_right = np.matmul(design, target[..., None])[..., 0]                            # (m, S, P)
         sector_pixels = use_s.sum(axis=2)

@@ -13,6 +13,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
 from gls_calibration.fiducials.targets import RING_RADII_MM
+from gls_calibration.fiducials.sector_jackknife import well_conditioned
 from gls_calibration.scan.plate_pose import PlatePose
 
 
@@ -526,8 +527,7 @@ def local_affines(plate: _PlateImage, centres_px: np.ndarray, half_px: int):
     normal_matrix = np.matmul(weighted.transpose(0, 2, 1), design)
     right = np.matmul(weighted.transpose(0, 2, 1), uv)
     # Enough pixels, and not all on one line (a window missing all but a row of its points).
-    with np.errstate(divide="ignore", invalid="ignore"):    # a singular window's condition is inf
-        usable = (weight.sum(axis=1) >= 10) & (np.linalg.cond(normal_matrix) < 1e10)
+    usable = (weight.sum(axis=1) >= 10) & well_conditioned(normal_matrix, 1e10)
     normal_matrix[~usable] = np.eye(3)
     solution = np.linalg.solve(normal_matrix, right)            # (M, 3, 2)
     jacobian = np.ascontiguousarray(np.transpose(solution[:, 1:, :], (0, 2, 1)))   # (M, 2 [u,v], 2 [col,row])
