@@ -1,5 +1,7 @@
-"""Delete-one-sector jackknife of least-squares fits around a ring, many candidates at once, and the
-conditioning check of such fits' normal equations."""
+"""Delete-one-sector jackknife of least-squares fits around a ring, many candidates at once.
+
+Also the conditioning check of such fits' normal equations (``well_conditioned``).
+"""
 from __future__ import annotations
 
 import numpy as np
