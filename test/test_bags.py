@@ -328,6 +328,22 @@ def test_gls_train_bag_reproduces_the_recorded_calibration(recorded, tmp_path, c
     assert not again.exists() and not (tmp_path / "again.yaml.report").exists()
 
 
+def test_gls_train_refuses_a_bag_swept_with_another_length(recorded, tmp_path, capsys, monkeypatch):
+    """A recording is combined about its sweeps' middle: replayed with another sweep.length_mm, exit 2."""
+    from gls_calibration.cli import sim_record
+    from gls_calibration.cli.train import main as train_main
+
+    _, bag = recorded
+    length = sweep_length_mm()
+    monkeypatch.setattr(sim_record, "sweep_length_mm", lambda: length + 10.0)     # gls.yaml edited since
+    out = tmp_path / "replayed.yaml"
+    assert train_main(["--bag", str(bag), "--out", str(out), "--grid", str(GRID), "--grid-size", str(GRID_SIZE_MM),
+                       "--sweep-plan", PLAN, "--plain-sweeps", str(PLAIN_SWEEPS), "--force"]) == 2
+    assert (f"motion 0 of the bag travels {length:.1f} mm, sweep.length_mm of config/gls.yaml is {length + 10:g} mm"
+            in capsys.readouterr().err)
+    assert not out.exists() and not (tmp_path / "replayed.yaml.report").exists()
+
+
 def test_the_tf_buffer_interpolates_and_names_what_is_missing():
     from gls_calibration.scan.tf_buffer import TfBuffer
 

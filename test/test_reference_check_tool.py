@@ -134,6 +134,19 @@ def test_a_bag_that_does_not_hold_the_plan_is_refused(ideal, tmp_path, capsys):
     assert not (tmp_path / "check.yaml").exists()
 
 
+def test_a_bag_swept_with_another_length_is_refused(ideal, tmp_path, capsys, monkeypatch):
+    from gls_calibration.cli import sim_record
+
+    bag, known = ideal
+    _certified(tmp_path / "certified.csv", known)
+    length = sweep_length_mm()
+    monkeypatch.setattr(sim_record, "sweep_length_mm", lambda: length - 5.0)
+    assert _run(bag, tmp_path / "certified.csv", tmp_path / "check.yaml") == 2
+    message = f"travels {length:.1f} mm, sweep.length_mm of config/gls.yaml is {length - 5:g} mm"
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "check.yaml").exists()
+
+
 def test_the_check_sees_the_chains_error(ideal, tmp_path):
     """On `paper_like` (repeating robot error, path wander, scanner noise) the same plate's check is
     many times the ideal chain's (measured: 0.021 / 0.048 against 0.0012 / 0.0008 mm)."""

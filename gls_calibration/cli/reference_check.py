@@ -37,7 +37,7 @@ import numpy as np
 from gls_calibration.calibration.procedure import CalibrationError
 from gls_calibration.calibration.reference_check import chain_check, measure_reference_plate, read_certified_centres
 from gls_calibration.calibration.stated_accuracy import ChainCheck, save_chain_check
-from gls_calibration.cli.train_bag import recording_settings
+from gls_calibration.cli.train_bag import recording_settings, require_recorded_length
 from gls_calibration.common.files import atomic_write_text, require_regular_output
 from gls_calibration.registration.chain_map import load_chain_map
 from gls_calibration.registration.rigid import RigidTransform
@@ -106,6 +106,7 @@ def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int, str]:
     given = {"scan_topic": args.scan_topic, "base_frame": args.base_frame, "sensor_frame": args.sensor_frame}
     layout = BagLayout(**{name: value for name, value in given.items() if value is not None})
     motions, gls_in_base = read_recording(args.bag, layout)
+    require_recorded_length(motions, recording.cell_time.sweep_length_mm)
     sweeps = [sweep for sweep in motions if not sweep.standstill]
     wanted = plain_sweeps + len(plan)
     if len(sweeps) != wanted:

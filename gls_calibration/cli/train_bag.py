@@ -30,7 +30,12 @@ from gls_calibration.common.files import atomic_write_text, require_regular_outp
 from gls_calibration.geometry.head_config import load_head_config
 from gls_calibration.registration.rigid import RigidTransform
 from gls_calibration.report.run_report import write_outcome_report
-from gls_calibration.scan.bag_io import BagLayout, read_recording
+from gls_calibration.scan.bag_io import BagLayout, ReplayedSweep, read_recording
+
+RECORDED_LENGTH_TOLERANCE_MM = 3.0
+"""How far a recorded sweep's travel (first to last profile) may fall from ``sweep.length_mm``: up to a
+profile step at either end (1 mm on a plain sweep) and 1 mm more; its middle then lies within 1.5 mm
+of the one the error separation measures from."""
 
 
 def plates_in(motion_count: int, settings: ProcedureSettings) -> int:
@@ -70,6 +75,35 @@ def recording_settings(grid: int | None, size_mm: float | None, sweep_plan: str 
                              cell_time=CellTimeModel(sweep_length_mm=sweep_length_mm()))
 
 
+def require_recorded_length(sweeps: list[ReplayedSweep], length_mm: float) -> None:
+    """Refuse a recording whose sweeps are not ``length_mm`` long (stand-stills skipped).
+
+    The error separation measures every pass from the sweeps' middle, ``length_mm`` / 2 along the
+    travel: a bag swept with another length (recorded with another ``sweep.length_mm``) would be
+    combined about the wrong point.
+
+    Parameters
+    ----------
+    sweeps : list of ReplayedSweep
+        The bag's motions in order.
+    length_mm : float
+        ``sweep.length_mm`` the replay runs with.
+
+    Raises
+    ------
+    ValueError
+        Naming the first sweep whose travel differs by more than ``RECORDED_LENGTH_TOLERANCE_MM``.
+    """
+    for number, sweep in enumerate(sweeps):
+        if sweep.standstill:
+            continue
+        travel = sweep.travel_mm
+        if abs(travel - length_mm) > RECORDED_LENGTH_TOLERANCE_MM:
+            raise ValueError(f"motion {number} of the bag travels {travel:.1f} mm, sweep.length_mm of "
+                             f"config/gls.yaml is {length_mm:g} mm: the error separation measures every pass "
+                             "from the sweeps' middle; set sweep.length_mm to the recording's length")
+
+
 def train_from_bag(args: argparse.Namespace, settings: ProcedureSettings) -> int:
     """Run the calibration from ``args.bag``; exit 0, 1 if the calibration failed, 2 on bad input.
 
@@ -84,6 +118,7 @@ def train_from_bag(args: argparse.Namespace, settings: ProcedureSettings) -> int
         given = {"scan_topic": args.scan_topic, "base_frame": args.base_frame, "sensor_frame": args.sensor_frame}
         layout = BagLayout(**{name: value for name, value in given.items() if value is not None})
         sweeps, gls_in_base = read_recording(args.bag, layout)
+        require_recorded_length(sweeps, settings.cell_time.sweep_length_mm)
         scanner_to_gls = np.linalg.inv(gls_in_base)
         settings = replace(settings, scanner_to_gls=RigidTransform(scanner_to_gls[:3, :3], scanner_to_gls[:3, 3]),
                            profiles_placed_by_pose=True)
