@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from gls_calibration.geometry.head_config import HEAD_DEFAULTS
 from gls_calibration.geometry.kinematics import HeadGeometry
 from gls_calibration.registration.rigid import RigidTransform
+from gls_calibration.scan.sweep import nominal_mounting
 from gls_calibration.ros.base import GlsNode
 
 
@@ -25,8 +26,8 @@ HEAD_SPECS = (
     ("head.mirror_limit_deg", HEAD_DEFAULTS["mirror_limit_deg"], "mechanical mirror limit (deg)", 0.1, 45.0),
     ("head.focus_range_mm", HEAD_DEFAULTS["focus_range_mm"], "focus shift range, +- (mm)", 0.1, None),
 )
-SCANNER_TO_GLS_DEFAULTS = {"scanner_to_gls.translation_mm": [0.0, 0.0, 325.0],
-                           "scanner_to_gls.rpy_rad": [math.pi, 0.0, 0.0]}
+# the default sweep's mounting (its middle over the gls origin), as config/gls.yaml writes it
+SCANNER_TO_GLS_DEFAULTS = dict(zip(("scanner_to_gls.translation_mm", "scanner_to_gls.rpy_rad"), nominal_mounting()))
 
 
 def declare_head_geometry(node: GlsNode, *, dynamic: bool = False) -> HeadGeometry:

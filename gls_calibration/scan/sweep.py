@@ -265,6 +265,43 @@ scanner's line, so the 0 and 90 deg passes cover the same square (the 200 mm swe
 rings: 8 of 9 found on 3x3 grids)."""
 
 
+SCANNER_STANDOFF_MM = 325.0
+"""Nominal distance of the line scanner above the work plane, mm (the default mounting's and the
+simulated scanner's; a real cell states its own in ``scanner_to_gls.translation_mm``)."""
+
+
+def nominal_mounting(length_mm: float = SWEEP_LENGTH_MM,
+                     standoff_mm: float = SCANNER_STANDOFF_MM) -> tuple[list[float], list[float]]:
+    """Return the CAD mounting (sweep start frame -> gls frame) of a scanner that sweeps the gls field.
+
+    The one owner of the head's pose at a sweep's start: the scanner looks straight down from
+    ``standoff_mm`` (turned half a turn about x, so its z points at the plate) and its sweeps' middle
+    (:func:`sweep_middle_mm`) lies over the gls origin. ``config/gls.yaml``, ``config/sim.yaml`` and
+    ``config/cell_frames.yaml`` write the same pose for the default sweep (test_head_pose).
+
+    Parameters
+    ----------
+    length_mm : float, default SWEEP_LENGTH_MM
+        Length of the sweeps, mm.
+    standoff_mm : float, default SCANNER_STANDOFF_MM
+        Height of the scanner above the gls plane, mm.
+
+    Returns
+    -------
+    translation_mm : list of 3 float
+        The start frame's origin in the gls frame, mm.
+    rpy_rad : list of 3 float
+        Roll, pitch, yaw about the fixed axes x, y, z, rad.
+
+    Examples
+    --------
+    >>> nominal_mounting(200.0, 300.0)
+    ([0.0, 100.0, 300.0], [3.141592653589793, 0.0, 0.0])
+    """
+    middle = sweep_middle_mm(length_mm)
+    return [float(middle[0]), float(middle[1]), float(standoff_mm)], [math.pi, 0.0, 0.0]
+
+
 def stamp_window_s(profiles: int, step_mm: float, speed_mm_s: float, rules: ProfileRules = ProfileRules()) -> float:
     """Length (s) of the time window that holds every profile of a sweep (see :class:`ProfileRules`)."""
     return rules.stamp_window_s(profiles, step_mm, speed_mm_s)

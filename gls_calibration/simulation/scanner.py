@@ -52,7 +52,7 @@ from gls_calibration.simulation.measurement import (MeasurementChain, lateral_li
 from gls_calibration.common.validation import as_finite_array, as_non_negative_number, as_positive_number
 from gls_calibration.geometry.optics import plate_frame
 from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG, ORIENTATIONS_TEXT
-from gls_calibration.scan.sweep import SWEEP_LENGTH_MM
+from gls_calibration.scan.sweep import SCANNER_STANDOFF_MM, SWEEP_LENGTH_MM, nominal_mounting, nominal_start_pose
 from gls_calibration.simulation.plate import Plate
 
 PROFILE_DTYPE = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32), ("intensity", np.float32)])
@@ -79,7 +79,7 @@ def pose_matrix(xyz_mm, rpy_rad) -> np.ndarray:
 class ScannerSettings:
     """Laser-line scanner and sweep settings (mm, s)."""
 
-    standoff_mm: float = 325.0
+    standoff_mm: float = SCANNER_STANDOFF_MM
     line_length_mm: float = 210.0
     point_spacing_mm: float = 0.1
     step_mm: float = 0.1
@@ -179,7 +179,7 @@ class LaserLineScanner:
         self._robot_fields: dict[tuple, object] = {}
         if scanner_to_gls is None:
             # looking straight down from the standoff, travelling towards -y of the head
-            scanner_to_gls = pose_matrix([0.0, 0.5 * SWEEP_LENGTH_MM, self.settings.standoff_mm], [math.pi, 0.0, 0.0])
+            scanner_to_gls = pose_matrix(*nominal_mounting(SWEEP_LENGTH_MM, self.settings.standoff_mm))
         self.scanner_to_gls = self._check_pose(scanner_to_gls, "scanner_to_gls")
         self.mounting_error = self._check_pose(np.eye(4) if mounting_error is None else mounting_error,
                                                "mounting_error")
@@ -210,12 +210,7 @@ class LaserLineScanner:
 
     def start_pose(self, length_mm: float, direction: int = 1, orientation_deg: float = 0.0) -> np.ndarray:
         """Nominal sensor pose at the first profile of a sweep (4x4, start frame -> B)."""
-        rotation = _turn(orientation_deg)
-        pose = np.eye(4)
-        pose[:3, :3] = rotation
-        pose[:3, 3] = (np.array([0.0, 0.5 * length_mm, 0.0])
-                       - rotation @ np.array([0.0, direction * 0.5 * length_mm, 0.0]))
-        return pose
+        return nominal_start_pose(length_mm, direction, orientation_deg)
 
     def _path_error(self, seed: int) -> np.ndarray:
         bound = self.settings.path_repeatability_mm
@@ -494,13 +489,6 @@ class LaserLineScanner:
         """Base-frame points (..., 3) to the gls frame with the CAD mounting (what a calibration knows)."""
         points = np.asarray(points, dtype=float)
         return points @ self.scanner_to_gls[:3, :3].T + self.scanner_to_gls[:3, 3]
-
-
-def _turn(orientation_deg: float) -> np.ndarray:
-    """Rotation of the sensor about its viewing axis (B's z)."""
-    angle = math.radians(orientation_deg)
-    cos, sin = round(math.cos(angle), 15), round(math.sin(angle), 15)
-    return np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _kernel_norm(sigma: float) -> float:

@@ -30,7 +30,7 @@ from gls_calibration.common.config_files import config_path, read_config_file
 from gls_calibration.geometry.head_config import effects_from_mapping, head_config_from_dict, parameters_block
 from gls_calibration.geometry.kinematics import HeadGeometry, inverse
 from gls_calibration.geometry.optics import HeadEffects
-from gls_calibration.scan.sweep import SWEEP_LENGTH_MM
+from gls_calibration.scan.sweep import SWEEP_LENGTH_MM, nominal_mounting
 from gls_calibration.simulation.head import TruthHead
 from gls_calibration.simulation.measurement import PRESET_CHAINS, MeasurementChain, measurement_from_mapping
 from gls_calibration.simulation.plate import Plate, PlateSettings
@@ -97,7 +97,7 @@ class SimConfig:
         """Fill the default mountings and validate the fields (ValueError on the first bad one)."""
         if self.scanner_to_gls is None:
             object.__setattr__(self, "scanner_to_gls", pose_matrix(
-                [0.0, 0.5 * self.sweep_length_mm, self.scanner.standoff_mm], [math.pi, 0.0, 0.0]))
+                *nominal_mounting(self.sweep_length_mm, self.scanner.standoff_mm)))
         if self.mounting_error is None:
             object.__setattr__(self, "mounting_error", np.eye(4))
         for name in ("mark_speed_mm_s", "sweep_length_mm"):
@@ -211,8 +211,9 @@ def sim_config_from_dict(document: Any, preset: str | None = None) -> SimConfig:
 
     cad = None
     if "mounting_xyz_mm" in mounting or "mounting_rpy_rad" in mounting:
-        cad = pose_matrix(mounting.get("mounting_xyz_mm", [0.0, 0.5 * length, scanner.standoff_mm]),
-                          mounting.get("mounting_rpy_rad", [math.pi, 0.0, 0.0]))
+        default_xyz_mm, default_rpy_rad = nominal_mounting(length, scanner.standoff_mm)
+        cad = pose_matrix(mounting.get("mounting_xyz_mm", default_xyz_mm),
+                          mounting.get("mounting_rpy_rad", default_rpy_rad))
     error = pose_matrix(mounting.get("mounting_error_xyz_mm", np.zeros(3)),
                         mounting.get("mounting_error_rpy_rad", np.zeros(3)))
     return SimConfig(seed=seed, geometry=geometry, effects=effects,
