@@ -10,7 +10,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from gls_calibration.fiducials.detection import _correlation_peaks, _detection_image
-from gls_calibration.fiducials.ring_fit import _peak, _ray_profiles, _sample_bicubic
+from gls_calibration.fiducials.ring_fit import (_correlate_rows, _correlation_at, _peak, _ray_profiles, _sample_bicubic,
+                                                _window_correlation)
 
 
 def _reference_peak(score: np.ndarray, low: np.ndarray, width: int):
@@ -118,3 +119,25 @@ def test_ray_profiles_sample_where_the_einsum_of_the_maps_puts_them():
     expected = _sample_bicubic(image, *maps)
     np.testing.assert_array_equal(_ray_profiles(image, centres, offset, inverse, directions, radial), expected)
     assert np.isfinite(expected).any() and np.isnan(expected).any()
+
+
+@pytest.mark.parametrize("samples, taps, outputs", [(71, 39, 18), (55, 27, 29), (40, 39, 5)])
+def test_window_correlation_is_the_whole_profiles_correlation_there(samples, taps, outputs):
+    rng = np.random.default_rng(taps)
+    count, rays = 23, 32
+    profiles = rng.normal(size=(count, rays, samples)).astype(np.float32)
+    template = rng.normal(size=taps).astype(np.float32)
+    whole = _correlate_rows(profiles, template)
+    # Windows inside the profile and ones whose template reaches beyond either end (replicated border).
+    first = rng.integers(0, samples - outputs + 1, count)
+    first[:2] = (0, samples - outputs)
+    window, start = _window_correlation(profiles, template, first, outputs)
+    assert np.all(start <= first) and np.all(start + window.shape[-1] >= first + outputs)
+    expected = np.take_along_axis(whole, np.broadcast_to(start[:, None, None] + np.arange(window.shape[-1]),
+                                                         window.shape), -1)
+    # The same sums; OpenBLAS on AVX-512 adds them in filter2D's order (equal to the bit there).
+    np.testing.assert_allclose(window, expected, rtol=1e-5, atol=1e-5 * np.abs(whole).max())
+    position = rng.integers(0, samples, (count, rays))
+    np.testing.assert_allclose(_correlation_at(profiles, template, window, start, position),
+                               np.take_along_axis(whole, position[..., None], -1)[..., 0],
+                               rtol=1e-5, atol=1e-5 * np.abs(whole).max())

@@ -63,6 +63,11 @@ RAY_PROFILE_CHUNK = 16
 """Candidates whose sample positions are built and sampled at a time (``_ray_profiles``): their maps,
 about a megabyte, are still in the cache when ``cv2.remap`` reads them (about 10 % faster than all at once)."""
 
+WINDOW_OUTPUT_BLOCK = 16
+"""Samples of the rings' correlation are computed in windows of a multiple of this many
+(``_window_correlation``): the width of OpenBLAS's single-precision kernel on AVX-512, whose
+narrower remainders sum in another order."""
+
 
 def _sample_bicubic(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray,
                     out: np.ndarray | None = None) -> np.ndarray:
@@ -106,6 +111,59 @@ def _correlate_rows(profiles: np.ndarray, template: np.ndarray) -> np.ndarray:
         cv2.filter2D(flat[start:start + block], cv2.CV_32F, template[None, :], dst=out[start:start + block],
                      borderType=cv2.BORDER_REPLICATE)
     return out.reshape(shape)
+
+
+def _window_correlation(profiles: np.ndarray, template: np.ndarray, first: np.ndarray,
+                        outputs: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return the correlation of profiles (M, A, S) with ``template`` over a window holding the samples needed.
+
+    As ``_correlate_rows`` (replicated border), over a window (M, A, K) from sample ``start`` (M,)
+    per candidate that holds samples first[m] .. first[m] + outputs - 1: a few times cheaper when
+    the window is a fraction of the profile. Where the template stays inside the profile the window
+    is one matrix product per candidate with the shifted template as the matrix's columns (one
+    matrix per distinct start); others are taken from their whole profile's correlation.
+
+    The window is widened to a multiple of ``WINDOW_OUTPUT_BLOCK`` samples where the profile allows:
+    OpenBLAS's single-precision product then sums every sample as ``cv2.filter2D`` does (the
+    template's taps in order, fused multiply-adds), so the correlation is the same to the bit.
+    """
+    length = profiles.shape[-1]
+    half = (len(template) - 1) // 2
+    span = max(outputs, min(-(-outputs // WINDOW_OUTPUT_BLOCK) * WINDOW_OUTPUT_BLOCK, length - 2 * half))
+    inner = (first >= half) & (first + outputs - 1 <= length - 1 - half)
+    start = np.where(inner, np.clip(first, half, length - half - span), np.clip(first, 0, length - span))
+    window = np.empty(profiles.shape[:2] + (span,), np.float32)
+    if inner.any():
+        starts, which = np.unique(start[inner], return_inverse=True)
+        matrices = np.zeros((len(starts), length, span), np.float32)
+        taps, columns = np.arange(len(template)) - half, np.arange(span)
+        for matrix, origin in zip(matrices, starts):
+            matrix[origin + columns[:, None] + taps, columns[:, None]] = template
+        if inner.all():     # the usual case: no copy of the profiles in or of the window out
+            np.matmul(profiles, matrices[which.reshape(-1)], out=window)
+        else:
+            window[inner] = np.matmul(profiles[inner], matrices[which.reshape(-1)])
+    if not inner.all():
+        whole = _correlate_rows(profiles[~inner], template)
+        samples = start[~inner, None, None] + np.arange(span)
+        window[~inner] = np.take_along_axis(whole, np.broadcast_to(samples, whole.shape[:2] + (span,)), -1)
+    return window, start
+
+
+def _correlation_at(profiles: np.ndarray, template: np.ndarray, window: np.ndarray, first: np.ndarray,
+                    position: np.ndarray) -> np.ndarray:
+    """Correlation (M, A) of every profile (M, A, S) with ``template`` at its own sample index ``position``.
+
+    Taken from the window's correlation (M, A, J; ``_window_correlation`` from index ``first`` (M,))
+    where the position falls inside it; the few rays whose position is elsewhere are correlated whole.
+    """
+    offset = position - first[:, None]
+    within = (offset >= 0) & (offset < window.shape[-1])
+    values = _along_last(window, np.clip(offset, 0, window.shape[-1] - 1))
+    if not within.all():
+        outside = ~within
+        values[outside] = _along_last(_correlate_rows(profiles[outside], template), position[outside])
+    return values
 
 
 def _along_last(values: np.ndarray, index: np.ndarray) -> np.ndarray:
@@ -267,17 +325,19 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
         if not inside.all():
             # Only rays leaving the image hold NaN: zeroed in place (a fresh array of this pass).
             profiles[~inside] = np.where(finite[~inside], profiles[~inside], np.float32(0.0))
-        score = _correlate_rows(profiles, pair_template)
         # Search window (indices along the ray): +- margin about the nominal mid radius, then about
         # the last fitted one (rings of the wrong size stay in view and fail the radius check).
         centre_radius = (np.full(count, mid) if refinement == 0
                          else np.clip(radius, mid - margin, mid + margin))  # noqa: F821 (set by the previous pass)
         width = int(np.floor(2 * margin / step)) + 1
         low = np.clip(np.ceil((centre_radius - margin - radial[0]) / step).astype(int), 1, len(radial) - width - 1)
-        index, peak_ok = _peak(score, low, width)
+        # The rings' correlation over the window and one neighbour on either side.
+        score, start = _window_correlation(profiles, pair_template, low - 1, width + 2)
+        index, peak_ok = _peak(score, low - start, width)
+        index += start[:, None]         # exact: a whole number plus at most half a sample
         edge = radial[0] + index * step
         ray_ok = inside & peak_ok & (visible[:, rays] if refinement >= 2 else True)
-        strength = _edge_weights(_along_last(score, np.rint(index).astype(int)),
+        strength = _edge_weights(_along_last(score, np.rint(index).astype(int) - start[:, None]),
                                  ray_ok)
         shift, radius, at, residual, used, ok = _fit_ring(edge, design[rays], ray_ok, strength)
         ok &= ray_ok.mean(axis=1) >= MIN_VALID_RAY_FRACTION * (coverage if refinement >= 2 else 1.0)
@@ -288,7 +348,7 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
             continue
         # Ring amplitude of every ray at the fitted circle: erased arcs read about zero there.
         position = np.clip(np.rint((at - radial[0]) / step).astype(int), 0, len(radial) - 1)
-        amplitude = np.where(inside, _along_last(score, position), np.nan)
+        amplitude = np.where(inside, _correlation_at(profiles, pair_template, score, start, position), np.nan)
         sector_sum = sector_sums(np.where(np.isfinite(amplitude), amplitude, 0.0), sector_of_ray)
         sector_n = sector_sums(np.isfinite(amplitude).astype(float), sector_of_ray)
         with np.errstate(invalid="ignore", divide="ignore"):
