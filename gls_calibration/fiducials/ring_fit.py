@@ -305,6 +305,11 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
     fit_ok = np.ones(count, bool)
     coverage = np.zeros(count)
     schedule = [image] * PASSES + ([fit_image] * FIT_PASSES if fit_image is not None else [])
+    # On a finite image a sample is NaN only where its bicubic stencil reaches past the border,
+    # and the positions where it does not form a rectangle: a straight ray is whole when both its
+    # ends are (no pass over every sample).
+    finite_image = {id(pass_image): bool(np.isfinite(pass_image).all()) for pass_image in (image, fit_image)
+                    if pass_image is not None}
     tracked = None
     for refinement, pass_image in enumerate(schedule):
         fitting_only = refinement >= PASSES
@@ -320,11 +325,12 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
         reach = half + (margin if refinement == 0 else 2 * margin) + step
         radial = (mid + np.arange(-np.ceil(reach / step), np.ceil(reach / step) + 1) * step).astype(np.float32)
         profiles = _ray_profiles(pass_image, centres, offset, inverse, directions[rays], radial)
-        finite = np.isfinite(profiles)
-        inside = finite.all(axis=2)
+        inside = (np.isfinite(profiles[..., 0]) & np.isfinite(profiles[..., -1]) if finite_image[id(pass_image)]
+                  else np.isfinite(profiles).all(axis=2))
         if not inside.all():
             # Only rays leaving the image hold NaN: zeroed in place (a fresh array of this pass).
-            profiles[~inside] = np.where(finite[~inside], profiles[~inside], np.float32(0.0))
+            leaving = profiles[~inside]
+            profiles[~inside] = np.where(np.isfinite(leaving), leaving, np.float32(0.0))
         # Search window (indices along the ray): +- margin about the nominal mid radius, then about
         # the last fitted one (rings of the wrong size stay in view and fail the radius check).
         centre_radius = (np.full(count, mid) if refinement == 0
