@@ -128,7 +128,7 @@ class _LinearLookup:
         Parameters
         ----------
         position : numpy.ndarray
-            Where to interpolate, within the abscissae wherever ``used``.
+            Where to interpolate, strictly between the first and last abscissae wherever ``used``.
         used : numpy.ndarray of bool, same shape
             The positions that read the tables.
 
@@ -137,11 +137,17 @@ class _LinearLookup:
         list of numpy.ndarray
             One array per table, shaped as ``position``.
         """
-        last = len(self.abscissae) - 1
-        interval = _even_interval(position, self.abscissae)
-        interval[interval < 0] = last + 1
+        abscissae = self.abscissae
+        last = len(abscissae) - 1
+        # ``_even_interval`` for positions between the ends, as the used ones are; the others are
+        # moved to the first abscissa and read the unused interval: no passes for positions beyond
+        # the ends or NaN.
+        within = np.where(used, position, abscissae[0])
+        interval = np.clip((within - abscissae[0]) / ((abscissae[-1] - abscissae[0]) / last), 0, last - 1).astype(int)
+        interval -= (within < abscissae[interval]) & (interval > 0)
+        interval += (within >= abscissae[interval + 1]) & (interval < last - 1)
+        offset = within - abscissae[interval]
         interval = np.where(used, interval, last + 2)
-        offset = position - self.abscissae[np.minimum(interval, last)]
         return [slope[interval] * offset + value[interval] for slope, value in zip(self.slopes, self.values)]
 
 
