@@ -113,41 +113,43 @@ def _correlate_rows(profiles: np.ndarray, template: np.ndarray) -> np.ndarray:
     return out.reshape(shape)
 
 
-def _window_correlation(profiles: np.ndarray, template: np.ndarray, first: np.ndarray,
-                        outputs: int) -> tuple[np.ndarray, np.ndarray]:
-    """Return the correlation of profiles (M, A, S) with ``template`` over a window holding the samples needed.
+def _window_correlation(profiles: np.ndarray, template: np.ndarray, first: np.ndarray, outputs: int) -> np.ndarray:
+    """Correlation (M, A, J) of profiles (M, A, S) with ``template`` at samples first[m] .. first[m] + J - 1.
 
-    As ``_correlate_rows`` (replicated border), over a window (M, A, K) from sample ``start`` (M,)
-    per candidate that holds samples first[m] .. first[m] + outputs - 1: a few times cheaper when
-    the window is a fraction of the profile. Where the template stays inside the profile the window
-    is one matrix product per candidate with the shifted template as the matrix's columns (one
-    matrix per distinct start); others are taken from their whole profile's correlation.
+    As ``_correlate_rows`` (replicated border) at only the samples the peak search reads, a few
+    times cheaper when they are a fraction of the profile. Where the template stays inside the
+    profile, one matrix product per candidate with the shifted template as the matrix's columns (one
+    matrix per distinct ``first``); windows reaching beyond the profile's ends are taken from their
+    whole profile's correlation.
 
-    The window is widened to a multiple of ``WINDOW_OUTPUT_BLOCK`` samples where the profile allows:
-    OpenBLAS's single-precision product then sums every sample as ``cv2.filter2D`` does (the
-    template's taps in order, fused multiply-adds), so the correlation is the same to the bit.
+    The product is padded to a multiple of ``WINDOW_OUTPUT_BLOCK`` columns (the padding is left
+    out of the result): OpenBLAS's single-precision kernel then sums every sample as
+    ``cv2.filter2D`` does (the template's taps in order, fused multiply-adds), so the correlation is
+    the same to the bit.
     """
     length = profiles.shape[-1]
     half = (len(template) - 1) // 2
-    span = max(outputs, min(-(-outputs // WINDOW_OUTPUT_BLOCK) * WINDOW_OUTPUT_BLOCK, length - 2 * half))
+    span = -(-outputs // WINDOW_OUTPUT_BLOCK) * WINDOW_OUTPUT_BLOCK
     inner = (first >= half) & (first + outputs - 1 <= length - 1 - half)
-    start = np.where(inner, np.clip(first, half, length - half - span), np.clip(first, 0, length - span))
     window = np.empty(profiles.shape[:2] + (span,), np.float32)
     if inner.any():
-        starts, which = np.unique(start[inner], return_inverse=True)
+        starts, which = np.unique(first[inner], return_inverse=True)
         matrices = np.zeros((len(starts), length, span), np.float32)
-        taps, columns = np.arange(len(template)) - half, np.arange(span)
+        columns = np.broadcast_to(np.arange(span)[:, None], (span, len(template)))
+        values = np.broadcast_to(template, columns.shape)
         for matrix, origin in zip(matrices, starts):
-            matrix[origin + columns[:, None] + taps, columns[:, None]] = template
+            rows = origin + columns + np.arange(len(template)) - half
+            kept = rows < length        # the padding columns may run past the profile: they are dropped
+            matrix[rows[kept], columns[kept]] = values[kept]
         if inner.all():     # the usual case: no copy of the profiles in or of the window out
             np.matmul(profiles, matrices[which.reshape(-1)], out=window)
         else:
             window[inner] = np.matmul(profiles[inner], matrices[which.reshape(-1)])
     if not inner.all():
         whole = _correlate_rows(profiles[~inner], template)
-        samples = start[~inner, None, None] + np.arange(span)
-        window[~inner] = np.take_along_axis(whole, np.broadcast_to(samples, whole.shape[:2] + (span,)), -1)
-    return window, start
+        samples = np.broadcast_to(first[~inner, None, None] + np.arange(outputs), whole.shape[:2] + (outputs,))
+        window[~inner, :, :outputs] = np.take_along_axis(whole, samples, -1)
+    return window[..., :outputs]
 
 
 def _correlation_at(profiles: np.ndarray, template: np.ndarray, window: np.ndarray, first: np.ndarray,
@@ -188,7 +190,17 @@ def _peak(score: np.ndarray, low: np.ndarray, width: int):
     # Each candidate's window with one neighbour on either side, gathered as contiguous runs of a
     # sliding-window view (an index per sample cost twice the time).
     runs = np.lib.stride_tricks.sliding_window_view(score, width + 2, axis=-1)           # (M, A, S - W - 1, W + 2)
-    padded = runs[np.arange(count)[:, None], np.arange(rays)[None, :], (low - 1)[:, None]]   # (M, A, W + 2)
+    return _window_peak(runs[np.arange(count)[:, None], np.arange(rays)[None, :], (low - 1)[:, None]], low)
+
+
+def _window_peak(padded: np.ndarray, low: np.ndarray):
+    """Sub-sample argmax of window scores (M, A, W + 2), samples low - 1 .. low + W of each candidate.
+
+    The maximum is searched among the inner W samples [low, low + W), the outer two are its
+    neighbours for the parabola. Returns the fractional index (M, A) along the whole profile and
+    whether the maximum is interior (a real peak, not an end).
+    """
+    width = padded.shape[-1] - 2
     best = np.argmax(padded[..., 1:-1], axis=-1)
     interior = (best > 0) & (best < width - 1)
     at = low[:, None] + best
@@ -338,12 +350,11 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
         width = int(np.floor(2 * margin / step)) + 1
         low = np.clip(np.ceil((centre_radius - margin - radial[0]) / step).astype(int), 1, len(radial) - width - 1)
         # The rings' correlation over the window and one neighbour on either side.
-        score, start = _window_correlation(profiles, pair_template, low - 1, width + 2)
-        index, peak_ok = _peak(score, low - start, width)
-        index += start[:, None]         # exact: a whole number plus at most half a sample
+        score = _window_correlation(profiles, pair_template, low - 1, width + 2)
+        index, peak_ok = _window_peak(score, low)
         edge = radial[0] + index * step
         ray_ok = inside & peak_ok & (visible[:, rays] if refinement >= 2 else True)
-        strength = _edge_weights(_along_last(score, np.rint(index).astype(int) - start[:, None]),
+        strength = _edge_weights(_along_last(score, np.rint(index).astype(int) - (low - 1)[:, None]),
                                  ray_ok)
         shift, radius, at, residual, used, ok = _fit_ring(edge, design[rays], ray_ok, strength)
         ok &= ray_ok.mean(axis=1) >= MIN_VALID_RAY_FRACTION * (coverage if refinement >= 2 else 1.0)
@@ -354,7 +365,7 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
             continue
         # Ring amplitude of every ray at the fitted circle: erased arcs read about zero there.
         position = np.clip(np.rint((at - radial[0]) / step).astype(int), 0, len(radial) - 1)
-        amplitude = np.where(inside, _correlation_at(profiles, pair_template, score, start, position), np.nan)
+        amplitude = np.where(inside, _correlation_at(profiles, pair_template, score, low - 1, position), np.nan)
         sector_sum = sector_sums(np.where(np.isfinite(amplitude), amplitude, 0.0), sector_of_ray)
         sector_n = sector_sums(np.isfinite(amplitude).astype(float), sector_of_ray)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -432,7 +443,10 @@ def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, in
         rows = slice(first, min(first + RAY_PROFILE_CHUNK, count))
         chunk = maps[:, :rows.stop - first]
         for axis in range(2):
-            np.multiply(headings[axis][rows, :, None], radial, out=chunk[axis])          # (m, A, S)
+            # An outer product (each map value one float32 product, as broadcasting gives), in a
+            # third less time than a broadcast multiply's short inner loops.
+            np.einsum("i,j->ij", headings[axis][rows].reshape(-1), radial,
+                      out=chunk[axis].reshape(-1, len(radial)))                          # (m, A, S)
             chunk[axis] += start[rows, None, None, axis]
         _sample_bicubic(image, chunk[0], chunk[1], out=samples[rows])
     return samples
