@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from gls_calibration.fiducials.detection import _correlation_peaks, _detection_image
 from gls_calibration.fiducials.ring_fit import (_correlate_rows, _correlation_at, _peak, _ray_profiles, _sample_bicubic,
-                                                _window_correlation)
+                                                _runs, _window_correlation)
 
 
 def _reference_peak(score: np.ndarray, low: np.ndarray, width: int):
@@ -139,3 +139,13 @@ def test_window_correlation_is_the_whole_profiles_correlation_there(samples, tap
     np.testing.assert_allclose(_correlation_at(profiles, template, window, first, position),
                                np.take_along_axis(whole, position[..., None], -1)[..., 0],
                                rtol=1e-5, atol=1e-5 * np.abs(whole).max())
+
+
+def test_runs_are_the_sliding_window_views_gather():
+    rng = np.random.default_rng(5)
+    values = rng.normal(size=(7, 11, 40)).astype(np.float32)
+    first = rng.integers(0, 40 - 13 + 1, (7, 11))
+    first[0, :2] = (0, 40 - 13)
+    expected = np.lib.stride_tricks.sliding_window_view(values, 13, axis=-1)[
+        np.arange(7)[:, None], np.arange(11)[None, :], first]
+    np.testing.assert_array_equal(_runs(values, first, 13), expected)
