@@ -149,7 +149,8 @@ def _window_correlation(profiles: np.ndarray, template: np.ndarray, first: np.nd
         whole = _correlate_rows(profiles[~inner], template)
         samples = np.broadcast_to(first[~inner, None, None] + np.arange(outputs), whole.shape[:2] + (outputs,))
         window[~inner, :, :outputs] = np.take_along_axis(whole, samples, -1)
-    return window[..., :outputs]
+    # Contiguous: the peak search gathers from it several times (a view would be copied each time).
+    return np.ascontiguousarray(window[..., :outputs])
 
 
 def _correlation_at(profiles: np.ndarray, template: np.ndarray, window: np.ndarray, first: np.ndarray,
