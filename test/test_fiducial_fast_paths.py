@@ -10,7 +10,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from gls_calibration.fiducials.detection import _correlation_peaks, _detection_image
-from gls_calibration.fiducials.ring_fit import _peak, _ray_profiles, _sample_bicubic
+from gls_calibration.fiducials.ring_fit import (_correlate_rows, _correlation_at, _peak, _ray_profiles, _sample_bicubic,
+                                                _runs, _window_correlation)
 
 
 def _reference_peak(score: np.ndarray, low: np.ndarray, width: int):
@@ -118,3 +119,33 @@ def test_ray_profiles_sample_where_the_einsum_of_the_maps_puts_them():
     expected = _sample_bicubic(image, *maps)
     np.testing.assert_array_equal(_ray_profiles(image, centres, offset, inverse, directions, radial), expected)
     assert np.isfinite(expected).any() and np.isnan(expected).any()
+
+
+@pytest.mark.parametrize("samples, taps, outputs", [(71, 39, 18), (55, 27, 29), (40, 39, 5)])
+def test_window_correlation_is_the_whole_profiles_correlation_there(samples, taps, outputs):
+    rng = np.random.default_rng(taps)
+    count, rays = 23, 32
+    profiles = rng.normal(size=(count, rays, samples)).astype(np.float32)
+    template = rng.normal(size=taps).astype(np.float32)
+    whole = _correlate_rows(profiles, template)
+    # Windows inside the profile and ones whose template reaches beyond either end (replicated border).
+    first = rng.integers(0, samples - outputs + 1, count)
+    first[:2] = (0, samples - outputs)
+    window = _window_correlation(profiles, template, first, outputs)
+    expected = np.take_along_axis(whole, np.broadcast_to(first[:, None, None] + np.arange(outputs), window.shape), -1)
+    # The same sums; OpenBLAS on AVX-512 adds them in filter2D's order (equal to the bit there).
+    np.testing.assert_allclose(window, expected, rtol=1e-5, atol=1e-5 * np.abs(whole).max())
+    position = rng.integers(0, samples, (count, rays))
+    np.testing.assert_allclose(_correlation_at(profiles, template, window, first, position),
+                               np.take_along_axis(whole, position[..., None], -1)[..., 0],
+                               rtol=1e-5, atol=1e-5 * np.abs(whole).max())
+
+
+def test_runs_are_the_sliding_window_views_gather():
+    rng = np.random.default_rng(5)
+    values = rng.normal(size=(7, 11, 40)).astype(np.float32)
+    first = rng.integers(0, 40 - 13 + 1, (7, 11))
+    first[0, :2] = (0, 40 - 13)
+    expected = np.lib.stride_tricks.sliding_window_view(values, 13, axis=-1)[
+        np.arange(7)[:, None], np.arange(11)[None, :], first]
+    np.testing.assert_array_equal(_runs(values, first, 13), expected)

@@ -55,11 +55,11 @@ CANDIDATE_BLOCK = 32
 def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm: float):
     """Return bin centres (B,) and the mean profile of ``values`` against ``rho`` with derivatives.
 
-    The derivatives are the first and second, each (B,); ``rho`` is 1-D, mm. Empty bins take their
-    neighbours' values.
+    The derivatives are the first and second, each (B,); ``rho`` is 1-D, mm, within +-``band_mm``.
+    Empty bins take their neighbours' values.
     """
     edges = np.arange(-band_mm - 3 * bin_mm, band_mm + 3 * bin_mm + 0.5 * bin_mm, bin_mm)
-    index = _even_interval(rho, edges) + 1         # np.digitize(rho, edges)
+    index = _even_interval(rho, edges, within=True) + 1         # np.digitize(rho, edges)
     counts = np.bincount(index, minlength=len(edges) + 1)[1:-1]
     sums = np.bincount(index, values, minlength=len(edges) + 1)[1:-1]
     centres = 0.5 * (edges[1:] + edges[:-1])
@@ -70,7 +70,7 @@ def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm:
             savgol_filter(profile, window + 2, 3, deriv=2, delta=bin_mm))
 
 
-def _even_interval(position: np.ndarray, abscissae: np.ndarray) -> np.ndarray:
+def _even_interval(position: np.ndarray, abscissae: np.ndarray, *, within: bool = False) -> np.ndarray:
     """Return ``np.searchsorted(abscissae, position, side="right") - 1`` for evenly spaced abscissae.
 
     The interval from the spacing, then moved by one where rounding put it next door: the interval
@@ -83,6 +83,9 @@ def _even_interval(position: np.ndarray, abscissae: np.ndarray) -> np.ndarray:
         Positions to place.
     abscissae : numpy.ndarray, shape (B,)
         Increasing, evenly spaced (to well within a spacing) positions, B >= 2.
+    within : bool
+        Every position is known to lie between the first and last abscissae (not at the last): the
+        passes for NaN and for positions beyond either end are skipped.
 
     Returns
     -------
@@ -91,11 +94,13 @@ def _even_interval(position: np.ndarray, abscissae: np.ndarray) -> np.ndarray:
     """
     last = len(abscissae) - 1
     first, spacing = abscissae[0], (abscissae[-1] - abscissae[0]) / last
-    guess = np.clip(np.nan_to_num((position - first) / spacing), 0, last - 1).astype(int)
+    scaled = (position - first) / spacing
+    guess = np.clip(scaled if within else np.nan_to_num(scaled), 0, last - 1).astype(int)
     guess -= (position < abscissae[guess]) & (guess > 0)
     guess += (position >= abscissae[guess + 1]) & (guess < last - 1)
-    guess[(position >= abscissae[-1]) | np.isnan(position)] = last
-    guess[position < first] = -1
+    if not within:
+        guess[(position >= abscissae[-1]) | np.isnan(position)] = last
+        guess[position < first] = -1
     return guess
 
 
@@ -128,7 +133,7 @@ class _LinearLookup:
         Parameters
         ----------
         position : numpy.ndarray
-            Where to interpolate, within the abscissae wherever ``used``.
+            Where to interpolate, strictly between the first and last abscissae wherever ``used``.
         used : numpy.ndarray of bool, same shape
             The positions that read the tables.
 
@@ -137,11 +142,14 @@ class _LinearLookup:
         list of numpy.ndarray
             One array per table, shaped as ``position``.
         """
-        last = len(self.abscissae) - 1
-        interval = _even_interval(position, self.abscissae)
-        interval[interval < 0] = last + 1
+        abscissae = self.abscissae
+        last = len(abscissae) - 1
+        # The used positions lie between the ends; the others are moved to the first abscissa and
+        # read the unused interval: no passes for positions beyond the ends or NaN.
+        within = np.where(used, position, abscissae[0])
+        interval = _even_interval(within, abscissae, within=True)
+        offset = within - abscissae[interval]
         interval = np.where(used, interval, last + 2)
-        offset = position - self.abscissae[np.minimum(interval, last)]
         return [slope[interval] * offset + value[interval] for slope, value in zip(self.slopes, self.values)]
 
 

@@ -63,6 +63,11 @@ RAY_PROFILE_CHUNK = 16
 """Candidates whose sample positions are built and sampled at a time (``_ray_profiles``): their maps,
 about a megabyte, are still in the cache when ``cv2.remap`` reads them (about 10 % faster than all at once)."""
 
+WINDOW_OUTPUT_BLOCK = 16
+"""Samples of the rings' correlation are computed in windows of a multiple of this many
+(``_window_correlation``): the width of OpenBLAS's single-precision kernel on AVX-512, whose
+narrower remainders sum in another order."""
+
 
 def _sample_bicubic(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray,
                     out: np.ndarray | None = None) -> np.ndarray:
@@ -108,6 +113,62 @@ def _correlate_rows(profiles: np.ndarray, template: np.ndarray) -> np.ndarray:
     return out.reshape(shape)
 
 
+def _window_correlation(profiles: np.ndarray, template: np.ndarray, first: np.ndarray, outputs: int) -> np.ndarray:
+    """Correlation (M, A, J) of profiles (M, A, S) with ``template`` at samples first[m] .. first[m] + J - 1.
+
+    As ``_correlate_rows`` (replicated border) at only the samples the peak search reads, a few
+    times cheaper when they are a fraction of the profile. Where the template stays inside the
+    profile, one matrix product per candidate with the shifted template as the matrix's columns (one
+    matrix per distinct ``first``); windows reaching beyond the profile's ends are taken from their
+    whole profile's correlation.
+
+    The product is padded to a multiple of ``WINDOW_OUTPUT_BLOCK`` columns (the padding is left
+    out of the result): OpenBLAS's single-precision kernel then sums every sample as
+    ``cv2.filter2D`` does (the template's taps in order, fused multiply-adds), so the correlation is
+    the same to the bit.
+    """
+    length = profiles.shape[-1]
+    half = (len(template) - 1) // 2
+    span = -(-outputs // WINDOW_OUTPUT_BLOCK) * WINDOW_OUTPUT_BLOCK
+    inner = (first >= half) & (first + outputs - 1 <= length - 1 - half)
+    window = np.empty(profiles.shape[:2] + (span,), np.float32)
+    if inner.any():
+        starts, which = np.unique(first[inner], return_inverse=True)
+        matrices = np.zeros((len(starts), length, span), np.float32)
+        columns = np.broadcast_to(np.arange(span)[:, None], (span, len(template)))
+        values = np.broadcast_to(template, columns.shape)
+        for matrix, origin in zip(matrices, starts):
+            rows = origin + columns + np.arange(len(template)) - half
+            kept = rows < length        # the padding columns may run past the profile: they are dropped
+            matrix[rows[kept], columns[kept]] = values[kept]
+        if inner.all():     # the usual case: no copy of the profiles in or of the window out
+            np.matmul(profiles, matrices[which.reshape(-1)], out=window)
+        else:
+            window[inner] = np.matmul(profiles[inner], matrices[which.reshape(-1)])
+    if not inner.all():
+        whole = _correlate_rows(profiles[~inner], template)
+        samples = np.broadcast_to(first[~inner, None, None] + np.arange(outputs), whole.shape[:2] + (outputs,))
+        window[~inner, :, :outputs] = np.take_along_axis(whole, samples, -1)
+    # Contiguous: the peak search gathers from it several times (a view would be copied each time).
+    return np.ascontiguousarray(window[..., :outputs])
+
+
+def _correlation_at(profiles: np.ndarray, template: np.ndarray, window: np.ndarray, first: np.ndarray,
+                    position: np.ndarray) -> np.ndarray:
+    """Correlation (M, A) of every profile (M, A, S) with ``template`` at its own sample index ``position``.
+
+    Taken from the window's correlation (M, A, J; ``_window_correlation`` from index ``first`` (M,))
+    where the position falls inside it; the few rays whose position is elsewhere are correlated whole.
+    """
+    offset = position - first[:, None]
+    within = (offset >= 0) & (offset < window.shape[-1])
+    values = _along_last(window, np.clip(offset, 0, window.shape[-1] - 1))
+    if not within.all():
+        outside = ~within
+        values[outside] = _along_last(_correlate_rows(profiles[outside], template), position[outside])
+    return values
+
+
 def _along_last(values: np.ndarray, index: np.ndarray) -> np.ndarray:
     """Return ``values`` (..., S) at ``index`` (...; 0 <= index < S) along the last axis.
 
@@ -130,7 +191,17 @@ def _peak(score: np.ndarray, low: np.ndarray, width: int):
     # Each candidate's window with one neighbour on either side, gathered as contiguous runs of a
     # sliding-window view (an index per sample cost twice the time).
     runs = np.lib.stride_tricks.sliding_window_view(score, width + 2, axis=-1)           # (M, A, S - W - 1, W + 2)
-    padded = runs[np.arange(count)[:, None], np.arange(rays)[None, :], (low - 1)[:, None]]   # (M, A, W + 2)
+    return _window_peak(runs[np.arange(count)[:, None], np.arange(rays)[None, :], (low - 1)[:, None]], low)
+
+
+def _window_peak(padded: np.ndarray, low: np.ndarray):
+    """Sub-sample argmax of window scores (M, A, W + 2), samples low - 1 .. low + W of each candidate.
+
+    The maximum is searched among the inner W samples [low, low + W), the outer two are its
+    neighbours for the parabola. Returns the fractional index (M, A) along the whole profile and
+    whether the maximum is interior (a real peak, not an end).
+    """
+    width = padded.shape[-1] - 2
     best = np.argmax(padded[..., 1:-1], axis=-1)
     interior = (best > 0) & (best < width - 1)
     at = low[:, None] + best
@@ -138,6 +209,22 @@ def _peak(score: np.ndarray, low: np.ndarray, width: int):
     curvature = left - 2 * centre + right
     delta = np.where(curvature < 0, 0.5 * (left - right) / np.where(curvature < 0, curvature, -1.0), 0.0)
     return at + np.clip(delta, -0.5, 0.5), interior & (curvature < 0)
+
+
+def _runs(values: np.ndarray, first: np.ndarray, length: int) -> np.ndarray:
+    """Return ``values`` (M, A, S) at samples first .. first + length - 1 along the last axis (M, A, length).
+
+    ``first`` (M, A) keeps every run inside its row. Each run is copied as one item of a view whose
+    items are ``length`` samples long, one starting at every sample: a third of the time of a
+    sliding-window view's three-index gather, which copies sample by sample.
+    """
+    values = np.ascontiguousarray(values)
+    count, rays, samples = values.shape
+    flat = values.reshape(-1)
+    runs = np.ndarray((flat.size - length + 1,), dtype=np.dtype((np.void, length * flat.itemsize)), buffer=flat,
+                      strides=(flat.itemsize,))
+    starts = (np.arange(0, count * rays * samples, samples).reshape(count, rays) + first).reshape(-1)
+    return runs[starts].view(values.dtype).reshape(count, rays, length)
 
 
 def _row_nanquantile(values: np.ndarray, quantile: float) -> np.ndarray:
@@ -247,6 +334,11 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
     fit_ok = np.ones(count, bool)
     coverage = np.zeros(count)
     schedule = [image] * PASSES + ([fit_image] * FIT_PASSES if fit_image is not None else [])
+    # On a finite image a sample is NaN only where its bicubic stencil reaches past the border,
+    # and the positions where it does not form a rectangle: a straight ray is whole when both its
+    # ends are (no pass over every sample).
+    finite_image = {id(pass_image): bool(np.isfinite(pass_image).all()) for pass_image in (image, fit_image)
+                    if pass_image is not None}
     tracked = None
     for refinement, pass_image in enumerate(schedule):
         fitting_only = refinement >= PASSES
@@ -262,22 +354,24 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
         reach = half + (margin if refinement == 0 else 2 * margin) + step
         radial = (mid + np.arange(-np.ceil(reach / step), np.ceil(reach / step) + 1) * step).astype(np.float32)
         profiles = _ray_profiles(pass_image, centres, offset, inverse, directions[rays], radial)
-        finite = np.isfinite(profiles)
-        inside = finite.all(axis=2)
+        inside = (np.isfinite(profiles[..., 0]) & np.isfinite(profiles[..., -1]) if finite_image[id(pass_image)]
+                  else np.isfinite(profiles).all(axis=2))
         if not inside.all():
             # Only rays leaving the image hold NaN: zeroed in place (a fresh array of this pass).
-            profiles[~inside] = np.where(finite[~inside], profiles[~inside], np.float32(0.0))
-        score = _correlate_rows(profiles, pair_template)
+            leaving = profiles[~inside]
+            profiles[~inside] = np.where(np.isfinite(leaving), leaving, np.float32(0.0))
         # Search window (indices along the ray): +- margin about the nominal mid radius, then about
         # the last fitted one (rings of the wrong size stay in view and fail the radius check).
         centre_radius = (np.full(count, mid) if refinement == 0
                          else np.clip(radius, mid - margin, mid + margin))  # noqa: F821 (set by the previous pass)
         width = int(np.floor(2 * margin / step)) + 1
         low = np.clip(np.ceil((centre_radius - margin - radial[0]) / step).astype(int), 1, len(radial) - width - 1)
-        index, peak_ok = _peak(score, low, width)
+        # The rings' correlation over the window and one neighbour on either side.
+        score = _window_correlation(profiles, pair_template, low - 1, width + 2)
+        index, peak_ok = _window_peak(score, low)
         edge = radial[0] + index * step
         ray_ok = inside & peak_ok & (visible[:, rays] if refinement >= 2 else True)
-        strength = _edge_weights(_along_last(score, np.rint(index).astype(int)),
+        strength = _edge_weights(_along_last(score, np.rint(index).astype(int) - (low - 1)[:, None]),
                                  ray_ok)
         shift, radius, at, residual, used, ok = _fit_ring(edge, design[rays], ray_ok, strength)
         ok &= ray_ok.mean(axis=1) >= MIN_VALID_RAY_FRACTION * (coverage if refinement >= 2 else 1.0)
@@ -288,7 +382,7 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
             continue
         # Ring amplitude of every ray at the fitted circle: erased arcs read about zero there.
         position = np.clip(np.rint((at - radial[0]) / step).astype(int), 0, len(radial) - 1)
-        amplitude = np.where(inside, _along_last(score, position), np.nan)
+        amplitude = np.where(inside, _correlation_at(profiles, pair_template, score, low - 1, position), np.nan)
         sector_sum = sector_sums(np.where(np.isfinite(amplitude), amplitude, 0.0), sector_of_ray)
         sector_n = sector_sums(np.isfinite(amplitude).astype(float), sector_of_ray)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -319,12 +413,10 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
     background = _row_median(profiles[:, :, outside]) if outside.any() else np.zeros(profiles.shape[:2])
     at = at.astype(np.float32)
     # The window is zero beyond half the gap and half a sample from the expected radius: only the
-    # ``span`` samples from ``first`` on each ray enter, gathered from sliding-window views.
+    # ``span`` samples from ``first`` on each ray enter, gathered as runs (``_runs``).
     window_reach = gap / 2 + step / 2
     span = min(int(np.ceil(2 * window_reach / step)) + 2, len(radial))
-    profile_runs = np.lib.stride_tricks.sliding_window_view(profiles, span, axis=-1)       # (M, A, S - K + 1, K)
     radial_runs = np.lib.stride_tricks.sliding_window_view(radial, span)                    # (S - K + 1, K)
-    candidate, ray = np.arange(count)[:, None], np.arange(RAY_COUNT)[None, :]
     for ring, ring_offset in enumerate(offsets):
         expected = at + np.float32(ring_offset)                                             # (M, A)
         first = np.clip(np.floor((np.nan_to_num(expected) - window_reach - radial[0]) / step), 0,
@@ -332,7 +424,7 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
         near = radial_runs[first]                                                           # (M, A, K)
         window = np.clip((np.float32(gap / 2) - np.abs(near - expected[..., None])) / np.float32(step)
                          + np.float32(0.5), 0.0, 1.0)
-        weight = np.clip(background[..., None] - profile_runs[candidate, ray, first], 0.0, None) * window
+        weight = np.clip(background[..., None] - _runs(profiles, first, span), 0.0, None) * window
         total = weight.sum(axis=2)
         centroid = (weight * near).sum(axis=2) / np.where(total > 0, total, 1.0)
         points = sampled_at[:, None, :] + centroid[..., None] * directions
@@ -366,7 +458,10 @@ def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, in
         rows = slice(first, min(first + RAY_PROFILE_CHUNK, count))
         chunk = maps[:, :rows.stop - first]
         for axis in range(2):
-            np.multiply(headings[axis][rows, :, None], radial, out=chunk[axis])          # (m, A, S)
+            # An outer product (each map value one float32 product, as broadcasting gives), in a
+            # third less time than a broadcast multiply's short inner loops.
+            np.einsum("i,j->ij", headings[axis][rows].reshape(-1), radial,
+                      out=chunk[axis].reshape(-1, len(radial)))                          # (m, A, S)
             chunk[axis] += start[rows, None, None, axis]
         _sample_bicubic(image, chunk[0], chunk[1], out=samples[rows])
     return samples
