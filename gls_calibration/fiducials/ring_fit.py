@@ -124,8 +124,9 @@ def _window_correlation(profiles: np.ndarray, template: np.ndarray, first: np.nd
 
     The product is padded to a multiple of ``WINDOW_OUTPUT_BLOCK`` columns (the padding is left
     out of the result): OpenBLAS's single-precision kernel then sums every sample as
-    ``cv2.filter2D`` does (the template's taps in order, fused multiply-adds), so the correlation is
-    the same to the bit.
+    ``cv2.filter2D`` does (the template's taps in order, fused multiply-adds), so on an AVX-512 host
+    the correlation is the same to the bit; on another CPU the two may differ in the last bit of
+    float32 (test_fiducial_fast_paths allows 1e-5).
     """
     length = profiles.shape[-1]
     half = (len(template) - 1) // 2
