@@ -109,3 +109,14 @@ def test_a_format_version_1_file_still_loads(tmp_path):
     result = correction_from_record(loaded, head_geometry(loaded)).correct(x, y, z)
     np.testing.assert_allclose(result.alpha_x, expected.alpha_x, rtol=0.0, atol=1e-12)
     np.testing.assert_allclose(result.x, expected.x, rtol=0.0, atol=1e-9)
+
+
+def test_a_record_is_dumped_once_and_as_a_plain_copy_of_it_would_be():
+    """``dump_record`` of a CalibrationRecord: the text of its plain copy, made at the first call only."""
+    from gls_calibration.calibration.record_file import CalibrationRecord, dump_record
+    from test_persistence import make_record
+
+    record = make_record()
+    record = record if isinstance(record, CalibrationRecord) else CalibrationRecord(record)
+    text = dump_record(record)
+    assert text == dump_record(record.to_dict()) and dump_record(record) is text

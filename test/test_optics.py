@@ -252,3 +252,21 @@ def test_the_rotation_of_a_mirror_normal_is_rodrigues_with_numpys_cross_product(
         expected = (vector[:, None] * cos + np.cross(axis, vector)[:, None] * sin
                     + (axis * np.dot(axis, vector))[:, None] * (1.0 - cos))
         assert _rotate(vector, axis, angle).tobytes() == expected.tobytes()
+
+
+def test_effects_given_as_float_tuples_are_taken_as_they_are_and_land_as_before():
+    """The fits' fast path (float tuples, angles checked once) lands exactly where the checked path does."""
+    values = {"galvo_gain_x": (0.004,), "mirror_offset": (0.2, -0.1), "plate_tilt": (0.003, -0.002)}
+    fast = HeadEffects(values)
+    assert fast == HeadEffects({name: list(value) for name, value in values.items()})
+    assert fast.values["mirror_offset"] == (0.2, -0.1)
+    for bad, problem in (({"galvo_gain_x": (math.nan,)}, "NaN or infinite"), ({"mirror_offset": (0.1,)}, "takes 2"),
+                         ({"no_such_effect": (0.1,)}, "unknown effect")):
+        with pytest.raises(ValueError, match=problem):
+            HeadEffects(bad)
+    alpha_x, alpha_y = field_angles(7)
+    head = PhysicalHead(GEOMETRY, fast)
+    landed = head.land_checked(*PhysicalHead.checked_angles(alpha_x, alpha_y, 2.0))
+    assert np.array_equal(landed, head.land(alpha_x, alpha_y, 2.0))
+    with pytest.raises(ValueError, match="alpha_x contains 1 NaN"):
+        PhysicalHead.checked_angles(np.array([math.nan]), np.array([0.0]))

@@ -41,6 +41,7 @@ class Predictor:
         self.t = t
         self.user_effects = {effect.name: effect for effect in user_effects}
         self.context = EffectContext(geometry, commanded_xy, self.alpha_x, self.alpha_y, t)
+        self._checked: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None   # the angles, checked once
 
     def spec(self, name: str) -> EffectSpec:
         """Table entry of a library or user effect."""
@@ -54,7 +55,9 @@ class Predictor:
     def __call__(self, effects: HeadEffects | Mapping[str, Sequence[float]],
                  user_values: Mapping[str, Sequence[float]] | None = None) -> np.ndarray:
         """Landing of the recorded angles with these effects (n, 2) mm, user effects added."""
-        landing = PhysicalHead(self.geometry, effects).land(self.alpha_x, self.alpha_y, self.t)[:, :2]
+        if self._checked is None:
+            self._checked = PhysicalHead.checked_angles(self.alpha_x, self.alpha_y, self.t)
+        landing = PhysicalHead(self.geometry, effects).land_checked(*self._checked)[:, :2]
         for name, values in (user_values or {}).items():
             change = np.asarray(self.user_effects[name].deviation(self.context, np.asarray(values, dtype=float)),
                                 dtype=float)

@@ -20,6 +20,7 @@ discrepancy workflow fits to measured deviations. Both refer to effects by the n
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import math
 from types import MappingProxyType
 from typing import Iterable, Mapping, Sequence
 
@@ -131,6 +132,13 @@ class HeadEffects:
                              f"got {type(self.values).__name__}")
         clean: dict[str, tuple[float, ...]] = {}
         for name, parameters in self.values.items():
+            expected = EFFECTS.get(name)
+            if (expected is not None and type(parameters) is tuple and len(parameters) == len(expected)
+                    and all(type(value) is float and math.isfinite(value) for value in parameters)):
+                # already what the checks below make of it (the fits build effects from such tuples
+                # at every residual evaluation: the array round trip was a seventh of their cost)
+                clean[name] = parameters
+                continue
             _check_effect_name(name)
             flat = np.atleast_1d(as_finite_array(parameters, f"effect {name!r}"))
             expected = EFFECTS[name]
@@ -260,7 +268,10 @@ class PhysicalHead:
 
     def mechanical_angles(self, alpha_x, alpha_y, t=None) -> tuple[np.ndarray, np.ndarray]:
         """Return the true mechanical angles (rad) for commanded ones: gain, offset and thermal drift applied."""
-        alpha_x, alpha_y, t = self._inputs(alpha_x, alpha_y, t)
+        return self._mechanical_angles(*self.checked_angles(alpha_x, alpha_y, t))
+
+    def _mechanical_angles(self, alpha_x, alpha_y, t) -> tuple[np.ndarray, np.ndarray]:
+        """Return :meth:`mechanical_angles` of inputs :meth:`checked_angles` returned."""
         gain_rate, offset_rate = self.effects.get("thermal_drift")
         gain_x = 1.0 + self.effects.get("galvo_gain_x")[0] + gain_rate * t
         gain_y = 1.0 + self.effects.get("galvo_gain_y")[0] + gain_rate * t
@@ -269,7 +280,29 @@ class PhysicalHead:
         return alpha_x * gain_x + offset_x, alpha_y * gain_y + offset_y
 
     @staticmethod
-    def _inputs(alpha_x, alpha_y, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def checked_angles(alpha_x, alpha_y, t=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the angles and times as :meth:`land` takes them, checked; ValueError naming a problem.
+
+        What :meth:`land_checked` takes: a caller that lands the same angles many times (the fits of
+        the discrepancy workflow) checks them once.
+
+        Parameters
+        ----------
+        alpha_x, alpha_y : array_like
+            Commanded mechanical angles, rad, 1-D of one length.
+        t : float or array_like, optional
+            Marking time, s: a scalar, one per point, or None (zero).
+
+        Returns
+        -------
+        alpha_x, alpha_y, t : numpy.ndarray
+            Finite float arrays of one shape.
+
+        Raises
+        ------
+        ValueError
+            If a value is not finite or the shapes differ.
+        """
         alpha_x = np.atleast_1d(as_finite_array(alpha_x, "alpha_x"))
         alpha_y = np.atleast_1d(as_finite_array(alpha_y, "alpha_y"))
         if alpha_x.ndim != 1 or alpha_y.shape != alpha_x.shape:
@@ -287,7 +320,11 @@ class PhysicalHead:
 
     def _trace(self, alpha_x, alpha_y, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Y mirror hit, X mirror hit and plate hit (each (3, N), gls frame) before lens distortion."""
-        ax, ay = self.mechanical_angles(alpha_x, alpha_y, t)
+        return self._trace_checked(*self.checked_angles(alpha_x, alpha_y, t))
+
+    def _trace_checked(self, alpha_x, alpha_y, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return :meth:`_trace` of inputs :meth:`checked_angles` returned."""
+        ax, ay = self._mechanical_angles(alpha_x, alpha_y, t)
         e = self.geometry.mirror_distance_mm + self.effects.get("mirror_distance")[0]
         d = self.geometry.working_distance_mm
         offset_x_mm, offset_y_mm = self.effects.get("mirror_offset")
@@ -318,7 +355,22 @@ class PhysicalHead:
 
         ``t`` is the marking time in s (scalar or one per point), used by ``thermal_drift`` only.
         """
-        _, _, hits = self._trace(alpha_x, alpha_y, t)
+        return self.land_checked(*self.checked_angles(alpha_x, alpha_y, t))
+
+    def land_checked(self, alpha_x: np.ndarray, alpha_y: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Return :meth:`land` of angles and times :meth:`checked_angles` returned (not checked again).
+
+        Parameters
+        ----------
+        alpha_x, alpha_y, t : numpy.ndarray
+            As :meth:`checked_angles` returns them.
+
+        Returns
+        -------
+        numpy.ndarray, shape (N, 3)
+            Where the spot lands, gls frame, mm.
+        """
+        _, _, hits = self._trace_checked(alpha_x, alpha_y, t)
         k1 = self.effects.get("radial_distortion")[0]
         if k1 != 0.0:
             # scale the in-plane offset from the field centre (the plate origin)

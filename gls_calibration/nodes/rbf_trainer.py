@@ -15,6 +15,9 @@ from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import answers_errors
 from gls_calibration_msgs.srv import TrainCorrection
 
+# libyaml's emitter when PyYAML has it: the same numbers as safe_dump's text, written several times faster
+SAFE_DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
+
 
 class RbfTrainerNode(GlsNode):
     """Thin wrapper over ``training.train_correction``."""
@@ -40,7 +43,7 @@ class RbfTrainerNode(GlsNode):
                                    np.column_stack([request.dx, request.dy]), self.geometry,
                                    physics_first=self.physics_first, options=self.options)
         response.success = True
-        response.model_yaml = yaml.safe_dump(trained.model, sort_keys=False)
+        response.model_yaml = yaml.dump(trained.model, Dumper=SAFE_DUMPER, sort_keys=False)
         response.method = trained.method
         response.neurons = trained.neurons
         response.spread_mm = trained.spread_mm

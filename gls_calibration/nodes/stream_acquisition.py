@@ -40,6 +40,7 @@ from typing import Optional
 import numpy as np
 from nav_msgs.msg import Path
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.task import Future
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
@@ -48,7 +49,7 @@ from gls_calibration.nodes.scan_acquisition import request_problem
 from gls_calibration.registration.sweep_plan import ORIENTATIONS_DEG, ORIENTATIONS_TEXT
 from gls_calibration.ros import cdr
 from gls_calibration.ros.base import GlsNode, take_waiting
-from gls_calibration.ros.pointcloud import xyzi_rows_to_msg
+from gls_calibration.ros.pointcloud import xyzi_blocks_to_msg
 from gls_calibration.ros.runtime import run_node
 from gls_calibration.ros.service_errors import ServiceCallError
 from gls_calibration.ros.stream_topics import LAYOUT, LINE_TOPIC, line_msg, static_qos, stamp_ns, stream_qos, time_msg
@@ -67,6 +68,10 @@ TAKE_AT_ONCE = 100
 # without copies: 11 000 wake-ups for 47 000 messages, a third of the node's CPU; 1 700 with the wait). The
 # wait costs no CPU; the node's other callbacks (a request, the sweep's end) wait for it at most this long.
 COALESCE_S = 0.01
+# The streams' callbacks end the wait for a sweep's end as soon as they complete it (Session.complete); the
+# wait's timer only catches streams gone quiet and the time limit. At POLL_PERIOD_S its wake-ups were two
+# thirds of the node's (each rebuilds the executor's wait set and resumes the acquisition).
+QUIET_CHECK_S = 0.25
 
 
 @dataclass
@@ -82,6 +87,7 @@ class Session:
     end_ns: Optional[int] = None
     last_arrival_s: float = 0.0     # monotonic time of the latest message of the session's streams
     problems: list = field(default_factory=list)
+    complete: Future = field(default_factory=Future)    # done once the streams complete the sweep
 
 
 class StreamAcquisitionNode(GlsNode):
@@ -155,6 +161,7 @@ class StreamAcquisitionNode(GlsNode):
         """
         self._profile(raw)
         self._take(self.profile_subscription, self._profile)
+        self._signal_complete()
 
     def _profile(self, raw: bytes) -> None:
         session = self.session
@@ -201,6 +208,7 @@ class StreamAcquisitionNode(GlsNode):
         """
         self._tf(raw)
         self._take(self.tf_subscription, self._tf)
+        self._signal_complete()
 
     def _take(self, subscription, handle) -> None:
         """Handle what queued on ``subscription``; during a sweep, when that emptied it, again after ``COALESCE_S``."""
@@ -243,6 +251,7 @@ class StreamAcquisitionNode(GlsNode):
             return
         session.started = True
         self._add(session, LAYOUT.motion_start_topic, message)
+        self._signal_complete()
 
     def on_end(self, message: Header) -> None:
         """Note the stamp at which the robot ended the commanded line."""
@@ -253,6 +262,7 @@ class StreamAcquisitionNode(GlsNode):
         session.end_ns = stamp_ns(message.stamp)
         session.last_arrival_s = time.monotonic()
         self._add(session, LAYOUT.motion_end_topic, message)
+        self._signal_complete()
 
     # --- the service ------------------------------------------------------------------------------
 
@@ -352,7 +362,8 @@ class StreamAcquisitionNode(GlsNode):
             await self.wait_for_peers((self.line,), lambda publisher: publisher.get_subscription_count(),
                                       ROBOT_WAIT_S, "nobody subscribes to", "line commanded anyway")
             self.line.publish(line_msg(self.frames.base, start, end, duration))
-            await self.wait_for(self._complete, timeout_s, lambda: self._timeout_message(timeout_s))
+            await self.wait_for(self._complete, timeout_s, lambda: self._timeout_message(timeout_s),
+                                wake=session.complete, period_s=QUIET_CHECK_S)
             self.session = None     # closed: what comes from now on is not added while the sweep is assembled
             if session.assembler.ends:
                 self.closed = (session.assembler.starts[-1], session.assembler.ends[-1])
@@ -362,10 +373,11 @@ class StreamAcquisitionNode(GlsNode):
             return response
         finally:
             self.session = None
-        # each profile placed straight into the message (the sweep's float64 arrays are never made)
+        # the profiles placed a block of rows at a time straight into the message (the sweep's float64
+        # arrays are never made)
         height, width = placement.shape
-        response.cloud = xyzi_rows_to_msg(height, width, placement.place_row, self.frame_id,
-                                          time_msg(int(placement.stamps_ns[0])))
+        response.cloud = xyzi_blocks_to_msg(height, width, placement.place_rows, self.frame_id,
+                                            time_msg(int(placement.stamps_ns[0])))
         response.placed_by_pose = True
         response.success = True
         outside = session.profiles - session.out_of_order - height
@@ -395,6 +407,12 @@ class StreamAcquisitionNode(GlsNode):
             raise ValueError(f"sweep refused: {len(unplaced)} of {len(inside)} profiles within the motion have no pose "
                              f"({unplaced[0]})")
         return assembler.take_last_placement()
+
+    def _signal_complete(self) -> None:
+        """Wake the acquisition waiting for the running sweep once its streams are complete (:meth:`_complete`)."""
+        session = self.session      # read once (see _complete)
+        if session is not None and not session.complete.done() and self._complete():
+            session.complete.set_result(None)
 
     def _timeout_message(self, timeout_s: float) -> str:
         session = self.session

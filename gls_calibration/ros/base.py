@@ -253,23 +253,29 @@ class GlsNode(Node):
         return ", ".join(names) or "unknown node"
 
     async def wait_for(self, condition: Callable[[], bool], timeout_s: float, message: str | Callable[[], str],
-                       *, watch: Sequence = ()) -> None:
+                       *, watch: Sequence = (), wake: Optional[Future] = None,
+                       period_s: Optional[float] = None) -> None:
         """Await ``condition()`` becoming true, polled by a timer; ServiceCallError(message) on timeout.
 
         ``message`` may be a callable, so that it can tell the state at the time of the timeout.
         ``watch``: clients whose servers must stay in the node graph meanwhile (see ``call``).
+        ``wake``: a future the node's callbacks complete when they make the condition true, which ends
+        the wait at once; the timer then only has to catch what no callback signals (time passing),
+        so ``period_s`` (default ``POLL_PERIOD_S``) may be longer: each poll wakes the executor.
         """
         if condition():
             return
-        await self._await(Future(), timeout_s, message, watch=watch, condition=condition)
+        await self._await(Future() if wake is None else wake, timeout_s, message, watch=watch, condition=condition,
+                          period_s=period_s)
 
     async def _await(self, future: Future, timeout_s: float, message: str | Callable[[], str], *,
-                     watch: Sequence = (), condition: Callable[[], bool] | None = None) -> Any:
+                     watch: Sequence = (), condition: Callable[[], bool] | None = None,
+                     period_s: Optional[float] = None) -> Any:
         """Await ``future`` (or ``condition()``) with a deadline, failing early when a watched server leaves.
 
         One polling timer does all the checks, so any finite ``timeout_s`` is safe (a timer of 1e308 s
-        is not): every ``POLL_PERIOD_S`` with a ``condition``, else every ``WATCH_PERIOD_S`` (the
-        deadline is then met within that).
+        is not): every ``period_s``, by default ``POLL_PERIOD_S`` with a ``condition``, else
+        ``WATCH_PERIOD_S`` (the deadline is then met within that).
         """
         if not math.isfinite(timeout_s) or timeout_s <= 0.0:
             raise ServiceCallError(f"invalid time limit {timeout_s!r} s")
@@ -302,7 +308,8 @@ class GlsNode(Node):
                         f"the server of {client.srv_name} ({servers[client]}) disappeared after "
                         f"{now - began:.1f} s; step abandoned"))
                     return
-        period_s = POLL_PERIOD_S if condition is not None else WATCH_PERIOD_S
+        if period_s is None:
+            period_s = POLL_PERIOD_S if condition is not None else WATCH_PERIOD_S
         timer = self.create_timer(min(period_s, timeout_s), poll, callback_group=self.reentrant_group)
         try:
             failure = await waiter
