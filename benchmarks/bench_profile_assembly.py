@@ -138,12 +138,12 @@ def live_profiles(raws: list[bytes]) -> StreamAssembler:
 
 
 def live_answer(assembler: StreamAssembler):
-    """The node's answer of a fed sweep: placed row by row into the message (before: the sweep, then the message)."""
+    """The node's answer of a fed sweep: placed a block of rows at a time into the message (before: the sweep first)."""
     if hasattr(assembler, "take_last_placement"):
-        from gls_calibration.ros.pointcloud import xyzi_rows_to_msg
+        from gls_calibration.ros.pointcloud import xyzi_blocks_to_msg
 
         placement = assembler.take_last_placement()
-        return xyzi_rows_to_msg(*placement.shape, placement.place_row, "robot_base", Time())
+        return xyzi_blocks_to_msg(*placement.shape, placement.place_rows, "robot_base", Time())
     from gls_calibration.ros.pointcloud import xyzi_cloud_to_msg
 
     sweep = assembler.take_last_sweep()

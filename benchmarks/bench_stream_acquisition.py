@@ -143,14 +143,14 @@ def main() -> int:
         session.assembler.add(LAYOUT.motion_end_topic, Header(stamp=time_msg(end_ns)))
         session.end_ns = end_ns
         began = time.thread_time()
-        if hasattr(node, "_placement"):     # the profiles placed row by row into the answer (placing is its part)
-            from gls_calibration.ros.pointcloud import xyzi_rows_to_msg
+        if hasattr(node, "_placement"):     # the profiles placed a block of rows at a time into the answer
+            from gls_calibration.ros.pointcloud import xyzi_blocks_to_msg
 
             placement = node._placement(session)
             assembly_s = time.thread_time() - began
             began = time.thread_time()
-            answer = xyzi_rows_to_msg(*placement.shape, placement.place_row, node.frame_id,
-                                      time_msg(int(placement.stamps_ns[0])))
+            answer = xyzi_blocks_to_msg(*placement.shape, placement.place_rows, node.frame_id,
+                                        time_msg(int(placement.stamps_ns[0])))
             answer_s = time.thread_time() - began
             if placement.shape != (args.profiles, args.points) or not answer.is_dense:
                 raise SystemExit(f"unexpected sweep {placement.shape}")

@@ -305,7 +305,7 @@ def test_the_answer_placed_row_by_row_is_the_sweep_placed_whole(seed, nan, raw):
 
     From CDR records (the profiles kept as float32 views of the bytes) and from rclpy's messages (float64 copies).
     """
-    from gls_calibration.ros.pointcloud import xyzi_blocks_to_msg, xyzi_cloud_to_msg, xyzi_rows_to_msg
+    from gls_calibration.ros.pointcloud import xyzi_blocks_to_msg, xyzi_cloud_to_msg
 
     messages = stream(np.random.default_rng(seed), profiles=40, points=30)
     assembler = StreamAssembler(LAYOUT)
@@ -329,15 +329,11 @@ def test_the_answer_placed_row_by_row_is_the_sweep_placed_whole(seed, nan, raw):
     assert np.array_equal(sweep.xyz_mm, xyz, equal_nan=True) and np.array_equal(sweep.intensity, intensity)
     assert bool(np.isnan(xyz).any()) == nan
     expected = xyzi_cloud_to_msg(xyz, intensity, "robot_base", time_msg(int(stamps[0])))
-    answer = xyzi_rows_to_msg(*placement.shape, placement.place_row, "robot_base", time_msg(int(stamps[0])))
-    assert answer == expected and answer.is_dense == (not nan)
-    assert xyzi_rows_to_msg(0, 30, placement.place_row, "robot_base") == xyzi_cloud_to_msg(
-        np.zeros((0, 30, 3)), np.zeros((0, 30)), "robot_base")
-    with pytest.raises(ValueError, match=r"^height and width must not be negative, got -1 x 30$"):
-        xyzi_rows_to_msg(-1, 30, placement.place_row, "robot_base")
     # the live answer's path: blocks of rows (40 rows: a full block and a partial one), the same bytes
     blocks = xyzi_blocks_to_msg(*placement.shape, placement.place_rows, "robot_base", time_msg(int(stamps[0])))
     assert blocks == expected and bytes(blocks.data) == bytes(expected.data) and blocks.is_dense == (not nan)
+    assert xyzi_blocks_to_msg(0, 30, placement.place_rows, "robot_base") == xyzi_cloud_to_msg(
+        np.zeros((0, 30, 3)), np.zeros((0, 30)), "robot_base")
     with pytest.raises(ValueError, match=r"^height and width must not be negative, got -1 x 30$"):
         xyzi_blocks_to_msg(-1, 30, placement.place_rows, "robot_base")
 

@@ -333,66 +333,20 @@ def xyzi_cloud_to_msg(xyz_mm: np.ndarray, intensity: np.ndarray, frame_id: str, 
     return msg
 
 
-def xyzi_rows_to_msg(height: int, width: int, place_row: Callable[[int, np.ndarray], np.ndarray], frame_id: str,
-                     stamp: Time | None = None) -> PointCloud2:
-    """Return the message :func:`xyzi_cloud_to_msg` builds of an organized cloud given row by row.
-
-    ``place_row(row, out)`` writes row ``row``'s points (float64, mm) into ``out`` and returns their
-    intensity; each row goes straight into the message, so the cloud's float64 arrays (a sweep of
-    2 000 x 2 000 points is 96 MB of points) are never made. The message is byte for byte the one
-    :func:`xyzi_cloud_to_msg` gives for the rows stacked.
-
-    Parameters
-    ----------
-    height, width : int
-        Rows and points per row.
-    place_row : callable
-        ``place_row(row: int, out: numpy.ndarray of shape (width, 3)) -> intensity of shape (width,)``.
-    frame_id : str
-        The cloud's frame.
-    stamp : builtin_interfaces.msg.Time, optional
-        Its stamp (None: zero).
-
-    Returns
-    -------
-    sensor_msgs.msg.PointCloud2
-        float32 x, y, z (m), intensity, organized (height x width).
-
-    Raises
-    ------
-    ValueError
-        If ``height`` or ``width`` is negative.
-    """
-    if height < 0 or width < 0:
-        raise ValueError(f"height and width must not be negative, got {height} x {width}")
-    msg, words = _xyzi_msg((height, width), frame_id, stamp)
-    words = words.reshape(height, width, 4)
-    xyz_mm = np.empty((width, 3))
-    dense = True
-    scale = np.float32(MM_PER_M)
-    for row in range(height):
-        intensity = place_row(row, xyz_mm)
-        for axis in range(3):      # column by column: a (W, 3) into the (W, 4) words is 3x slower
-            np.divide(xyz_mm[:, axis], scale, out=words[row, :, axis], dtype=np.float32, casting="unsafe")
-        words[row, :, 3] = intensity
-        dense = dense and not bool(np.isnan(xyz_mm).any())
-    msg.is_dense = dense
-    return msg
-
-
 # Rows a block of xyzi_blocks_to_msg holds: few enough that its float64 buffers (~64 B a point) stay in cache.
 ROWS_PER_BLOCK = 32
 
 
 def xyzi_blocks_to_msg(height: int, width: int, place_rows: Callable[[int, np.ndarray, np.ndarray], None],
                        frame_id: str, stamp: Time | None = None) -> PointCloud2:
-    """Return the message :func:`xyzi_rows_to_msg` builds, the rows given a block at a time.
+    """Return the message :func:`xyzi_cloud_to_msg` builds of an organized cloud given a block of rows at a time.
 
     ``place_rows(first, out, intensity_out)`` writes the points (float64, mm) of rows ``first`` to
     ``first + len(out) - 1`` into ``out`` and their intensities into ``intensity_out``; each block
-    goes into the message with a few calls for all its rows (:func:`xyzi_rows_to_msg` makes a dozen
-    per row, most of its cost for a sweep of narrow profiles). The same element-wise casts and
-    divisions, so the message is byte for byte the one :func:`xyzi_rows_to_msg` gives.
+    goes straight into the message, so the cloud's float64 arrays (a sweep of 2 000 x 2 000 points is
+    96 MB of points) are never made, with a few calls for all its rows (a dozen calls per row were
+    most of the cost for a sweep of narrow profiles). The same element-wise casts and divisions, so
+    the message is byte for byte the one :func:`xyzi_cloud_to_msg` gives for the rows stacked.
 
     Parameters
     ----------
