@@ -31,12 +31,16 @@ import numpy as np
 
 from bench_honest_robot import calibrate_once
 from gls_calibration.calibration.reference_check import residual_sigma_mm
+from gls_calibration.calibration.procedure import ProcedureSettings, training_grid
 from gls_calibration.calibration.stated_accuracy import stated_accuracy
 from gls_calibration.discrepancy.residual_statistics import rms
 from gls_calibration.registration.chain_map import chain_map_identity
 from gls_calibration.simulation.reference_plate import (FIELD_PLATE, calibration_plan, chain_check,
                                                         measure_chain_map, reference_plate_check)
 from gls_calibration.simulation.world import load_sim_config
+
+# the shipped calibration grid: what the stated figure covers, and the check must reach
+GRID = training_grid(ProcedureSettings())
 
 DRAW_SEED_STEP = 1000
 """Check seed of draw d: cell seed + d x this (draw 0 is the check the cell uses)."""
@@ -78,7 +82,7 @@ def main() -> None:
             shear, field = symmetric_shear(result.known_xy_mm, result.residuals_mm)
             check = chain_check(result, plan, config, check_seed, FIELD_PLATE, chain_map)
             stated = stated_accuracy(run["measured_rms"], check, plan=plan.label, placement=plan.placement,
-                                     chain_map=chain_map_identity(chain_map))
+                                     chain_map=chain_map_identity(chain_map), targets_xy_mm=GRID)
             # The check pooled over draws 0..d: each known centre's residual averaged over the draws,
             # then the per-axis standard deviation as chain_check takes it (pooled only while every
             # draw found the same known centres).
@@ -90,7 +94,7 @@ def main() -> None:
                 pooled_sigma = residual_sigma_mm(mean)
                 pooled = stated_accuracy(run["measured_rms"], dataclasses.replace(check, sigma_mm=pooled_sigma),
                                          plan=plan.label, placement=plan.placement,
-                                         chain_map=chain_map_identity(chain_map))
+                                         chain_map=chain_map_identity(chain_map), targets_xy_mm=GRID)
                 pooled_text = f"{math.hypot(*pooled_sigma):8.4f} {pooled.rms_mm / run['true_rms']:7.2f}"
             print(f"{seed:4d} {draw:4d} {math.hypot(*result.sigma_mm):8.4f} {shear:+10.2e} {rms(field):8.4f} "
                   f"{rms(result.residuals_mm - field):8.4f} {stated.rms_mm / run['true_rms']:11.2f} {pooled_text}",

@@ -436,6 +436,19 @@ def test_sim_cell_reference_plate_measures_with_the_calibrations_plan(tmp_path, 
     assert json.loads((tmp_path / "b" / "summary.json").read_text())["reference_plate_plan"]["sweep_plan"] == "0+,90-"
 
 
+def test_the_simulated_check_records_where_its_known_centres_lie():
+    from gls_calibration.simulation import reference_plate
+    config = load_sim_config(preset="ideal")
+    plan = reference_plate.calibration_plan()
+    known = reference_plate.reference_pattern(reference_plate.FIELD_PLATE) + [0.3, -0.2]
+    result = reference_plate.ReferencePlateResult((0.01, 0.02), ((0.0, 0.0),), len(known), len(known), known)
+    check = reference_plate.chain_check(result, plan, config, 1, reference_plate.FIELD_PLATE)
+    assert check.extent_mm == pytest.approx((-94.7, 95.3, -95.2, 94.8))
+    # a result that kept no centres makes a check that states nothing (stated_accuracy.check_mismatch)
+    bare = reference_plate.chain_check(replace(result, known_xy_mm=None), plan, config, 1)
+    assert bare.extent_mm is None
+
+
 @pytest.mark.slow
 def test_reference_plate_with_the_calibrations_plan_beats_one_sweep_and_sees_the_repeating_robot():
     from gls_calibration.simulation.reference_plate import RAW_PLAN, calibration_plan, reference_plate_check

@@ -82,11 +82,15 @@ def ideal(tmp_path_factory):
     with running_cell(folder, grid=GRID, parameters=parameters) as cell:
         answers["no file"] = _check(cell)
         centres = _mark_plate(cell)     # before the file is set: a calibration refuses a file it cannot read
+        answers["centres"] = centres
         _set(cell, "reference_check_file", str(check_file))
         answers["no certificate"] = _check(cell)
         _write_certificate(certificate, centres[:, :2], header="x,z")
         answers["missing column"] = _check(cell)
         answers["written before"] = check_file.exists()
+        middle = centres.mean(axis=0)
+        _write_certificate(certificate, middle + 0.9 * (centres - middle))     # a plate smaller than the grid
+        answers["small plate"] = _check(cell)
         _write_certificate(certificate, centres)
         answers["check"] = _check(cell)
         written = check_file.read_bytes()
@@ -112,6 +116,11 @@ def test_inputs_the_check_cannot_use_are_refused_and_nothing_is_written(ideal):
     assert answers["missing column"].message == (f"request refused: {certificate}: the header names no column y "
                                                  "(found: x, z)")
     assert not answers["written before"]
+    # a check of a plate that ends short of the grid could state no figure for it: refused before it scans
+    assert not answers["small plate"].success
+    assert answers["small plate"].message.startswith(f"request refused: {certificate}: the certified centres span x ")
+    assert answers["small plate"].message.endswith("mm) at x min, x max, y min, y max: a check on them would state "
+                                                   "no accuracy for that grid")
     assert not answers["too few"].success
     assert answers["too few"].message == (f"request refused: {certificate}: 2 certified centre(s); at least 3 "
                                           "are needed")
@@ -125,6 +134,10 @@ def test_the_check_of_an_ideal_chain_is_micrometres_and_is_what_calibrations_sta
     check = load_chain_check(check_file)
     assert (check.plan, check.placement, check.reference, check.chain_map) == ("0+", "pose", PLATE_NAME, "none")
     assert check.centres == GRID ** 2
+    # where the plate was measured: the rings' true centres (the marks of an uncalibrated head, off the grid)
+    centres = answers["centres"]
+    assert np.allclose(check.extent_mm, (centres[:, 0].min(), centres[:, 0].max(), centres[:, 1].min(),
+                                         centres[:, 1].max()), atol=0.01), check.extent_mm
     # The ideal chain measures rings to a few micrometres (as gls-reference-check's test on a bag): a
     # wrong frame, a mirrored axis or rings paired with the wrong centres would put tenths of a mm here.
     assert max(check.sigma_mm) < 0.004

@@ -79,7 +79,14 @@ def test_the_check_of_an_ideal_chain_is_micrometres_and_names_its_plan(ideal, tm
     # The ideal chain measures rings to a few micrometres: a wrong frame, a mirrored axis or a
     # mis-placed sweep would put tenths of a millimetre here.
     assert max(check.sigma_mm) < 0.004
-    assert "from 25 of 25 certified centres" in capsys.readouterr().out
+    # the extent of the centres measured; this 40 mm plate cannot check config/gls.yaml's 190 mm grid
+    assert np.allclose(check.extent_mm, (known[:, 0].min(), known[:, 0].max(), known[:, 1].min(),
+                                         known[:, 1].max()), atol=0.01)
+    printed = capsys.readouterr()
+    assert "from 25 of 25 certified centres" in printed.out
+    assert printed.err.startswith("gls-reference-check: the certified centres span x ")
+    assert printed.err.rstrip().endswith("at x min, x max, y min, y max: a check on them would state no accuracy "
+                                         "for that grid")
 
 
 def test_the_check_compares_with_the_certified_centres_given(ideal, tmp_path):

@@ -8,18 +8,21 @@ import pytest
 import yaml
 
 from gls_calibration.calibration.outcome import CalibrationOutcome, deviation_metrics, summarise
-from gls_calibration.calibration.stated_accuracy import (REFERENCE_BASIS, SELF_CONSISTENCY, ChainCheck,
-                                                         load_chain_check, save_chain_check)
+from gls_calibration.calibration.stated_accuracy import (EXTENT_TOLERANCE_MM, REFERENCE_BASIS, SELF_CONSISTENCY,
+                                                         ChainCheck, check_mismatch, load_chain_check,
+                                                         save_chain_check)
 from gls_calibration.calibration.stated_accuracy import stated_accuracy
 from gls_calibration.fiducials.targets import grid_targets
 from gls_calibration.registration.chain_map import NO_CHAIN_MAP
 from gls_calibration.report.run_report import accuracy_lines
 
-CHECK = ChainCheck(sigma_mm=(0.03, 0.04), plan="0+,0-,90+,90-", placement="pose", reference="plate A", centres=143)
+GRID = grid_targets(19, 190.0)          # the calibration's targets: +-95 mm
+CHECK = ChainCheck(sigma_mm=(0.03, 0.04), plan="0+,0-,90+,90-", placement="pose", reference="plate A", centres=143,
+                   extent_mm=(-95.2, 94.9, -95.0, 95.1))
 
 
 def test_the_stated_figure_adds_the_chains_error_to_the_measured_one():
-    stated = stated_accuracy(0.012, CHECK, plan="0+,0-,90+,90-", placement="pose")
+    stated = stated_accuracy(0.012, CHECK, plan="0+,0-,90+,90-", placement="pose", targets_xy_mm=GRID)
     assert stated.basis == REFERENCE_BASIS
     assert stated.rms_mm == pytest.approx(0.012 + math.hypot(0.03, 0.04))
     # it is never below either part: the measured figure nor the chain's own error
@@ -33,7 +36,7 @@ def test_the_stated_figure_adds_the_chains_error_to_the_measured_one():
     (CHECK, "0+,0-,90+,90-", "time", "placed by time: it does not describe this chain"),
 ])
 def test_without_a_matching_check_nothing_is_stated(check, plan, placement, reason):
-    stated = stated_accuracy(0.012, check, plan=plan, placement=placement)
+    stated = stated_accuracy(0.012, check, plan=plan, placement=placement, targets_xy_mm=GRID)
     assert math.isnan(stated.rms_mm) and stated.basis == SELF_CONSISTENCY
     assert reason in stated.explanation
 
@@ -42,11 +45,11 @@ def test_a_check_measured_with_another_chain_map_states_nothing():
     mapped = dataclasses.replace(CHECK, chain_map="sha256:0123456789abcdef")
     plan = "0+,0-,90+,90-"
     # the check and the calibration must have corrected their sweeps with the same map (or none)
-    assert stated_accuracy(0.012, mapped, plan=plan, placement="pose",
+    assert stated_accuracy(0.012, mapped, plan=plan, placement="pose", targets_xy_mm=GRID,
                            chain_map="sha256:0123456789abcdef").basis == REFERENCE_BASIS
     for check, used in ((mapped, NO_CHAIN_MAP), (CHECK, "sha256:0123456789abcdef"),
                         (mapped, "sha256:fedcba9876543210")):
-        stated = stated_accuracy(0.012, check, plan=plan, placement="pose", chain_map=used)
+        stated = stated_accuracy(0.012, check, plan=plan, placement="pose", chain_map=used, targets_xy_mm=GRID)
         assert math.isnan(stated.rms_mm) and stated.basis == SELF_CONSISTENCY
         assert stated.explanation == (f"the reference check was measured with chain map {check.chain_map}, the "
                                       f"calibration with {used}: it does not describe this chain")
@@ -55,14 +58,58 @@ def test_a_check_measured_with_another_chain_map_states_nothing():
 @pytest.mark.parametrize("value", [-0.01, math.nan, math.inf, True])
 def test_a_bad_measured_figure_is_refused(value):
     with pytest.raises(ValueError, match="measured_rms_mm must be a non-negative finite number"):
-        stated_accuracy(value, CHECK, plan="0+", placement="pose")
+        stated_accuracy(value, CHECK, plan="0+", placement="pose", targets_xy_mm=GRID)
+
+
+@pytest.mark.parametrize("check", [CHECK, None])
+@pytest.mark.parametrize("targets", [np.zeros((0, 2)), np.array([[0.0, math.nan]]), np.zeros(3)])
+def test_targets_without_a_finite_centre_are_refused(check, targets):
+    with pytest.raises(ValueError, match=r"centres must be \(N, 2 or 3\) finite, N at least 1, got shape"):
+        stated_accuracy(0.012, check, plan="0+,0-,90+,90-", placement="pose", targets_xy_mm=targets)
+
+
+def test_a_check_whose_plate_ends_short_of_the_grid_states_nothing():
+    """The 180 mm check plate under the 190 mm grid saw 57 % of the chain's error on one simulated
+    cell (reference_plate.field_plate): such a check must not support a figure for the whole grid."""
+    plan = "0+,0-,90+,90-"
+    small = dataclasses.replace(CHECK, extent_mm=(-90.0, 90.0, -90.0, 90.0))
+    stated = stated_accuracy(0.012, small, plan=plan, placement="pose", targets_xy_mm=GRID)
+    assert math.isnan(stated.rms_mm) and stated.basis == SELF_CONSISTENCY
+    assert stated.explanation == ("the reference check's known centres span x -90.0..90.0, y -90.0..90.0 mm and "
+                                  "end short of the calibrated targets (x -95.0..95.0, y -95.0..95.0 mm) at x min, "
+                                  "x max, y min, y max: the chain's error at the field's edge is not checked")
+    # one side short is enough; a plate laid by hand a little inside the outer targets still checks them
+    inside = EXTENT_TOLERANCE_MM - 0.1
+    one_side = dataclasses.replace(CHECK, extent_mm=(-95.0, 95.0, -95.0, 95.0 - EXTENT_TOLERANCE_MM - 0.1))
+    assert check_mismatch(one_side, plan=plan, placement="pose", chain_map=NO_CHAIN_MAP,
+                          targets_xy_mm=GRID).endswith("at y max: the chain's error at the field's edge is not checked")
+    near = dataclasses.replace(CHECK, extent_mm=(-95.0 + inside, 95.0 - inside, -95.0 + inside, 95.0 - inside))
+    assert stated_accuracy(0.012, near, plan=plan, placement="pose", targets_xy_mm=GRID).basis == REFERENCE_BASIS
+    # a smaller grid is checked by the same plate
+    assert stated_accuracy(0.012, small, plan=plan, placement="pose",
+                           targets_xy_mm=grid_targets(17, 170.0)).basis == REFERENCE_BASIS
+
+
+def test_a_check_that_does_not_record_its_extent_states_nothing(tmp_path):
+    """Files written before the extent was kept may come from the 180 mm plate: measure them again."""
+    path = tmp_path / "check.yaml"
+    path.write_text("reference_check: {sigma_mm: [0.03, 0.04], plan: '0+', placement: pose, reference: p, "
+                    "centres: 9, chain_map: none}\n")
+    old = load_chain_check(path)
+    assert old.extent_mm is None
+    stated = stated_accuracy(0.012, old, plan="0+", placement="pose", targets_xy_mm=GRID)
+    assert math.isnan(stated.rms_mm) and stated.basis == SELF_CONSISTENCY
+    assert stated.explanation == ("the reference check does not record the area its known centres cover (a file "
+                                  "written before extent_mm was kept): measure it again to state a figure")
 
 
 def test_a_check_file_round_trips_and_a_plan_is_normalised(tmp_path):
     path = tmp_path / "check.yaml"
-    save_chain_check(path, ChainCheck((0.031, 0.048), " 0+ , 90- ", "time", "certified plate X-17", 429))
+    save_chain_check(path, ChainCheck((0.031, 0.048), " 0+ , 90- ", "time", "certified plate X-17", 429,
+                                      extent_mm=[-96, 96.5, -95.5, 96]))
     loaded = load_chain_check(path)
-    assert loaded == ChainCheck((0.031, 0.048), "0+,90-", "time", "certified plate X-17", 429)
+    assert loaded == ChainCheck((0.031, 0.048), "0+,90-", "time", "certified plate X-17", 429,
+                                extent_mm=(-96.0, 96.5, -95.5, 96.0))
     assert list(tmp_path.iterdir()) == [path]         # written atomically: no temporary left behind
     assert yaml.safe_load(path.read_text())["reference_check"]["chain_map"] == NO_CHAIN_MAP
     mapped = ChainCheck((0.031, 0.048), "0+", "pose", "plate", 9, chain_map="sha256:0123456789abcdef")
@@ -98,6 +145,14 @@ def test_a_check_file_without_chain_map_was_measured_without_one(tmp_path):
      "reference_check.chain_map must be 'none' or a chain map's identity"),
     ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "pose", "reference": "p", "centres": 9, "k": 2},
      "unknown key\\(s\\) reference_check.k"),
+    ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "pose", "reference": "p", "centres": 9,
+      "extent_mm": [-95, 95, -95]}, "reference_check.extent_mm must be \\[x_min, x_max, y_min, y_max\\] in mm"),
+    ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "pose", "reference": "p", "centres": 9,
+      "extent_mm": [95, -95, -95, 95]}, "reference_check.extent_mm must be \\[x_min, x_max, y_min, y_max\\] in mm"),
+    ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "pose", "reference": "p", "centres": 9,
+      "extent_mm": [-95, ".nan", -95, 95]}, "reference_check.extent_mm must be \\[x_min, x_max, y_min, y_max\\]"),
+    ({"sigma_mm": [0.03, 0.04], "plan": "0+", "placement": "pose", "reference": "p", "centres": 9,
+      "extent_mm": "all"}, "reference_check.extent_mm must be \\[x_min, x_max, y_min, y_max\\]"),
 ])
 def test_a_bad_check_file_is_refused_naming_the_file_and_key(tmp_path, block, message):
     path = tmp_path / "check.yaml"

@@ -18,7 +18,8 @@ FAST = {"sweep.plain_repeats": 1, "sweep.plan": "0+"}
 
 def check_file(tmp_path, plan="0+"):
     path = tmp_path / "reference_check.yaml"
-    save_chain_check(path, ChainCheck((0.03, 0.04), plan, "pose", "test plate", 143))
+    # the cell's 3x3 grid spans +-95 mm (config/gls.yaml's grid.size_mm)
+    save_chain_check(path, ChainCheck((0.03, 0.04), plan, "pose", "test plate", 143, extent_mm=(-96, 96, -96, 96)))
     return path
 
 

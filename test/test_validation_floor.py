@@ -8,12 +8,13 @@ flow stores a raised map as a new candidate (``record.certified_candidate``).
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
-from gls_calibration.calibration.stated_accuracy import ChainCheck, placement_name
+from gls_calibration.calibration.stated_accuracy import ChainCheck, centres_extent_mm, placement_name
 from gls_calibration.calibration.uncertainty import (VALIDATION_FLOOR, TrainingData, uncertainty_budget,
                                                      with_validation_floor, with_validation_floor_stored)
 from gls_calibration.correction.uncertainty_grid import UncertaintyGrid
@@ -100,7 +101,10 @@ def test_the_calibrate_flow_activates_the_candidate_certify_returns(tmp_path):
     settings = cell.settings(**FAST)
     geometry = cell.sim.config.geometry
     check = ChainCheck((0.002, 0.002), plan_label(settings.sweep_plan),
-                       placement_name(settings.profiles_placed_by_pose), "plate A", 100)
+                       placement_name(settings.profiles_placed_by_pose), "plate A", 100,
+                       extent_mm=centres_extent_mm(procedure.training_grid(settings)))
+    # a plate that ends inside the validation's outer targets does not check them
+    smaller = dataclasses.replace(check, extent_mm=centres_extent_mm(0.8 * procedure.validation_grid(settings)))
     calls, unchanged = [], []
 
     def save(runs, models):
@@ -110,6 +114,7 @@ def test_the_calibrate_flow_activates_the_candidate_certify_returns(tmp_path):
     def certify(candidate, validation):
         calls.append(candidate)
         matches = check_matches_run(check, validation, settings)
+        assert not check_matches_run(smaller, validation, settings)
         as_validated = certified_candidate(cell.store, candidate, geometry, validation.metrics.full.rms_abs_mm,
                                            check, matches)
         unchanged.append(as_validated is candidate)

@@ -426,7 +426,7 @@ def summarise(outcome: CalibrationOutcome, chain_check: Optional[ChainCheck] = N
         scanner_error_rms_mm=first.scanner_error_rms_mm, motion_error_rms_mm=first.motion_error_rms_mm,
         scanner_share=math.hypot(first.scanner_error_rms_mm, first.motion_error_rms_mm)
         / _full(first.metrics, "rms_abs_mm"),
-        **_stated(measured_after, chain_check, first.sweep_plan, placement, first.chain_map),
+        **_stated(measured_after, chain_check, first, placement),
         stage_wall_s=dict(outcome.stage_times.wall_s),
         last_sweep_to_result_s=outcome.stage_times.last_sweep_to_result_s,
         **_kinds(outcome), **_certificate(outcome, chain_check))
@@ -477,14 +477,14 @@ def _kinds(outcome: CalibrationOutcome) -> dict:
     return values
 
 
-def _stated(measured: Optional[DeviationMetrics], check: Optional[ChainCheck], plan: str, placement: str,
-            chain_map: str) -> dict:
+def _stated(measured: Optional[DeviationMetrics], check: Optional[ChainCheck], first: PlateRun,
+            placement: str) -> dict:
     """Return the stated-accuracy fields of the summary: only a validated run states a figure."""
     if measured is None or not math.isfinite(measured.full.rms_abs_mm):
         return {"stated_basis": SELF_CONSISTENCY,
                 "stated_explanation": "not validated: no figure of the calibration's accuracy"}
-    stated = stated_accuracy(float(measured.full.rms_abs_mm), check, plan=plan, placement=placement,
-                             chain_map=chain_map)
+    stated = stated_accuracy(float(measured.full.rms_abs_mm), check, plan=first.sweep_plan, placement=placement,
+                             chain_map=first.chain_map, targets_xy_mm=first.targets)
     return {"stated_rms_mm": stated.rms_mm, "stated_basis": stated.basis, "stated_explanation": stated.explanation,
             "reference_sigma_mm": tuple(check.sigma_mm) if check is not None and math.isfinite(stated.rms_mm) else ()}
 

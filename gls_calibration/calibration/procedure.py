@@ -640,9 +640,14 @@ async def run_plate(cell: Cell, settings: ProcedureSettings, grid_xy: np.ndarray
                     motion_error_rms_mm=separation.motion_rms_mm if separation else math.nan)
 
 
+def training_grid(settings: ProcedureSettings) -> np.ndarray:
+    """Return the calibration grid's fiducial centres (N, 3), gls frame, mm (``grid_per_side``, ``grid_size_mm``)."""
+    return grid.grid_targets(settings.grid_per_side, settings.grid_size_mm)
+
+
 def validation_grid(settings: ProcedureSettings) -> np.ndarray:
     """Fiducials between the training ones (half a pitch off), so validation is not on training points."""
-    training = grid.grid_targets(settings.grid_per_side, settings.grid_size_mm)
+    training = training_grid(settings)
     if not settings.validation_offset_half_pitch:
         return training
     pitch = settings.grid_size_mm / (settings.grid_per_side - 1)
@@ -707,7 +712,7 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
     clock = StageClock()
     progress = clock.wrap(progress)
     iterations = iterations or settings.default_iterations
-    training_grid = grid.grid_targets(settings.grid_per_side, settings.grid_size_mm)
+    training_targets = training_grid(settings)
     compare_active = validate and active_calibration
     passes = iterations + (1 if validate else 0) + (1 if compare_active else 0)
     span = 1.0 / passes
@@ -717,7 +722,7 @@ async def calibrate(cell: Cell, settings: ProcedureSettings, *, iterations: int,
     for iteration in range(iterations):
         if iteration > 0:
             await cell.exchange_plate()
-        run = await run_plate(cell, settings, training_grid, progress, (iteration * span, span * 0.9),
+        run = await run_plate(cell, settings, training_targets, progress, (iteration * span, span * 0.9),
                               want_truth, allow_marked=force)
         runs.append(run)
         rms = run.metrics.full.rms_abs_mm

@@ -36,7 +36,8 @@ import numpy as np
 
 from gls_calibration.calibration import procedure
 from gls_calibration.calibration.procedure import ProcedureSettings, combined_centres_gls
-from gls_calibration.calibration.stated_accuracy import ChainCheck, placement_name
+from gls_calibration.calibration.stated_accuracy import (ChainCheck, centres_extent_mm, placement_name,
+                                                         sides_short_of)
 from gls_calibration.fiducials.measure import FiducialMeasurement, measure_fiducials
 from gls_calibration.registration.chain_map import chain_map_identity
 from gls_calibration.registration.rigid import align_rigid_2d, pair_with_targets
@@ -166,7 +167,8 @@ def chain_check(measured: np.ndarray, known: np.ndarray, settings: ProcedureSett
     Returns
     -------
     check : ChainCheck
-        The check (``chain_sigma_mm``), its plan, placement and chain map those of ``settings``.
+        The check (``chain_sigma_mm``), its plan, placement and chain map those of ``settings``, its
+        extent that of the paired known centres (as :func:`certified_reach` judges them before a scan).
     residuals_mm : numpy.ndarray, shape (M, 2)
         Measured minus known after the best rigid motion, mm.
 
@@ -178,7 +180,8 @@ def chain_check(measured: np.ndarray, known: np.ndarray, settings: ProcedureSett
     sigma, residuals = chain_sigma_mm([measured], [known])
     check = ChainCheck(sigma_mm=sigma, plan=plan_label(settings.sweep_plan),
                        placement=placement_name(settings.profiles_placed_by_pose), reference=reference.strip(),
-                       centres=len(measured), chain_map=chain_map_identity(settings.chain_map))
+                       centres=len(measured), chain_map=chain_map_identity(settings.chain_map),
+                       extent_mm=centres_extent_mm(known))
     return check, residuals
 
 
@@ -240,6 +243,35 @@ async def scan_reference_check(cell: procedure.Cell, settings: ProcedureSettings
     progress("done", 1.0, f"reference check: sigma x {check.sigma_mm[0]:.4f} mm, y {check.sigma_mm[1]:.4f} mm "
              f"from {check.centres} of {len(known_gls)} certified centres")
     return check
+
+
+def certified_reach(known_gls: np.ndarray, settings: ProcedureSettings) -> str:
+    """Return why the certified centres cannot check the calibration grid of ``settings``; ``""`` when they can.
+
+    A check states a figure only for targets its known centres reach (``stated_accuracy.check_mismatch``):
+    centres ending short of the grid's outer fiducials make a check that no calibration on that
+    grid can state its accuracy from.
+
+    Parameters
+    ----------
+    known_gls : numpy.ndarray, shape (N, 2 or 3)
+        The certified centres, gls frame, mm.
+    settings : ProcedureSettings
+        The calibrations' grid (``grid_per_side``, ``grid_size_mm``).
+
+    Returns
+    -------
+    str
+        The sides the centres end short at and both extents; empty when they reach the grid.
+    """
+    reached = centres_extent_mm(known_gls)
+    needed = centres_extent_mm(procedure.training_grid(settings))
+    short = sides_short_of(reached, needed)
+    if not short:
+        return ""
+    return (f"the certified centres span x {reached[0]:.1f}..{reached[1]:.1f}, y {reached[2]:.1f}..{reached[3]:.1f} mm "
+            f"and end short of the calibration grid (x {needed[0]:.1f}..{needed[1]:.1f}, y {needed[2]:.1f}.."
+            f"{needed[3]:.1f} mm) at {', '.join(short)}: a check on them would state no accuracy for that grid")
 
 
 def read_certified_centres(path: str | Path) -> np.ndarray:

@@ -51,7 +51,7 @@ from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
-from gls_calibration.calibration.stated_accuracy import ChainCheck, placement_name
+from gls_calibration.calibration.stated_accuracy import ChainCheck, check_mismatch, placement_name
 from gls_calibration.common.validation import as_positive_number
 from gls_calibration.correction.uncertainty_grid import COVERAGE_FACTOR, UncertaintyGrid
 from gls_calibration.models import rbf
@@ -508,26 +508,27 @@ def run_sigma_mm(sigma: Optional[np.ndarray], count: int, floor_mm: float) -> np
 
 
 def check_matches_run(check: Optional[ChainCheck], run: Any, settings: Any) -> bool:
-    """Whether the reference ``check`` was made with ``run``'s plan, placement and chain map.
+    """Whether the reference ``check`` describes ``run``'s chain (``stated_accuracy.check_mismatch``).
 
     Parameters
     ----------
     check : ChainCheck or None
         The reference check of the chain.
     run : PlateRun
-        A plate of the calibration (its ``sweep_plan`` and ``chain_map``).
+        A plate of the calibration (its ``sweep_plan``, ``chain_map`` and ``targets``).
     settings : ProcedureSettings
         The run's settings (how profiles were placed).
 
     Returns
     -------
     bool
-        True when all three match; False without a check.
+        True when plan, placement and chain map match and the check's known centres reach the
+        run's targets; False without a check.
     """
     if check is None:
         return False
-    return (check.plan == run.sweep_plan and check.placement == placement_name(settings.profiles_placed_by_pose)
-            and check.chain_map == run.chain_map)
+    return not check_mismatch(check, plan=run.sweep_plan, placement=placement_name(settings.profiles_placed_by_pose),
+                              chain_map=run.chain_map, targets_xy_mm=run.targets)
 
 
 def run_budget(runs: Sequence[Any], models: Sequence[Any], settings: Any, region: Mapping[str, float],

@@ -22,6 +22,10 @@ machine. ``--chain-map FILE``: the chain map the calibrations will run with, rem
 as they remove it (its identity is written into the check). ``--residuals FILE.csv``: each paired
 centre's residual after the best rigid motion (``x_mm,y_mm,dx_mm,dy_mm``), where the chain errs.
 
+The check records the extent of the certified centres it paired (``extent_mm``): a calibration whose
+grid reaches more than ``stated_accuracy.EXTENT_TOLERANCE_MM`` beyond it states no accuracy from it, and
+the tool warns when the certified centres end short of the grid of ``config/gls.yaml``.
+
 Exit 0 with the file written; 2 on bad input, nothing written.
 """
 from __future__ import annotations
@@ -35,7 +39,8 @@ import sys
 import numpy as np
 
 from gls_calibration.calibration.procedure import CalibrationError
-from gls_calibration.calibration.reference_check import chain_check, measure_reference_plate, read_certified_centres
+from gls_calibration.calibration.reference_check import (certified_reach, chain_check, measure_reference_plate,
+                                                         read_certified_centres)
 from gls_calibration.calibration.stated_accuracy import ChainCheck, save_chain_check
 from gls_calibration.cli.train_bag import recording_settings, require_recorded_length
 from gls_calibration.common.files import atomic_write_text, require_regular_output
@@ -68,10 +73,10 @@ def residuals_csv(known_mm: np.ndarray, residuals_mm: np.ndarray) -> str:
     return "x_mm,y_mm,dx_mm,dy_mm\n" + "".join(rows)
 
 
-def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int, str]:
+def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int, str, str]:
     """Measure the reference check the arguments describe.
 
-    Return it, the number of certified centres and the residuals' CSV text.
+    Return it, the number of certified centres, the residuals' CSV text and whether the centres reach the grid.
 
     Parameters
     ----------
@@ -86,6 +91,9 @@ def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int, str]:
         Certified centres in the CSV.
     residuals : str
         The paired centres and their residuals (:func:`residuals_csv`).
+    short : str
+        Why the certified centres cannot check the calibration grid of ``config/gls.yaml``
+        (``reference_check.certified_reach``); empty when they can.
 
     Raises
     ------
@@ -122,7 +130,7 @@ def measure_check(args: argparse.Namespace) -> tuple[ChainCheck, int, str]:
     except CalibrationError as error:
         raise ValueError(str(error)) from None
     check, residuals = chain_check(measured, paired, settings, args.reference)
-    return check, len(known), residuals_csv(paired, residuals)
+    return check, len(known), residuals_csv(paired, residuals), certified_reach(known, settings)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -146,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.plain_sweeps is not None and args.plain_sweeps < 0:
         parser.error(f"--plain-sweeps must be 0 or more, got {args.plain_sweeps}")
     try:
-        check, certified, residuals = measure_check(args)
+        check, certified, residuals, short = measure_check(args)
         if args.residuals is not None:
             atomic_write_text(args.residuals, residuals)
         save_chain_check(args.out, check)
@@ -159,4 +167,6 @@ def main(argv: list[str] | None = None) -> int:
     if check.centres < LOW_PAIRED_FRACTION * certified:
         print(f"gls-reference-check: only {check.centres} of {certified} certified centres were measured and "
               "paired: check the plate's placement and the scan", file=sys.stderr)
+    if short:
+        print(f"gls-reference-check: {short}", file=sys.stderr)
     return 0

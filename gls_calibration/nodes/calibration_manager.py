@@ -31,7 +31,8 @@ from gls_calibration.calibration.outcome import RunSummary, summarise
 from gls_calibration.calibration.record import (build_record, certified_candidate, record_fiducials, record_models,
                                                 save_candidate)
 from gls_calibration.calibration.record_file import CalibrationFileError
-from gls_calibration.calibration.reference_check import read_certified_centres, scan_reference_check
+from gls_calibration.calibration.reference_check import (certified_reach, read_certified_centres,
+                                                         scan_reference_check)
 from gls_calibration.calibration.stated_accuracy import (SELF_CONSISTENCY, load_chain_check, placement_name,
                                                          save_chain_check)
 from gls_calibration.calibration.store import CalibrationStore
@@ -479,6 +480,9 @@ class CalibrationManager(GlsNode):
             raise ValueError("reference_plate_name is empty: set it to name the plate and its certificate")
         known = read_certified_centres(self.reference_plate_certificate)
         settings = self.settings
+        short = certified_reach(known, settings)
+        if short:
+            raise ValueError(f"{self.reference_plate_certificate}: {short}")
         if self.chain_map_file:     # the calibrations remove it from every sweep: so does their check
             settings = replace(settings, chain_map=load_chain_map(self.chain_map_file))
         return Path(self.reference_check_file), settings, known, self.reference_plate_name.strip()

@@ -35,7 +35,7 @@ import numpy as np
 from gls_calibration.calibration.procedure import ProcedureSettings
 from gls_calibration.calibration.reference_check import (aligned_residuals, chain_sigma_mm, measure_reference_plate,
                                                          plate_plane)
-from gls_calibration.calibration.stated_accuracy import ChainCheck
+from gls_calibration.calibration.stated_accuracy import ChainCheck, centres_extent_mm
 from gls_calibration.common.config_files import config_path, read_config_file
 from gls_calibration.common.validation import as_integer_at_least, as_positive_number
 from gls_calibration.fiducials import targets
@@ -397,4 +397,6 @@ def chain_check(result: ReferencePlateResult, plan: MeasurementPlan, config: Sim
     return ChainCheck(sigma_mm=result.sigma_mm, plan=plan.label, placement=plan.placement,
                       reference=(f"simulated reference plate, {design.label}; preset "
                                  f"{config.measurement_preset}, cell seed {config.seed}, check seed {seed}"),
-                      centres=result.found, chain_map=chain_map_identity(chain_map))
+                      centres=result.found, chain_map=chain_map_identity(chain_map),
+                      extent_mm=None if result.known_xy_mm is None
+                      else centres_extent_mm(result.known_xy_mm))
