@@ -139,9 +139,8 @@ class HeadEffects:
                 # at every residual evaluation: the array round trip was a seventh of their cost)
                 clean[name] = parameters
                 continue
-            _check_effect_name(name)
+            _check_effect_name(name)        # an unknown name (expected None) stops here
             flat = np.atleast_1d(as_finite_array(parameters, f"effect {name!r}"))
-            expected = EFFECTS[name]
             if flat.ndim != 1 or flat.size != len(expected):
                 raise ValueError(
                     f"effect {name!r} takes {len(expected)} parameter(s) ({', '.join(expected)}), got {flat.size}")
