@@ -22,15 +22,16 @@ are of the kind the measured figure holds. An RMS of a sum is at most the sum of
 (Minkowski), so the sum bounds the truth without assuming the parts independent. The quadrature sum
 ``sqrt(measured^2 + sigma_x^2 + sigma_y^2)``, which does assume it, fell below the TRUE error on one
 of nine simulated runs (``careful`` seed 3: 0.0233 against 0.0238 mm) and was within 1 % of it on
-another: too close for a figure users build on. The price: the sum reached 2.25 times the truth without a
-chain map and 4.1 times with one in simulation (``docs/method-and-results.md``), where the validation
-plate's own random measurement error, which the truth does not hold, makes up most of the measured figure. Where the reference check
-is missing or was made with another plan, nothing independent is known: the cell states no figure
-(NaN) and labels its measured figure self-consistency. The same holds for a check whose known
-centres do not reach the calibrated targets' outermost ones (to ``EXTENT_TOLERANCE_MM``): the
-chain's repeating error grows towards the ends of the robot's lines, and a 180 mm check plate under
-the 190 mm grid showed 57 % of it on one simulated cell (``reference_plate.field_plate``). Reaching
-the targets' extent is necessary, not sufficient: the bounding boxes are compared, not the coverage.
+another: too close for a figure users build on. The price: the sum reached 2.25 times the truth
+without a chain map and 4.1 times with one in simulation (``docs/method-and-results.md``), where the
+validation plate's own random measurement error, which the truth does not hold, makes up most of the
+measured figure. Where the reference check is missing or was made with another plan, nothing
+independent is known: the cell states no figure (NaN) and labels its measured figure
+self-consistency. The same holds for a check whose known centres do not reach the calibrated
+targets' outermost ones (to ``EXTENT_TOLERANCE_MM``): the chain's repeating error grows towards the
+ends of the robot's lines, and a 180 mm check plate under the 190 mm grid showed 57 % of it on one
+simulated cell (``reference_plate.field_plate``). Reaching the targets' extent is necessary, not
+sufficient: the bounding boxes are compared, not the coverage.
 
 A reference check is a small YAML file (:func:`save_chain_check`, :func:`load_chain_check`)::
 
