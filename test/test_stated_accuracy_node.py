@@ -16,10 +16,10 @@ CALIBRATE_TIMEOUT_S = 300.0
 FAST = {"sweep.plain_repeats": 1, "sweep.plan": "0+"}
 
 
-def check_file(tmp_path, plan="0+"):
+def check_file(tmp_path, plan="0+", extent_mm=(-96, 96, -96, 96)):
     path = tmp_path / "reference_check.yaml"
     # the cell's 3x3 grid spans +-95 mm (config/gls.yaml's grid.size_mm)
-    save_chain_check(path, ChainCheck((0.03, 0.04), plan, "pose", "test plate", 143, extent_mm=(-96, 96, -96, 96)))
+    save_chain_check(path, ChainCheck((0.03, 0.04), plan, "pose", "test plate", 143, extent_mm=extent_mm))
     return path
 
 
@@ -36,13 +36,18 @@ def test_a_validated_calibration_states_its_accuracy_from_the_check(start_cell, 
     assert f"Stated accuracy: {answer.stated_rms_mm:.4f} mm RMS" in report and "SELF-CONSISTENCY" in report
 
 
-def test_a_check_of_another_plan_states_nothing(start_cell, tmp_path):
-    cell = start_cell(grid=3, parameters={**FAST, "reference_check_file": str(check_file(tmp_path, "0+,90+"))})
+@pytest.mark.parametrize("plan, extent, reason", [
+    ("0+,90+", (-96, 96, -96, 96), "does not describe this chain"),
+    ("0+", (-90, 90, -96, 96), "end short of the calibrated targets (x -95.0..95.0, y -95.0..95.0 mm) at x min, "
+                               "x max: the chain's error at the field's edge is not checked"),
+])
+def test_a_check_of_another_plan_or_a_smaller_plate_states_nothing(start_cell, tmp_path, plan, extent, reason):
+    cell = start_cell(grid=3, parameters={**FAST, "reference_check_file": str(check_file(tmp_path, plan, extent))})
     answer = cell.call(Calibrate, "calibrate", Calibrate.Request(force=True, validate=True), CALIBRATE_TIMEOUT_S)
     assert answer.success, answer.message
     assert math.isnan(answer.stated_rms_mm) and answer.stated_basis == SELF_CONSISTENCY
     report = (cell.report_dir / "report.md").read_text()
-    assert "No accuracy is stated" in report and "does not describe this chain" in report
+    assert "No accuracy is stated" in report and reason in report
 
 
 def test_an_unreadable_check_refuses_the_run_before_anything_moves(start_cell, tmp_path):
