@@ -41,6 +41,7 @@ METRIC_COLUMNS = (
 )
 CORRECTION_GRID_PER_SIDE = 25
 _DPI = 100
+PNG_COMPRESS_LEVEL = 1
 
 SUMMARY_FILE = "summary.json"
 """The run summary's file name in a report folder (``write_summary_json``)."""
@@ -316,7 +317,9 @@ def save_figure(figure: Figure, path: Path) -> Path:
         # its CPU for the same pixels
         figure.set_layout_engine(None)
     image = io.BytesIO()
-    figure.savefig(image, format="png", dpi=_DPI)
+    # zlib level 1 instead of PIL's 6: the same pixels in ~10 % more bytes, at well under half the
+    # encoding CPU (0.13 -> 0.05 s for the main job's four plots)
+    figure.savefig(image, format="png", dpi=_DPI, pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
     # not cleared after: Figure.clear clears every axes again (new ticks and spines) for a figure
     # that is dropped anyway
     atomic_write_bytes(path, image.getvalue())
