@@ -51,6 +51,10 @@ MIN_PIXELS = 200
 CANDIDATE_BLOCK = 32
 """Candidates per batched least-squares product (bounds the work arrays to some tens of MB)."""
 
+GEOMETRY_BLOCK = 16
+"""Candidates whose window pixels' geometry is computed at a time (``_pixel_geometry``): their dozen
+temporaries, about 0.3 MB each, stay in the cache."""
+
 
 def _profile_tables(rho: np.ndarray, values: np.ndarray, bin_mm: float, band_mm: float):
     """Return bin centres (B,) and the mean profile of ``values`` against ``rho`` with derivatives.
@@ -182,6 +186,73 @@ def _by_sector(values: np.ndarray, by_sector: np.ndarray) -> np.ndarray:
     return np.take(values, by_sector, axis=1, mode="clip")
 
 
+def _pixel_geometry(image: np.ndarray, centre_px: np.ndarray, offsets: np.ndarray, by_sector: np.ndarray,
+                    shift_mm: np.ndarray, jacobian: np.ndarray, mid_radius_mm: np.ndarray,
+                    harmonic_mm: np.ndarray, reference: np.ndarray, band_mm: float):
+    """Return every candidate's window pixels by sector and the reference candidates' pixels.
+
+    Per block of ``GEOMETRY_BLOCK`` candidates, whose temporaries stay in the cache: the pixels at
+    ``offsets`` (N, 2; column, row) about each candidate's centre pixel ``centre_px`` (M, 2), their
+    plate position relative to the fitted centre (``shift_mm`` (M, 2) plus J times the offset), the
+    angle's cosine and sine, the signed distance rho from the fitted mid-ring, and whether a pixel
+    enters the fit (inside the image, finite, within ``band_mm`` of the mid-ring).
+
+    Returns
+    -------
+    rho, cos1, sin1, values : numpy.ndarray, each (M, S, L)
+        The window's pixels gathered by sector (``by_sector``; the padding reads pixel N - 1).
+    usable : numpy.ndarray of bool, (M, S, L)
+        The pixels that enter the fit (padding excluded).
+    reference_rho, reference_values : numpy.ndarray, each (K,)
+        rho and value of the ``reference`` candidates' usable pixels, candidate by candidate and in
+        window order: the order the plate's line profile sums them in.
+    """
+    count = len(centre_px)
+    height, width = image.shape
+    layout = (count,) + by_sector.shape
+    rho_s, cos_s, sin_s, values_s = (np.empty(layout) for _ in range(4))
+    usable_s = np.empty(layout, bool)
+    padding = by_sector >= len(offsets)
+    # A window wholly inside the image (nearly every candidate) reads its pixels at one flat offset
+    # each from its centre pixel: no bounds per pixel.
+    low, high = offsets.min(axis=0), offsets.max(axis=0)
+    whole = np.all((centre_px + low >= 0) & (centre_px + high < (width, height)), axis=1)
+    flat_offsets = offsets[:, 1] * width + offsets[:, 0]
+    offsets_mm = offsets.astype(float)
+    taken_rho, taken_values = [], []
+    for start in range(0, count, GEOMETRY_BLOCK):
+        block = slice(start, min(start + GEOMETRY_BLOCK, count))
+        centre = centre_px[block]
+        if whole[block].all():
+            inside = True
+            values = np.take(image, (centre[:, 1] * width + centre[:, 0])[:, None] + flat_offsets)
+        else:
+            col = centre[:, 0, None] + offsets[:, 0]                                         # (m, N)
+            row = centre[:, 1, None] + offsets[:, 1]
+            inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+            # One flat index per pixel: a single gather instead of numpy's two-axis fancy indexing.
+            values = np.take(image, np.clip(row, 0, height - 1) * width + np.clip(col, 0, width - 1))
+        values = values.astype(float)
+        relative = np.matmul(offsets_mm, np.swapaxes(jacobian[block], 1, 2)) + shift_mm[block, None, :]
+        # The angle's cosines and sines from the coordinates (no trigonometric calls on ~10^6 pixels).
+        distance = np.maximum(np.hypot(relative[..., 0], relative[..., 1]), 1e-12)
+        cos1, sin1 = relative[..., 0] / distance, relative[..., 1] / distance
+        cos2, sin2 = cos1 * cos1 - sin1 * sin1, 2 * cos1 * sin1
+        harmonic = harmonic_mm[block]
+        rho = distance - (mid_radius_mm[block, None] + harmonic[:, 0, None] * cos2 + harmonic[:, 1, None] * sin2)
+        usable = inside & (np.abs(rho) <= band_mm) & np.isfinite(values)
+        taken = usable[reference[block]]
+        if taken.size:
+            taken_rho.append(rho[reference[block]][taken])
+            taken_values.append(values[reference[block]][taken])
+        # Gathered by sector here, while the block is in the cache (the padding reads pixel N - 1).
+        for source, target in ((rho, rho_s), (cos1, cos_s), (sin1, sin_s), (values, values_s), (usable, usable_s)):
+            np.take(source, by_sector, axis=1, mode="clip", out=target[block])
+        usable_s[block] &= ~padding
+    concatenated = [np.concatenate(parts) if parts else np.empty(0) for parts in (taken_rho, taken_values)]
+    return rho_s, cos_s, sin_s, values_s, usable_s, concatenated[0], concatenated[1]
+
+
 def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray, jacobian: np.ndarray,
                    mid_radius_mm: np.ndarray, harmonic_mm: np.ndarray, reference: np.ndarray,
                    pitch_mm: tuple[float, float], band_mm: float
@@ -204,46 +275,30 @@ def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray
     groups = np.zeros(count, int)
     if count == 0 or not reference.any():
         return signature, covariance, groups
-    height, width = image.shape
     radii = mid_radius_mm[reference]
     offsets, by_sector = _window(pitch_mm, jacobian, float(radii.min()) - band_mm, float(radii.max()) + band_mm)
     centre_px = np.rint(np.einsum("mij,mj->mi", np.linalg.inv(jacobian), centres_uv - offset)).astype(int)
-    col = centre_px[:, 0, None] + offsets[:, 0]                                              # (M, N)
-    row = centre_px[:, 1, None] + offsets[:, 1]
-    inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
-    # One flat index per pixel: a single gather instead of numpy's two-axis fancy indexing.
-    values = np.take(image, np.clip(row, 0, height - 1) * width + np.clip(col, 0, width - 1)).astype(float)
-    relative = np.matmul(offsets.astype(float), np.swapaxes(jacobian, 1, 2)) + (
-        offset - centres_uv + np.einsum("mij,mj->mi", jacobian, centre_px.astype(float)))[:, None, :]
-    # The angle's cosines and sines from the coordinates (no trigonometric calls on ~10^6 pixels).
-    distance = np.maximum(np.hypot(relative[..., 0], relative[..., 1]), 1e-12)
-    cos1, sin1 = relative[..., 0] / distance, relative[..., 1] / distance
-    cos2, sin2 = cos1 * cos1 - sin1 * sin1, 2 * cos1 * sin1
-    rho = distance - (mid_radius_mm[:, None] + harmonic_mm[:, 0, None] * cos2 + harmonic_mm[:, 1, None] * sin2)
-    usable = inside & (np.abs(rho) <= band_mm) & np.isfinite(values)
+    shift_mm = offset - centres_uv + np.einsum("mij,mj->mi", jacobian, centre_px.astype(float))
+    rho_s, cos_s, sin_s, values_s, usable_s, reference_rho, reference_values = _pixel_geometry(
+        image, centre_px, offsets, by_sector, shift_mm, jacobian, mid_radius_mm, harmonic_mm, reference, band_mm)
 
     # 1. The plate's line profile from its reference candidates.
     bin_mm = PROFILE_BIN_PX * min(pitch_mm)
-    taken = usable & reference[:, None]
-    if np.count_nonzero(taken) < MIN_PIXELS:
+    if len(reference_rho) < MIN_PIXELS:
         return signature, covariance, groups
-    centres, g0, g1, g2 = _profile_tables(rho[taken], values[taken], bin_mm, band_mm)
+    centres, g0, g1, g2 = _profile_tables(reference_rho, reference_values, bin_mm, band_mm)
 
     # 2. Each candidate's fit, the single mark linearised about it plus the pair's signature, per sector.
-    # The pixels are gathered by sector first (the padded index N reads the last pixel, unused) and
-    # the design is built in that layout, a row per parameter: one gather of five arrays instead of
-    # one of the fourteen columns, no copy of the design to transpose.
-    padding = by_sector >= offsets.shape[0]
+    # The pixels were gathered by sector (the padded index N reads the last pixel, unused) and the
+    # design is built in that layout, a row per parameter: no copy of the design to transpose.
     lookup = _LinearLookup(centres, (g0, g1, g2))
     for start in range(0, count, CANDIDATE_BLOCK):
         block = slice(start, min(start + CANDIDATE_BLOCK, count))
-        use_s = _by_sector(usable[block], by_sector) & ~padding                              # (m, S, L)
-        rho_s = _by_sector(rho[block], by_sector)
-        c1, s1 = _by_sector(cos1[block], by_sector), _by_sector(sin1[block], by_sector)
+        use_s, rho, c1, s1 = usable_s[block], rho_s[block], cos_s[block], sin_s[block]
         c2, s2 = c1 * c1 - s1 * s1, 2 * c1 * s1
-        target = np.where(use_s, _by_sector(values[block], by_sector), 0.0)
+        target = np.where(use_s, values_s[block], 0.0)
         # Every column has one of these four factors: zeroed there, a pixel left out weighs nothing.
-        profile, slope, bend = lookup(rho_s, use_s)
+        profile, slope, bend = lookup(rho, use_s)
         columns = ((profile, None), (slope, c1), (slope, s1), (slope, None), (slope, c2), (slope, s2),
                    (profile, c1), (profile, s1), (use_s, None), (bend, None),
                    (bend, c2), (bend, s2), (profile, c2), (profile, s2))
