@@ -63,6 +63,11 @@ RAY_PROFILE_CHUNK = 16
 """Candidates whose sample positions are built and sampled at a time (``_ray_profiles``): their maps,
 about a megabyte, are still in the cache when ``cv2.remap`` reads them (about 10 % faster than all at once)."""
 
+REMAP_CLEAR_PX = 8
+"""Distance (pixels) from the image's border beyond which every bicubic sample of ``cv2.remap`` is
+finite, whatever its neighbours in the map (``_window_profiles``): its stencil reaches 2 pixels, and
+a sample near the border makes its vector of neighbours NaN."""
+
 WINDOW_OUTPUT_BLOCK = 16
 """Samples of the rings' correlation are computed in windows of a multiple of this many
 (``_window_correlation``): the width of OpenBLAS's single-precision kernel on AVX-512, whose
@@ -142,7 +147,9 @@ def _window_correlation(profiles: np.ndarray, template: np.ndarray, first: np.nd
             rows = origin + columns + np.arange(len(template)) - half
             kept = rows < length        # the padding columns may run past the profile: they are dropped
             matrix[rows[kept], columns[kept]] = values[kept]
-        if inner.all():     # the usual case: no copy of the profiles in or of the window out
+        if inner.all() and len(starts) == 1:     # windows sampled alone: one matrix for every candidate
+            np.matmul(profiles, matrices[0], out=window)
+        elif inner.all():   # the usual case: no copy of the profiles in or of the window out
             np.matmul(profiles, matrices[which.reshape(-1)], out=window)
         else:
             window[inner] = np.matmul(profiles[inner], matrices[which.reshape(-1)])
@@ -154,19 +161,22 @@ def _window_correlation(profiles: np.ndarray, template: np.ndarray, first: np.nd
     return np.ascontiguousarray(window[..., :outputs])
 
 
-def _correlation_at(profiles: np.ndarray, template: np.ndarray, window: np.ndarray, first: np.ndarray,
+def _correlation_at(profiles, template: np.ndarray, window: np.ndarray, first: np.ndarray,
                     position: np.ndarray) -> np.ndarray:
     """Correlation (M, A) of every profile (M, A, S) with ``template`` at its own sample index ``position``.
 
     Taken from the window's correlation (M, A, J; ``_window_correlation`` from index ``first`` (M,))
     where the position falls inside it; the few rays whose position is elsewhere are correlated whole.
+    ``profiles`` is the profiles (M, A, S), or a function that returns the whole profiles (K, S) of
+    the rays of a mask (M, A) when only their windows were sampled.
     """
     offset = position - first[:, None]
     within = (offset >= 0) & (offset < window.shape[-1])
     values = _along_last(window, np.clip(offset, 0, window.shape[-1] - 1))
     if not within.all():
         outside = ~within
-        values[outside] = _along_last(_correlate_rows(profiles[outside], template), position[outside])
+        rows = profiles(outside) if callable(profiles) else profiles[outside]
+        values[outside] = _along_last(_correlate_rows(rows, template), position[outside])
     return values
 
 
@@ -354,21 +364,37 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
         margin = (COARSE_MARGIN_PX if refinement == 0 else FINE_MARGIN_PX) * pitch_mm
         reach = half + (margin if refinement == 0 else 2 * margin) + step
         radial = (mid + np.arange(-np.ceil(reach / step), np.ceil(reach / step) + 1) * step).astype(np.float32)
-        profiles = _ray_profiles(pass_image, centres, offset, inverse, directions[rays], radial)
-        inside = (np.isfinite(profiles[..., 0]) & np.isfinite(profiles[..., -1]) if finite_image[id(pass_image)]
-                  else np.isfinite(profiles).all(axis=2))
-        if not inside.all():
-            # Only rays leaving the image hold NaN: zeroed in place (a fresh array of this pass).
-            leaving = profiles[~inside]
-            profiles[~inside] = np.where(np.isfinite(leaving), leaving, np.float32(0.0))
         # Search window (indices along the ray): +- margin about the nominal mid radius, then about
         # the last fitted one (rings of the wrong size stay in view and fail the radius check).
         centre_radius = (np.full(count, mid) if refinement == 0
                          else np.clip(radius, mid - margin, mid + margin))  # noqa: F821 (set by the previous pass)
         width = int(np.floor(2 * margin / step)) + 1
         low = np.clip(np.ceil((centre_radius - margin - radial[0]) / step).astype(int), 1, len(radial) - width - 1)
+        # The samples the window's correlation reads: the window and a neighbour on either side, and
+        # the template's reach beyond them.
+        taps = (len(pair_template) - 1) // 2
+        first_sample = low - 1 - taps
+        window_samples = width + 2 + 2 * taps
+        # The fine passes whose profiles are read in the window only (not the last tracking pass,
+        # whose whole profiles give the rings' radii) sample just that part of each ray: about a
+        # fifth fewer samples (``_window_profiles``).
+        windowed = (refinement > 0 and refinement != PASSES - 1 and finite_image[id(pass_image)]
+                    and first_sample.min() >= 0 and first_sample.max() + window_samples <= len(radial))
+        if windowed:
+            profiles, inside, whole = _window_profiles(pass_image, centres, offset, inverse, directions[rays], radial,
+                                                       first_sample, window_samples)
+        else:
+            profiles = _ray_profiles(pass_image, centres, offset, inverse, directions[rays], radial)
+            inside = (np.isfinite(profiles[..., 0]) & np.isfinite(profiles[..., -1]) if finite_image[id(pass_image)]
+                      else np.isfinite(profiles).all(axis=2))
+            whole = profiles
+        if not inside.all() and not windowed:
+            # Only rays leaving the image hold NaN: zeroed in place (a fresh array of this pass).
+            leaving = profiles[~inside]
+            profiles[~inside] = np.where(np.isfinite(leaving), leaving, np.float32(0.0))
         # The rings' correlation over the window and one neighbour on either side.
-        score = _window_correlation(profiles, pair_template, low - 1, width + 2)
+        score = (_window_correlation(profiles, pair_template, np.full(count, taps), width + 2) if windowed
+                 else _window_correlation(profiles, pair_template, low - 1, width + 2))
         index, peak_ok = _window_peak(score, low)
         edge = radial[0] + index * step
         ray_ok = inside & peak_ok & (visible[:, rays] if refinement >= 2 else True)
@@ -383,7 +409,7 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
             continue
         # Ring amplitude of every ray at the fitted circle: erased arcs read about zero there.
         position = np.clip(np.rint((at - radial[0]) / step).astype(int), 0, len(radial) - 1)
-        amplitude = np.where(inside, _correlation_at(profiles, pair_template, score, low - 1, position), np.nan)
+        amplitude = np.where(inside, _correlation_at(whole, pair_template, score, low - 1, position), np.nan)
         sector_sum = sector_sums(np.where(np.isfinite(amplitude), amplitude, 0.0), sector_of_ray)
         sector_n = sector_sums(np.isfinite(amplitude).astype(float), sector_of_ray)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -440,29 +466,114 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
                 fit_ok=fit_ok & np.isfinite(ring_radii).all(axis=1))
 
 
-def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, inverse: np.ndarray,
-                  directions: np.ndarray, radial: np.ndarray) -> np.ndarray:
-    """Image samples along rays (M, A, S) laid out in plate mm from ``centres``; NaN outside.
+def _ray_maps(centres: np.ndarray, offset: np.ndarray, inverse: np.ndarray, directions: np.ndarray):
+    """Return the rays' pixel start (M, 2) and heading along each pixel axis (2 arrays (M, A)), float32.
 
-    Rays map to pixels through each candidate's inverse affine map (pixel = J^-1 (uv - offset)).
+    Rays map to pixels through each candidate's inverse affine map (pixel = J^-1 (uv - offset)): a
+    sample at radius r lies at start + heading r, one float32 product and one sum per axis.
     """
     start = np.einsum("mij,mj->mi", inverse, centres - offset).astype(np.float32)      # (M, 2)
     # Heading of every ray along each pixel axis (M, A), contiguous: J^-1 times the ray's direction.
     headings = [(inverse[:, axis, 0, None] * directions[:, 0] + inverse[:, axis, 1, None] * directions[:, 1]
                  ).astype(np.float32) for axis in range(2)]
-    count = len(centres)
-    samples = np.empty((count, len(directions), len(radial)), np.float32)
+    return start, headings
+
+
+def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, inverse: np.ndarray,
+                  directions: np.ndarray, radial: np.ndarray) -> np.ndarray:
+    """Image samples along rays (M, A, S) laid out in plate mm from ``centres``; NaN outside.
+
+    Rays map to pixels through each candidate's inverse affine map (``_ray_maps``).
+    """
+    return _sample_rays(image, *_ray_maps(centres, offset, inverse, directions), radial)
+
+
+def _sample_rays(image: np.ndarray, start: np.ndarray, headings: list, radial: np.ndarray) -> np.ndarray:
+    """Samples (M, A, S) at start + heading r (``_ray_maps``) for the float32 radii ``radial``.
+
+    ``radial`` is (S,), the same for every candidate, or (M, S), each candidate's own.
+    """
+    count, rays = headings[0].shape
+    length = radial.shape[-1]
+    samples = np.empty((count, rays, length), np.float32)
     # A few candidates at a time, their maps built in place (heading times radius, plus the start:
     # the same float32 values) and sampled while they are still in the cache.
-    maps = np.empty((2, min(count, RAY_PROFILE_CHUNK), len(directions), len(radial)), np.float32)
+    maps = np.empty((2, min(count, RAY_PROFILE_CHUNK), rays, length), np.float32)
     for first in range(0, count, RAY_PROFILE_CHUNK):
         rows = slice(first, min(first + RAY_PROFILE_CHUNK, count))
         chunk = maps[:, :rows.stop - first]
         for axis in range(2):
-            # An outer product (each map value one float32 product, as broadcasting gives), in a
-            # third less time than a broadcast multiply's short inner loops.
-            np.einsum("i,j->ij", headings[axis][rows].reshape(-1), radial,
-                      out=chunk[axis].reshape(-1, len(radial)))                          # (m, A, S)
+            if radial.ndim == 1:
+                # An outer product (each map value one float32 product, as broadcasting gives), in a
+                # third less time than a broadcast multiply's short inner loops.
+                np.einsum("i,j->ij", headings[axis][rows].reshape(-1), radial,
+                          out=chunk[axis].reshape(-1, length))                           # (m, A, S)
+            else:
+                np.multiply(headings[axis][rows, :, None], radial[rows, None, :], out=chunk[axis])
             chunk[axis] += start[rows, None, None, axis]
         _sample_bicubic(image, chunk[0], chunk[1], out=samples[rows])
     return samples
+
+
+def _window_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, inverse: np.ndarray,
+                     directions: np.ndarray, radial: np.ndarray, first: np.ndarray, length: int):
+    """Return samples ``first`` .. ``first`` + ``length`` - 1 (M,) of every ray's profile on ``radial``.
+
+    The values ``_ray_profiles`` on the whole ``radial`` (S,) gives there, NaN of rays leaving the image
+    zeroed as the passes do, for a finite ``image``. A bicubic sample of ``cv2.remap`` is the same
+    value wherever its position stands in the map, but near the image's border whether it is NaN
+    depends on its neighbours in the map (a vector of samples with one beyond the border is all
+    NaN). So a candidate whose rays stay ``REMAP_CLEAR_PX`` inside the image is sampled over its
+    windows only (every sample finite, every ray whole); one nearer the border has its whole
+    profiles sampled, as before, and cut.
+
+    Returns
+    -------
+    profiles : numpy.ndarray, (M, A, length)
+        The samples.
+    inside : numpy.ndarray of bool, (M, A)
+        Rays that stay inside the image (both ends of the whole profile finite).
+    whole : callable
+        Given a mask (M, A), the whole profiles (K, S) of its rays, NaN of rays leaving the image zeroed.
+    """
+    height, width = image.shape
+    start, headings = _ray_maps(centres, offset, inverse, directions)
+    ends = radial[[0, -1]]
+    # The rays' ends as the maps hold them (float32 product and sum): a ray's samples lie between.
+    reach = [headings[axis][..., None] * ends + start[:, None, None, axis] for axis in range(2)]
+    clear = np.ones(len(centres), bool)
+    for axis, size in enumerate((width, height)):
+        clear &= ((reach[axis].min(axis=(1, 2)) >= REMAP_CLEAR_PX)
+                  & (reach[axis].max(axis=(1, 2)) <= size - 1 - REMAP_CLEAR_PX))
+    count, rays = headings[0].shape
+    profiles = np.empty((count, rays, length), np.float32)
+    inside = np.ones((count, rays), bool)
+    near, full = np.flatnonzero(~clear), None
+    if clear.all():
+        profiles = _sample_rays(image, start, headings, radial[first[:, None] + np.arange(length)])
+    else:
+        far = np.flatnonzero(clear)
+        if len(far):
+            profiles[far] = _sample_rays(image, start[far], [heading[far] for heading in headings],
+                                         radial[first[far, None] + np.arange(length)])
+        full = _sample_rays(image, start[near], [heading[near] for heading in headings], radial)
+        inside[near] = np.isfinite(full[..., 0]) & np.isfinite(full[..., -1])
+        full = np.where(np.isfinite(full), full, np.float32(0.0))
+        profiles[near] = _runs(full, np.broadcast_to(first[near, None], full.shape[:2]), length)
+
+    def whole(mask: np.ndarray) -> np.ndarray:
+        """Whole profiles (K, S) of the rays of ``mask`` (M, A), in its order."""
+        candidate, ray = np.nonzero(mask)
+        rows = np.empty((len(candidate), len(radial)), np.float32)
+        from_full = ~clear[candidate]
+        if from_full.any():
+            rows[from_full] = full[np.searchsorted(near, candidate[from_full]), ray[from_full]]
+        sampled = ~from_full
+        if sampled.any():
+            # Each ray a row of the map (at least 8 samples: shorter rows of cv2.remap come out NaN).
+            maps = [headings[axis][candidate[sampled], ray[sampled], None] * radial
+                    + start[candidate[sampled], axis, None] for axis in range(2)]
+            rows[sampled] = _sample_bicubic(image, *maps)
+        return rows
+
+    return profiles, inside, whole
