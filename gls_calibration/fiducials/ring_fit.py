@@ -545,17 +545,12 @@ def _window_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray,
     for axis, size in enumerate((width, height)):
         clear &= ((reach[axis].min(axis=(1, 2)) >= REMAP_CLEAR_PX)
                   & (reach[axis].max(axis=(1, 2)) <= size - 1 - REMAP_CLEAR_PX))
-    count, rays = headings[0].shape
-    profiles = np.empty((count, rays, length), np.float32)
-    inside = np.ones((count, rays), bool)
+    # Every candidate's windows (no copy of the clear ones' samples), the few near the border
+    # replaced by the cut of their whole profiles.
+    profiles = _sample_rays(image, start, headings, radial[first[:, None] + np.arange(length)])
+    inside = np.ones(headings[0].shape, bool)
     near, full = np.flatnonzero(~clear), None
-    if clear.all():
-        profiles = _sample_rays(image, start, headings, radial[first[:, None] + np.arange(length)])
-    else:
-        far = np.flatnonzero(clear)
-        if len(far):
-            profiles[far] = _sample_rays(image, start[far], [heading[far] for heading in headings],
-                                         radial[first[far, None] + np.arange(length)])
+    if len(near):
         full = _sample_rays(image, start[near], [heading[near] for heading in headings], radial)
         inside[near] = np.isfinite(full[..., 0]) & np.isfinite(full[..., -1])
         full = np.where(np.isfinite(full), full, np.float32(0.0))
