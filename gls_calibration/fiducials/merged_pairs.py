@@ -200,7 +200,8 @@ def _pixel_geometry(image: np.ndarray, centre_px: np.ndarray, offsets: np.ndarra
     Returns
     -------
     rho, cos1, sin1, values : numpy.ndarray, each (M, S, L)
-        The window's pixels gathered by sector (``by_sector``; the padding reads pixel N - 1).
+        The window's pixels gathered by sector (``by_sector``; the padding reads pixel N - 1); the
+        values in the image's dtype.
     usable : numpy.ndarray of bool, (M, S, L)
         The pixels that enter the fit (padding excluded).
     reference_rho, reference_values : numpy.ndarray, each (K,)
@@ -210,7 +211,8 @@ def _pixel_geometry(image: np.ndarray, centre_px: np.ndarray, offsets: np.ndarra
     count = len(centre_px)
     height, width = image.shape
     layout = (count,) + by_sector.shape
-    rho_s, cos_s, sin_s, values_s = (np.empty(layout) for _ in range(4))
+    rho_s, cos_s, sin_s = (np.empty(layout) for _ in range(3))
+    values_s = np.empty(layout, image.dtype)        # the image's own values: cast where they enter a product
     usable_s = np.empty(layout, bool)
     padding = by_sector >= len(offsets)
     # A window wholly inside the image (nearly every candidate) reads its pixels at one flat offset
@@ -218,7 +220,7 @@ def _pixel_geometry(image: np.ndarray, centre_px: np.ndarray, offsets: np.ndarra
     low, high = offsets.min(axis=0), offsets.max(axis=0)
     whole = np.all((centre_px + low >= 0) & (centre_px + high < (width, height)), axis=1)
     flat_offsets = offsets[:, 1] * width + offsets[:, 0]
-    offsets_mm = offsets.astype(float)
+    offsets_mm = np.ascontiguousarray(offsets.T, dtype=float)                              # (2, N)
     taken_rho, taken_values = [], []
     for start in range(0, count, GEOMETRY_BLOCK):
         block = slice(start, min(start + GEOMETRY_BLOCK, count))
@@ -232,11 +234,17 @@ def _pixel_geometry(image: np.ndarray, centre_px: np.ndarray, offsets: np.ndarra
             inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
             # One flat index per pixel: a single gather instead of numpy's two-axis fancy indexing.
             values = np.take(image, np.clip(row, 0, height - 1) * width + np.clip(col, 0, width - 1))
-        values = values.astype(float)
-        relative = np.matmul(offsets_mm, np.swapaxes(jacobian[block], 1, 2)) + shift_mm[block, None, :]
+        # Each pixel's plate position relative to the centre, u and v in rows of their own: one
+        # product of the block's Jacobians (2m, 2) with the offsets (2, N), the same sums of two
+        # products per pixel as J @ offset (on this OpenBLAS the same to the bit, checked on the
+        # plates of benchmarks/fiducial_identity.py), then the shift.
+        relative = jacobian[block].reshape(-1, 2) @ offsets_mm                             # (2m, N)
+        u, v = relative[0::2], relative[1::2]
+        u += shift_mm[block, 0, None]
+        v += shift_mm[block, 1, None]
         # The angle's cosines and sines from the coordinates (no trigonometric calls on ~10^6 pixels).
-        distance = np.maximum(np.hypot(relative[..., 0], relative[..., 1]), 1e-12)
-        cos1, sin1 = relative[..., 0] / distance, relative[..., 1] / distance
+        distance = np.maximum(np.hypot(u, v), 1e-12)
+        cos1, sin1 = u / distance, v / distance
         cos2, sin2 = cos1 * cos1 - sin1 * sin1, 2 * cos1 * sin1
         harmonic = harmonic_mm[block]
         rho = distance - (mid_radius_mm[block, None] + harmonic[:, 0, None] * cos2 + harmonic[:, 1, None] * sin2)
@@ -296,7 +304,7 @@ def pair_signature(image: np.ndarray, centres_uv: np.ndarray, offset: np.ndarray
         block = slice(start, min(start + CANDIDATE_BLOCK, count))
         use_s, rho, c1, s1 = usable_s[block], rho_s[block], cos_s[block], sin_s[block]
         c2, s2 = c1 * c1 - s1 * s1, 2 * c1 * s1
-        target = np.where(use_s, values_s[block], 0.0)
+        target = np.where(use_s, values_s[block].astype(float), 0.0)
         # Every column has one of these four factors: zeroed there, a pixel left out weighs nothing.
         profile, slope, bend = lookup(rho, use_s)
         columns = ((profile, None), (slope, c1), (slope, s1), (slope, None), (slope, c2), (slope, s2),
