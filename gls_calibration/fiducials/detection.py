@@ -19,6 +19,9 @@ DETECTION_SIGMAS = 4.0
 MIN_DETECTION_SCORE = 0.12
 """Lowest normalised correlation accepted as a candidate whatever the steel looks like."""
 
+LOG_BLOCK_PIXELS = 1 << 16
+"""Pixels of the intensity image clipped and logged at a time (``log_intensity_image``)."""
+
 PREWHITENING_TILE_PX = 32
 """Side (pixels) of the bare-steel tiles whose averaged periodogram is the noise spectrum the centre
 fit is prewhitened by (``prewhitening_kernel``): 1/32 cycle per pixel resolves speckle correlated
@@ -44,8 +47,15 @@ def log_intensity_image(intensity: np.ndarray) -> np.ndarray:
     """
     # Every 4th pixel per axis gives the median to ~0.1 % at a 16th of the cost.
     floor = 0.01 * max(float(np.median(intensity[::4, ::4])), 1e-12)
-    clipped = np.maximum(intensity, floor)
-    return np.log(clipped, out=clipped).astype(np.float32)      # in place: one image-sized array less
+    logged = np.empty(intensity.shape, np.float32)
+    # A band of rows at a time: the clipped intensities (float64 for a float64 image) stay in the
+    # cache instead of an image-sized array, and the log is cast to float32 as it is written.
+    rows = max(1, LOG_BLOCK_PIXELS // max(intensity.shape[1], 1))
+    for start in range(0, len(intensity), rows):
+        band = np.maximum(intensity[start:start + rows], floor)
+        np.log(band, out=band)
+        logged[start:start + rows] = band
+    return logged
 
 
 def refinement_image(log_intensity: np.ndarray) -> np.ndarray:
@@ -55,7 +65,8 @@ def refinement_image(log_intensity: np.ndarray) -> np.ndarray:
     ``HIGH_PASS_SIGMA_PX`` (removes shading and the coarse part of correlated speckle, keeps the
     thin ring lines).
     """
-    return log_intensity - cv2.GaussianBlur(log_intensity, (0, 0), HIGH_PASS_SIGMA_PX)
+    blurred = cv2.GaussianBlur(log_intensity, (0, 0), HIGH_PASS_SIGMA_PX)
+    return np.subtract(log_intensity, blurred, out=blurred)      # into the blur: one image-sized array less
 
 
 def prewhitening_kernel(log_intensity: np.ndarray, candidates_px: np.ndarray,
