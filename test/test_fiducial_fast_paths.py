@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from gls_calibration.fiducials.detection import _correlation_peaks, _detection_image
 from gls_calibration.fiducials.ring_fit import (_correlate_rows, _correlation_at, _peak, _ray_profiles, _sample_bicubic,
-                                                _runs, _window_correlation)
+                                                _runs, _window_correlation, _window_profiles)
 
 
 def _reference_peak(score: np.ndarray, low: np.ndarray, width: int):
@@ -149,3 +149,26 @@ def test_runs_are_the_sliding_window_views_gather():
     expected = np.lib.stride_tricks.sliding_window_view(values, 13, axis=-1)[
         np.arange(7)[:, None], np.arange(11)[None, :], first]
     np.testing.assert_array_equal(_runs(values, first, 13), expected)
+
+
+def test_window_profiles_are_the_whole_profiles_there_also_at_the_border():
+    rng = np.random.default_rng(8)
+    image = rng.normal(size=(150, 170)).astype(np.float32)
+    count, rays, length = 12, 64, 30
+    # Half the candidates well inside, half with rays that reach or cross the border.
+    centres = np.concatenate([rng.uniform(5.0, 10.0, (count // 2, 2)), rng.uniform(1.5, 3.0, (count // 2, 2))])
+    offset = np.zeros((count, 2))
+    inverse = np.linalg.inv(np.array([[0.1, 0.002], [-0.001, 0.1]]) + rng.normal(0, 0.002, (count, 2, 2)))
+    angles = np.linspace(0.0, 2 * np.pi, rays, endpoint=False)
+    directions = np.stack([np.cos(angles), np.sin(angles)], -1)
+    radial = np.linspace(2.0, 3.4, 71).astype(np.float32)
+    first = rng.integers(0, len(radial) - length + 1, count)
+    profiles, inside, whole = _window_profiles(image, centres, offset, inverse, directions, radial, first, length)
+    expected = _ray_profiles(image, centres, offset, inverse, directions, radial)
+    expected_inside = np.isfinite(expected[..., 0]) & np.isfinite(expected[..., -1])
+    expected = np.where(np.isfinite(expected), expected, np.float32(0.0))
+    np.testing.assert_array_equal(inside, expected_inside)
+    assert not inside[count // 2:].all() and inside[:count // 2].all()
+    np.testing.assert_array_equal(profiles, _runs(expected, np.broadcast_to(first[:, None], (count, rays)), length))
+    mask = rng.random((count, rays)) < 0.2
+    np.testing.assert_array_equal(whole(mask), expected[mask])
