@@ -489,7 +489,7 @@ def _ray_profiles(image: np.ndarray, centres: np.ndarray, offset: np.ndarray, in
 
 
 def _sample_rays(image: np.ndarray, start: np.ndarray, headings: list, radial: np.ndarray) -> np.ndarray:
-    """Samples (M, A, S) at start + heading r (``_ray_maps``) for the float32 radii ``radial``.
+    """Return samples (M, A, S) at start + heading r (``_ray_maps``) for the float32 radii ``radial``.
 
     ``radial`` is (S,), the same for every candidate, or (M, S), each candidate's own.
     """
