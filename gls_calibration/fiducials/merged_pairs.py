@@ -181,11 +181,6 @@ def _window(pitch_mm: tuple[float, float], jacobian: np.ndarray, inner_mm: float
     return offsets, by_sector
 
 
-def _by_sector(values: np.ndarray, by_sector: np.ndarray) -> np.ndarray:
-    """Gather each candidate's pixels (m, N) by sector (m, S, L); the padding index N reads pixel N - 1."""
-    return np.take(values, by_sector, axis=1, mode="clip")
-
-
 def _pixel_geometry(image: np.ndarray, centre_px: np.ndarray, offsets: np.ndarray, by_sector: np.ndarray,
                     shift_mm: np.ndarray, jacobian: np.ndarray, mid_radius_mm: np.ndarray,
                     harmonic_mm: np.ndarray, reference: np.ndarray, band_mm: float):

@@ -387,11 +387,11 @@ def refine_ring_centres(image: np.ndarray, centres_uv: np.ndarray, offset: np.nd
             profiles = _ray_profiles(pass_image, centres, offset, inverse, directions[rays], radial)
             inside = (np.isfinite(profiles[..., 0]) & np.isfinite(profiles[..., -1]) if finite_image[id(pass_image)]
                       else np.isfinite(profiles).all(axis=2))
+            if not inside.all():
+                # Only rays leaving the image hold NaN: zeroed in place (a fresh array of this pass).
+                leaving = profiles[~inside]
+                profiles[~inside] = np.where(np.isfinite(leaving), leaving, np.float32(0.0))
             whole = profiles
-        if not inside.all() and not windowed:
-            # Only rays leaving the image hold NaN: zeroed in place (a fresh array of this pass).
-            leaving = profiles[~inside]
-            profiles[~inside] = np.where(np.isfinite(leaving), leaving, np.float32(0.0))
         # The rings' correlation over the window and one neighbour on either side.
         score = (_window_correlation(profiles, pair_template, np.full(count, taps), width + 2) if windowed
                  else _window_correlation(profiles, pair_template, low - 1, width + 2))
