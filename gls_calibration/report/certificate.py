@@ -13,11 +13,10 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
-from matplotlib.figure import Figure
 import numpy as np
 
 from gls_calibration.common.files import atomic_write_text
-from gls_calibration.report.files import save_figure
+from gls_calibration.report.files import report_figure, save_figure
 
 MAP_FILE = "uncertainty_map.png"
 VALIDATION_FILE = "validation.csv"
@@ -53,7 +52,7 @@ def validation_csv_text(targets_xy: np.ndarray, u: np.ndarray, true_deviations: 
 
 def plot_u_map(path: Path, grid, targets_xy: Optional[np.ndarray]) -> Path:
     """U over the calibrated field (colour), the validation targets as dots."""
-    figure = Figure(figsize=(6.0, 5.0))
+    figure = report_figure(6.0, 5.0, left_in=0.85, right_in=0.45, bottom_in=0.6)
     axes = figure.subplots()
     image = axes.pcolormesh(grid.x_mm, grid.y_mm, grid.u_k2_mm, shading="gouraud", cmap="magma")
     if targets_xy is not None:
@@ -63,7 +62,6 @@ def plot_u_map(path: Path, grid, targets_xy: Optional[np.ndarray]) -> Path:
     axes.set_xlabel("x (mm)")
     axes.set_ylabel("y (mm)")
     axes.set_title("expanded uncertainty of a corrected target", fontsize=10)
-    figure.tight_layout()
     return save_figure(figure, path)
 
 
