@@ -80,6 +80,10 @@ MAX_PIXEL_RADIUS_FRACTION = 0.2
 radius (0.5 mm for 2.5 mm rings, a raster too coarse to see the rings): beyond, the spacing is
 taken for a units mistake and refused."""
 
+FINITE_BLOCK_POINTS = 32_768
+"""Points whose finiteness is checked at a time (``_finite_points``): their coordinates, 0.8 MB,
+stay in the cache for the check of each axis."""
+
 FILL_BOX_SIZES = (3, 5, 9, 17, 33)
 """Box sizes (pixels) tried in turn to fill a missing pixel from its valid neighbours; beyond the last,
 the image's median."""
@@ -178,10 +182,15 @@ def _fill_missing(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 def _finite_points(xyz: np.ndarray, intensity: np.ndarray) -> np.ndarray:
     """Mask (intensity's shape) of the points whose coordinates (xyz (..., 3)) and intensity are finite."""
-    finite = np.isfinite(intensity)
-    for axis in range(3):           # column by column: a third of the time of isfinite(xyz).all(axis=-1)
-        finite &= np.isfinite(xyz[..., axis])
-    return finite
+    # Column by column (a third of the time of isfinite(xyz).all(axis=-1)), in blocks of
+    # ``FINITE_BLOCK_POINTS`` points: the three strided passes over a block read it from the cache,
+    # not the whole cloud from memory three times (half the time on a 2060x2060 scan).
+    finite, points = np.isfinite(intensity).reshape(-1), xyz.reshape(-1, 3)
+    for start in range(0, len(finite), FINITE_BLOCK_POINTS):
+        block = slice(start, start + FINITE_BLOCK_POINTS)
+        for axis in range(3):
+            finite[block] &= np.isfinite(points[block, axis])
+    return finite.reshape(intensity.shape)
 
 
 def _median_spacing(lines_uv: np.ndarray, axis: int) -> float:
@@ -196,7 +205,7 @@ def _median_spacing(lines_uv: np.ndarray, axis: int) -> float:
     lengths = lengths[np.isfinite(lengths)]
     if lengths.size == 0:
         raise ValueError("organized cloud has no two neighbouring finite points")
-    return float(np.median(lengths))
+    return float(np.median(lengths, overwrite_input=True))     # partitioned in place: our own copy
 
 
 def organized_image(xyz: np.ndarray, intensity: np.ndarray, pose: PlatePose) -> _PlateImage:
